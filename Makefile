@@ -1,0 +1,27 @@
+# Fresh machine: `make demo` runs the main job, `make test` the test suite. Both build .venv first.
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test venv clean
+
+venv: $(STAMP)
+
+# torch first, pinned to the CPU wheel: a bare `torch` requirement would pull GBs of CUDA packages.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/pip install --quiet -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m deepcharuco.detect deepcharuco/examples/board_320x240.png \
+		--camera deepcharuco/examples/webcam_320x240.yaml --out demo_out
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+clean:
+	rm -rf $(VENV) demo_out detect_out .pytest_cache

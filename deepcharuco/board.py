@@ -1,0 +1,325 @@
+"""ChArUco board geometry: the board description, its corner points and its printable texture.
+
+Board frame (OpenCV's, >= 4.6): origin at the top-left outer corner of the square grid,
+X to the right along a row, Y down along a column, Z into the board; units are metres.
+Inner corner ``i`` is ``cv2.aruco.CharucoBoard.getChessboardCorners()[i]``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, fields
+from functools import cached_property
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from deepcharuco.errors import BoardSpecError
+
+# Textures larger than this per side are almost certainly a units mistake (px/mm vs px/m).
+MAX_TEXTURE_SIDE = 16384
+
+
+def dictionary_names() -> list[str]:
+    """The ArUco dictionary names OpenCV knows, e.g. ``DICT_5X5_50`` (upper case, sorted)."""
+    return sorted({name.upper() for name in dir(cv2.aruco) if name.startswith("DICT_")})
+
+
+def _dictionary_id(name: str) -> int:
+    for attr in dir(cv2.aruco):
+        if attr.upper() == name.upper() and attr.startswith("DICT_"):
+            return int(getattr(cv2.aruco, attr))
+    raise BoardSpecError(
+        f"unknown ArUco dictionary {name!r}; use one of: {', '.join(dictionary_names())}"
+    )
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A ChArUco board: the default is the paper's 5x5 board with DICT_5X5_50 markers 0..11.
+
+    Attributes:
+        squares_x: squares along X (columns).
+        squares_y: squares along Y (rows).
+        square_length: side of a chessboard square in metres.
+        marker_length: side of an ArUco marker in metres (< square_length).
+        dictionary: OpenCV ArUco dictionary name, e.g. ``"DICT_5X5_50"``.
+        legacy: OpenCV's pre-4.6 layout (``CharucoBoard.setLegacyPattern``): for an even
+            number of rows the top-left square is white instead of black.
+    """
+
+    squares_x: int = 5
+    squares_y: int = 5
+    square_length: float = 0.04
+    marker_length: float = 0.03
+    dictionary: str = "DICT_5X5_50"
+    legacy: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("squares_x", "squares_y"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise BoardSpecError(f"{name} must be an integer, got {value!r}")
+            if value < 3:
+                raise BoardSpecError(
+                    f"{name} must be >= 3 (a board needs a 2D grid of inner corners for a pose), got {value}"
+                )
+            object.__setattr__(self, name, int(value))
+        for name in ("square_length", "marker_length"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise BoardSpecError(f"{name} must be a number in metres, got {value!r}")
+            if not math.isfinite(value) or value <= 0:
+                raise BoardSpecError(f"{name} must be a positive length in metres, got {value}")
+            object.__setattr__(self, name, float(value))
+        if self.marker_length >= self.square_length:
+            raise BoardSpecError(
+                f"marker_length ({self.marker_length} m) must be smaller than square_length "
+                f"({self.square_length} m): a marker sits inside a white square with a white border"
+            )
+        if not isinstance(self.dictionary, str):
+            raise BoardSpecError(f"dictionary must be a name such as 'DICT_5X5_50', got {self.dictionary!r}")
+        object.__setattr__(self, "dictionary", self.dictionary.upper())
+        dictionary_size = self.cv_dictionary().bytesList.shape[0]
+        if self.num_markers > dictionary_size:
+            raise BoardSpecError(
+                f"a {self.squares_x}x{self.squares_y} board needs {self.num_markers} markers but "
+                f"{self.dictionary} has only {dictionary_size}; use a larger dictionary "
+                f"(e.g. {self.dictionary.rsplit('_', 1)[0]}_250) or fewer squares"
+            )
+        if not isinstance(self.legacy, (bool, np.bool_)):
+            raise BoardSpecError(f"legacy must be true or false, got {self.legacy!r}")
+        object.__setattr__(self, "legacy", bool(self.legacy))
+
+    # ----------------------------------------------------------------- geometry
+    @property
+    def num_markers(self) -> int:
+        """Markers on the board: one in every white square (half the squares, either layout)."""
+        return self.squares_x * self.squares_y // 2
+
+    @property
+    def num_corners(self) -> int:
+        """Inner chessboard corners, i.e. the corner IDs 0 .. num_corners-1."""
+        return (self.squares_x - 1) * (self.squares_y - 1)
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """(width, height) of the square grid in metres, without any margin."""
+        return self.squares_x * self.square_length, self.squares_y * self.square_length
+
+    def cv_dictionary(self) -> cv2.aruco.Dictionary:
+        return cv2.aruco.getPredefinedDictionary(_dictionary_id(self.dictionary))
+
+    @cached_property
+    def _cv_board(self) -> cv2.aruco.CharucoBoard:
+        board = cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, self.cv_dictionary()
+        )
+        board.setLegacyPattern(self.legacy)
+        return board
+
+    def cv_board(self) -> cv2.aruco.CharucoBoard:
+        """The matching ``cv2.aruco.CharucoBoard`` (built once per spec, shared)."""
+        return self._cv_board
+
+    def corner_points(self) -> np.ndarray:
+        """(C, 3) float64 board-frame positions (m) of the inner corners, row i = corner ID i."""
+        return np.asarray(self.cv_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+
+    def marker_corners(self) -> tuple[np.ndarray, np.ndarray]:
+        """Marker IDs (M,) and their corners (M, 4, 3) in the board frame, clockwise from top-left."""
+        board = self.cv_board()
+        ids = np.asarray(board.getIds(), dtype=np.int64).ravel()
+        return ids, np.asarray(board.getObjPoints(), dtype=np.float64).reshape(-1, 4, 3)
+
+    # ----------------------------------------------------------------- texture
+    def render_texture(self, px_per_m: float, margin: float = 0.0) -> "BoardTexture":
+        """Render the printed board, area-exact, at ``px_per_m`` pixels per metre.
+
+        Every pixel holds the exact fraction of its square that is white paper (box-filter
+        anti-aliasing), so the texture carries sub-pixel geometry at any resolution.
+        ``margin`` is a white border in metres around the square grid. See `BoardTexture`
+        for the map between texture pixels and board metres.
+        """
+        return BoardTexture.render(self, px_per_m, margin)
+
+    # ----------------------------------------------------------------- (de)serialisation
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "BoardSpec":
+        if not isinstance(data, dict):
+            raise BoardSpecError(f"a board description must be a mapping, got {type(data).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise BoardSpecError(f"unknown board field(s) {unknown}; known fields: {sorted(known)}")
+        return cls(**data)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "BoardSpec":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise BoardSpecError(f"board JSON is not valid JSON: {exc}") from exc
+        return cls.from_dict(data)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the spec as JSON (``.json``) or OpenCV-readable YAML (``.yaml``/``.yml``)."""
+        path = Path(path)
+        suffix = path.suffix.lower()
+        if suffix == ".json":
+            path.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+        elif suffix in (".yaml", ".yml"):
+            lines = ["%YAML:1.0", "---"]
+            for key, value in self.to_dict().items():
+                text = ("true" if value else "false") if isinstance(value, bool) else value
+                lines.append(f"{key}: {text}")
+            path.write_text("\n".join(lines) + "\n")
+        else:
+            raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "BoardSpec":
+        """Read a spec written by `save` (or by hand) from a .json/.yaml/.yml file."""
+        path = Path(path)
+        if not path.is_file():
+            raise BoardSpecError(f"board file {path} does not exist")
+        suffix = path.suffix.lower()
+        if suffix == ".json":
+            return cls.from_json(path.read_text())
+        if suffix in (".yaml", ".yml"):
+            return cls.from_dict(_read_flat_yaml(path))
+        raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
+
+
+def _read_flat_yaml(path: Path) -> dict:
+    """Read a flat YAML mapping of scalars with OpenCV's parser (no PyYAML dependency)."""
+    text = path.read_text()
+    if not text.lstrip().startswith("%YAML"):
+        text = "%YAML:1.0\n---\n" + text  # OpenCV insists on the directive; hand-written files lack it
+    try:
+        storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (cv2.error, SystemError) as exc:
+        raise BoardSpecError(f"{path} is not valid YAML: {exc}") from exc
+    data: dict = {}
+    for key in storage.root().keys():
+        node = storage.getNode(key)
+        if node.isInt():
+            data[key] = int(node.real())
+        elif node.isReal():
+            data[key] = node.real()
+        elif node.isString():
+            value = node.string()
+            lowered = value.strip().lower()
+            data[key] = {"true": True, "false": False}.get(lowered, value)
+        else:
+            raise BoardSpecError(f"{path}: field {key!r} must be a scalar")
+    storage.release()
+    return data
+
+
+def _coverage_1d(n_px: int, lo: float, hi: float) -> tuple[int, np.ndarray]:
+    """Fraction of each pixel [k, k+1) (edge coordinates) covered by [lo, hi).
+
+    Returns the first pixel index and the coverage of the pixels from there on.
+    """
+    first = max(int(math.floor(lo)), 0)
+    last = min(int(math.ceil(hi)), n_px)
+    k = np.arange(first, last, dtype=np.float64)
+    return first, np.clip(np.minimum(k + 1.0, hi) - np.maximum(k, lo), 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class BoardTexture:
+    """A rendered board texture and its exact map to board metres.
+
+    The map (pixel centres in OpenCV's convention, board frame of `BoardSpec`):
+
+        X = (u + 0.5) / px_per_m - margin        u = (X + margin) * px_per_m - 0.5
+        Y = (v + 0.5) / px_per_m - margin        v = (Y + margin) * px_per_m - 0.5
+
+    i.e. the top-left edge of the texture is board point (-margin, -margin) and the
+    texture spans ``size_m`` metres. When the grid plus margins is not a whole number of
+    pixels, the texture is one partial pixel larger and that strip is white paper.
+    """
+
+    board: BoardSpec
+    image: np.ndarray  # (H, W) uint8, 255 = white paper
+    px_per_m: float
+    margin: float
+
+    @classmethod
+    def render(cls, board: BoardSpec, px_per_m: float, margin: float = 0.0) -> "BoardTexture":
+        if not math.isfinite(px_per_m) or px_per_m <= 0:
+            raise BoardSpecError(f"px_per_m must be positive, got {px_per_m}")
+        if not math.isfinite(margin) or margin < 0:
+            raise BoardSpecError(f"margin must be >= 0 metres, got {margin}")
+        width_m, height_m = board.size_m
+        width = math.ceil((width_m + 2 * margin) * px_per_m - 1e-9)
+        height = math.ceil((height_m + 2 * margin) * px_per_m - 1e-9)
+        if max(width, height) > MAX_TEXTURE_SIDE:
+            raise BoardSpecError(
+                f"texture of {width}x{height} px is too large (max {MAX_TEXTURE_SIDE} per side): "
+                f"px_per_m={px_per_m} is pixels per metre, not per millimetre"
+            )
+        ink = np.zeros((height, width), dtype=np.float64)
+
+        def add(x0: float, y0: float, x1: float, y1: float, sign: float) -> None:
+            to_px = lambda m: (m + margin) * px_per_m  # noqa: E731 - board metres -> pixel edges
+            cx0, cov_x = _coverage_1d(width, to_px(x0), to_px(x1))
+            cy0, cov_y = _coverage_1d(height, to_px(y0), to_px(y1))
+            ink[cy0 : cy0 + cov_y.size, cx0 : cx0 + cov_x.size] += sign * np.outer(cov_y, cov_x)
+
+        square = board.square_length
+        ids, marker_corners = board.marker_corners()
+        white_squares = {
+            (int(c[:, 0].mean() // square), int(c[:, 1].mean() // square)) for c in marker_corners
+        }
+        for row in range(board.squares_y):
+            for col in range(board.squares_x):
+                if (col, row) not in white_squares:
+                    add(col * square, row * square, (col + 1) * square, (row + 1) * square, 1.0)
+
+        dictionary = board.cv_dictionary()
+        cells = dictionary.markerSize + 2  # one black border cell each side, as OpenCV prints
+        for marker_id, corners in zip(ids, marker_corners):
+            x0, y0 = corners[:, 0].min(), corners[:, 1].min()
+            x1, y1 = corners[:, 0].max(), corners[:, 1].max()
+            if not np.allclose(corners[0, :2], (x0, y0)):
+                raise AssertionError("OpenCV marker corners are expected clockwise from the top-left")
+            add(x0, y0, x1, y1, 1.0)
+            bits = cv2.aruco.generateImageMarker(dictionary, int(marker_id), cells, borderBits=1)
+            cell = (x1 - x0) / cells
+            for r, c in zip(*np.nonzero(bits)):
+                add(x0 + c * cell, y0 + r * cell, x0 + (c + 1) * cell, y0 + (r + 1) * cell, -1.0)
+
+        image = np.round(255.0 * (1.0 - np.clip(ink, 0.0, 1.0))).astype(np.uint8)
+        return cls(board=board, image=image, px_per_m=float(px_per_m), margin=float(margin))
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """(width, height) in metres that the texture image covers."""
+        height, width = self.image.shape
+        return width / self.px_per_m, height / self.px_per_m
+
+    def texture_to_board_matrix(self) -> np.ndarray:
+        """3x3 affine map from homogeneous texture pixels (u, v, 1) to board (X, Y, 1)."""
+        s = 1.0 / self.px_per_m
+        offset = 0.5 * s - self.margin
+        return np.array([[s, 0.0, offset], [0.0, s, offset], [0.0, 0.0, 1.0]])
+
+    def texture_to_board(self, uv: np.ndarray) -> np.ndarray:
+        """(..., 2) texture pixels -> (..., 2) board metres."""
+        return (np.asarray(uv, dtype=np.float64) + 0.5) / self.px_per_m - self.margin
+
+    def board_to_texture(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) board metres (X, Y) -> (..., 2) texture pixels."""
+        return (np.asarray(xy, dtype=np.float64)[..., :2] + self.margin) * self.px_per_m - 0.5

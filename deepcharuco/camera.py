@@ -1,0 +1,113 @@
+"""Pinhole camera intrinsics and their OpenCV FileStorage YAML files."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from deepcharuco.errors import CameraFileError
+
+
+@dataclass(frozen=True)
+class Camera:
+    """OpenCV pinhole intrinsics for images of ``image_size`` = (width, height) pixels.
+
+    Attributes:
+        K: (3, 3) float64 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]].
+        dist: (D,) float64 OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]).
+        image_size: (width, height) in pixels the intrinsics belong to.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    image_size: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise CameraFileError(f"camera_matrix must be a finite 3x3 matrix, got shape {K.shape}")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], (0.0, 0.0, 1.0)):
+            raise CameraFileError(f"camera_matrix is not a pinhole matrix (fx, fy > 0, last row 0 0 1):\n{K}")
+        dist = np.asarray(self.dist if self.dist is not None else np.zeros(5), dtype=np.float64).reshape(-1)
+        if dist.size not in (0, 4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+            raise CameraFileError(
+                f"distortion_coefficients must hold 4, 5, 8, 12 or 14 finite values, got {dist.size}"
+            )
+        width, height = (int(v) for v in self.image_size)
+        if width <= 0 or height <= 0:
+            raise CameraFileError(f"image size must be positive, got {self.image_size}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "image_size", (width, height))
+
+    @classmethod
+    def from_fov(cls, width: int = 320, height: int = 240, hfov_deg: float = 60.0) -> "Camera":
+        """An undistorted camera with square pixels, centred principal point and the given FOV."""
+        fx = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        K = np.array([[fx, 0.0, (width - 1) / 2.0], [0.0, fx, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+        return cls(K=K, dist=np.zeros(5), image_size=(width, height))
+
+    def scaled(self, width: int, height: int) -> "Camera":
+        """Intrinsics of the same camera with its images resized to (width, height).
+
+        Pixel centres follow OpenCV's convention (top-left pixel centre at (0, 0)), so a
+        point at u maps to (u + 0.5) * sx - 0.5: fx' = sx fx, cx' = sx (cx + 0.5) - 0.5 —
+        exactly what ``cv2.resize`` does to the image. Distortion is scale-free.
+        """
+        sx = width / self.image_size[0]
+        sy = height / self.image_size[1]
+        K = self.K.copy()
+        K[0, 0] *= sx
+        K[0, 1] *= sx
+        K[0, 2] = sx * (K[0, 2] + 0.5) - 0.5
+        K[1, 1] *= sy
+        K[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
+        return Camera(K=K, dist=self.dist.copy(), image_size=(width, height))
+
+
+def read_camera(path: str | Path) -> Camera:
+    """Read intrinsics from an OpenCV FileStorage file (YAML/XML/JSON), as calibration writes them.
+
+    Required nodes: ``camera_matrix``; optional ``distortion_coefficients`` (zeros when
+    absent), ``image_width`` and ``image_height``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CameraFileError(f"camera file {path} does not exist (write one with deepcharuco.write_camera)")
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:
+        raise CameraFileError(
+            f"{path} is not an OpenCV FileStorage file ({exc.__class__.__name__}); it must start with "
+            f"'%YAML:1.0' and hold camera_matrix as an opencv-matrix"
+        ) from exc
+    try:
+        K = storage.getNode("camera_matrix").mat()
+        if K is None:
+            raise CameraFileError(f"{path} has no camera_matrix (an opencv-matrix node)")
+        dist = storage.getNode("distortion_coefficients").mat()
+        width_node, height_node = storage.getNode("image_width"), storage.getNode("image_height")
+        if width_node.empty() or height_node.empty():
+            raise CameraFileError(f"{path} lacks image_width / image_height: add the calibration resolution")
+        size = (int(width_node.real()), int(height_node.real()))
+    finally:
+        storage.release()
+    return Camera(K=K, dist=np.zeros(5) if dist is None else dist, image_size=size)
+
+
+def write_camera(path: str | Path, camera: Camera) -> Path:
+    """Write intrinsics in OpenCV's FileStorage format (YAML unless the suffix says .xml/.json)."""
+    path = Path(path)
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        storage.write("image_width", camera.image_size[0])
+        storage.write("image_height", camera.image_size[1])
+        storage.write("camera_matrix", camera.K)
+        storage.write("distortion_coefficients", camera.dist.reshape(-1, 1))
+    finally:
+        storage.release()
+    return path

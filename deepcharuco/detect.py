@@ -1,0 +1,235 @@
+"""``python -m deepcharuco.detect``: find the board (and its pose) in images, a video or a camera.
+
+Writes, into --out: an overlay (PNG per image, MP4 for a video or camera) and per-frame
+results as CSV (written as frames arrive) and JSON (written at the end, also on Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.camera import Camera, read_camera
+from deepcharuco.detection import Detection
+from deepcharuco.draw import draw_detection
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.pose import Pose
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
+              "rvec", "tvec", "reprojection_error", "num_inliers"]
+
+
+class SourceError(DeepCharucoError):
+    """An input the CLI cannot open."""
+
+
+@dataclass
+class Source:
+    """Frames to process: ``frames`` yields (name, BGR or gray image)."""
+
+    stem: str
+    kind: str  # "image" | "images" | "video" | "camera"
+    frames: Iterator[tuple[str, np.ndarray]]
+    fps: float
+    total: int | None
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SourceError(f"cannot read image {path}: not an image file OpenCV can decode")
+    if image.dtype == np.uint16:  # 16-bit PNG/TIFF from machine-vision cameras
+        image = (image >> 8).astype(np.uint8)
+    return image
+
+
+def _video_frames(capture: cv2.VideoCapture, max_frames: int | None) -> Iterator[tuple[str, np.ndarray]]:
+    index = 0
+    try:
+        while max_frames is None or index < max_frames:
+            ok, frame = capture.read()
+            if not ok:
+                break
+            yield str(index), frame
+            index += 1
+    finally:
+        capture.release()
+
+
+def open_source(source: str, max_frames: int | None = None) -> Source:
+    """Image file, directory of images, video file, or an integer camera index."""
+    if source.isdigit() and not Path(source).exists():
+        capture = cv2.VideoCapture(int(source))
+        if not capture.isOpened():
+            raise SourceError(f"cannot open camera {source}: is it connected and not in use?")
+        return Source(f"camera{source}", "camera", _video_frames(capture, max_frames),
+                      capture.get(cv2.CAP_PROP_FPS) or 30.0, max_frames)
+    path = Path(source)
+    if not path.exists():
+        raise SourceError(f"{path} does not exist: give an image, a folder of images, a video or a camera index")
+    if path.is_dir():
+        images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:max_frames]
+        if not images:
+            raise SourceError(f"{path} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+        return Source(path.name, "images", ((p.name, _read_image(p)) for p in images), 0.0, len(images))
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        return Source(path.stem, "image", iter([(path.name, _read_image(path))]), 0.0, 1)
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise SourceError(f"cannot open {path} as a video: unknown format or codec")
+    count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    total = min(count, max_frames) if count and max_frames else count or max_frames
+    return Source(path.stem, "video", _video_frames(capture, max_frames), capture.get(cv2.CAP_PROP_FPS) or 30.0, total)
+
+
+def make_detector(name: str, board: BoardSpec, refine: str):
+    if name == "opencv":
+        if refine == "refinenet":
+            raise DeepCharucoError("--refine refinenet needs --detector deep; OpenCV takes subpix or none")
+        return OpenCVDetector(board, refine=refine)
+    raise DeepCharucoError(
+        "--detector deep is not available yet: ChArUcoNet/RefineNet and their shipped weights are "
+        "still being built. Use --detector opencv (the default) meanwhile."
+    )
+
+
+def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
+    record = {"frame": index, "source": name, "num_corners": len(detection), **detection.to_dict()}
+    record["pose"] = None if pose is None else pose.to_dict()
+    return record
+
+
+def _csv_row(record: dict) -> dict:
+    pose = record["pose"] or {}
+    join = lambda values: " ".join(f"{v:g}" for v in values)  # noqa: E731
+    return {
+        "frame": record["frame"], "source": record["source"], "num_corners": record["num_corners"],
+        "ids": " ".join(str(i) for i in record["ids"]),
+        "corners": join(np.ravel(record["corners"])), "scores": join(record["scores"]),
+        "rvec": join(pose.get("rvec", [])), "tvec": join(pose.get("tvec", [])),
+        "reprojection_error": pose.get("reprojection_error", ""),
+        "num_inliers": len(pose["inliers"]) if pose else "",
+    }
+
+
+def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
+    if camera is None:
+        return None
+    height, width = shape[:2]
+    if (width, height) == camera.image_size:
+        return camera
+    cw, ch = camera.image_size
+    if abs(width / height - cw / ch) > 0.01:
+        raise DeepCharucoError(
+            f"frames are {width}x{height} but the camera file is for {cw}x{ch}, a different aspect "
+            "ratio (cropped?): calibrate at this resolution"
+        )
+    return camera.scaled(width, height)
+
+
+def run(args: argparse.Namespace) -> dict:
+    board = BoardSpec.load(args.board) if args.board else BoardSpec()
+    camera = read_camera(args.camera) if args.camera else None
+    detector = make_detector(args.detector, board, args.refine)
+    source = open_source(args.source, args.max_frames)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if camera is None:
+        print("no --camera given: detecting corners only, no pose", file=sys.stderr)
+
+    records: list[dict] = []
+    writer = None
+    overlay_dir = out / f"{source.stem}_overlay"
+    csv_path, json_path = out / f"{source.stem}.csv", out / f"{source.stem}.json"
+    with open(csv_path, "w", newline="") as csv_file:
+        rows = csv.DictWriter(csv_file, fieldnames=CSV_FIELDS)
+        rows.writeheader()
+        try:
+            for index, (name, frame) in enumerate(tqdm(source.frames, total=source.total, unit="frame",
+                                                       disable=source.kind == "image" or args.quiet)):
+                detection = detector.detect(frame)
+                frame_camera = _camera_for(camera, frame.shape)
+                pose = detector.estimate_pose(detection, frame_camera.K, frame_camera.dist) if frame_camera else None
+                record = frame_record(index, name, detection, pose)
+                records.append(record)
+                rows.writerow(_csv_row(record))
+                if args.no_overlay:
+                    continue
+                overlay = draw_detection(
+                    frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR),
+                    detection, pose, *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None), board,
+                )
+                if source.kind == "image":
+                    cv2.imwrite(str(out / f"{source.stem}_overlay.png"), overlay)
+                elif source.kind == "images":
+                    overlay_dir.mkdir(exist_ok=True)
+                    cv2.imwrite(str(overlay_dir / (Path(name).stem + ".png")), overlay)
+                else:
+                    if writer is None:
+                        writer = cv2.VideoWriter(str(out / f"{source.stem}_overlay.mp4"),
+                                                 cv2.VideoWriter_fourcc(*"mp4v"), source.fps,
+                                                 (overlay.shape[1], overlay.shape[0]))
+                    writer.write(overlay)
+        except KeyboardInterrupt:
+            print(f"interrupted after {len(records)} frames; writing what was done", file=sys.stderr)
+        finally:
+            if writer is not None:
+                writer.release()
+            summary = {
+                "board": board.to_dict(),
+                "detector": repr(detector),
+                "camera": None if camera is None else {"K": camera.K.tolist(), "dist": camera.dist.tolist(),
+                                                       "image_size": list(camera.image_size)},
+                "frames": records,
+            }
+            json_path.write_text(json.dumps(summary))
+    with_pose = sum(r["pose"] is not None for r in records)
+    print(f"{len(records)} frames, board corners in {sum(r['num_corners'] > 0 for r in records)}, "
+          f"pose in {with_pose} -> {out}/")
+    return summary
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m deepcharuco.detect",
+        description=__doc__.strip().splitlines()[0].split(": ", 1)[1],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("source", help="image file, folder of images, video file, or camera index (0, 1, ...)")
+    parser.add_argument("--board", help="board description (.json/.yaml); default: the paper's 5x5 DICT_5X5_50 board")
+    parser.add_argument("--camera", help="OpenCV intrinsics YAML (camera_matrix, distortion_coefficients, "
+                                         "image_width, image_height); without it no pose is estimated")
+    parser.add_argument("--detector", choices=["opencv", "deep"], default="opencv", help="which detector")
+    parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default="subpix",
+                        help="corner refinement")
+    parser.add_argument("--out", default="detect_out", help="output folder")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    parser.add_argument("--no-overlay", action="store_true", help="write results only, no overlay images/video")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        run(args)
+    except DeepCharucoError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""`Detection`: the one result type every detector returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Board corners found in one image.
+
+    Attributes:
+        ids: (N,) int64 unique corner IDs (OpenCV's ChArUco IDs), ascending.
+        corners: (N, 2) float32 pixel positions; the centre of the top-left pixel is (0, 0).
+        scores: (N,) float32 confidences in [0, 1].
+    """
+
+    ids: np.ndarray
+    corners: np.ndarray
+    scores: np.ndarray
+
+    def __post_init__(self) -> None:
+        ids = np.asarray(self.ids, dtype=np.int64).reshape(-1)
+        corners = np.asarray(self.corners, dtype=np.float32).reshape(-1, 2)
+        scores = np.asarray(self.scores, dtype=np.float32).reshape(-1)
+        if not (ids.shape[0] == corners.shape[0] == scores.shape[0]):
+            raise ValueError(
+                f"ids, corners and scores disagree in length: {ids.shape[0]}, {corners.shape[0]}, {scores.shape[0]}"
+            )
+        if np.unique(ids).size != ids.size:
+            raise ValueError(f"corner IDs must be unique, got {ids.tolist()}")
+        order = np.argsort(ids, kind="stable")
+        object.__setattr__(self, "ids", ids[order])
+        object.__setattr__(self, "corners", corners[order])
+        object.__setattr__(self, "scores", scores[order])
+
+    @classmethod
+    def empty(cls) -> "Detection":
+        return cls(np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32))
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    def to_dict(self) -> dict:
+        return {
+            "ids": self.ids.tolist(),
+            "corners": self.corners.astype(float).round(4).tolist(),
+            "scores": self.scores.astype(float).round(4).tolist(),
+        }

@@ -1,0 +1,92 @@
+"""The paper's baseline: OpenCV's ChArUco detector, optionally followed by cornerSubPix."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import cv2
+import numpy as np
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.detection import Detection
+from deepcharuco.image import to_gray_u8
+from deepcharuco.pose import Pose, estimate_pose
+
+REFINE_MODES = ("subpix", "none")
+
+
+@cache
+def charuco_detector_bias() -> np.ndarray:
+    """(2,) float32 constant offset of ``CharucoDetector.detectBoard`` corners in this OpenCV.
+
+    OpenCV 4.7-4.12 shift every ChArUco corner by (+0.5, +0.5) px (opencv/opencv#25539: a
+    half-pixel shift around its internal cornerSubPix, fixed in #28380). Rather than trust a
+    version number, measure it once on an exact synthetic view and round to half pixels.
+    """
+    from deepcharuco.pose import project_corners  # noqa: PLC0415 - light, avoids a cycle at import
+    from deepcharuco.synthetic import look_at_pose, render_board_view  # noqa: PLC0415
+
+    board = BoardSpec()
+    K = np.array([[280.0, 0.0, 159.5], [0.0, 280.0, 119.5], [0.0, 0.0, 1.0]])
+    rvec, tvec = look_at_pose(board, 0.35, tilt_x_deg=20.0, tilt_y_deg=-15.0, roll_deg=10.0)
+    image = render_board_view(board, K, rvec, tvec, (320, 240))
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board.cv_board()).detectBoard(image)
+    if ids is None or len(ids) < board.num_corners // 2:
+        return np.zeros(2, np.float32)
+    offset = corners.reshape(-1, 2) - project_corners(board, rvec, tvec, K, ids=ids.ravel())
+    return (np.round(np.median(offset, axis=0) * 2.0) / 2.0).astype(np.float32)
+
+
+class OpenCVDetector:
+    """``cv2.aruco.CharucoDetector`` behind the project's detector interface.
+
+    Args:
+        board: the board to find; default the paper's board.
+        refine: ``"none"`` returns OpenCV's corners as OpenCV computes them (it already runs
+            a coarse cornerSubPix, 30 iterations to 0.1 px, when it interpolates corners from
+            markers), less the half-pixel bias of OpenCV 4.7-4.12 (`charuco_detector_bias`). ``"subpix"`` — the paper's "OpenCV + cornerSubPix" baseline — adds an
+            explicit cornerSubPix pass converged to 0.001 px, with each corner's window kept
+            clear of the nearest detected marker corner as OpenCV does.
+        max_window: the largest cornerSubPix half-window (px) for ``"subpix"``.
+    """
+
+    def __init__(self, board: BoardSpec | None = None, refine: str = "subpix", max_window: int = 5):
+        if refine not in REFINE_MODES:
+            raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
+        if max_window < 1:
+            raise ValueError(f"max_window must be >= 1 px, got {max_window}")
+        self.board = board or BoardSpec()
+        self.refine = refine
+        self.max_window = int(max_window)
+        self._detector = cv2.aruco.CharucoDetector(self.board.cv_board())
+
+    def __repr__(self) -> str:
+        return f"OpenCVDetector(board={self.board!r}, refine={self.refine!r})"
+
+    def detect(self, image: np.ndarray) -> Detection:
+        """Find the board's corners in a uint8 grayscale (or BGR) image."""
+        gray = to_gray_u8(image)
+        corners, ids, marker_corners, _ = self._detector.detectBoard(gray)
+        if ids is None or len(ids) == 0:
+            return Detection.empty()
+        corners = corners.reshape(-1, 2).astype(np.float32) - charuco_detector_bias()
+        if self.refine == "subpix":
+            corners = self._subpix(gray, corners, np.concatenate([m.reshape(-1, 2) for m in marker_corners]))
+        return Detection(ids=ids.ravel(), corners=corners, scores=np.ones(len(corners), np.float32))
+
+    def _subpix(self, gray: np.ndarray, corners: np.ndarray, marker_points: np.ndarray) -> np.ndarray:
+        # A window that reaches a marker corner pulls the estimate towards it: keep 2 px clear.
+        nearest = np.linalg.norm(corners[:, None, :] - marker_points[None, :, :], axis=2).min(axis=1)
+        windows = np.clip((nearest - 2.0).astype(int), 1, self.max_window)
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 0.001)
+        refined = corners.copy()
+        for window in np.unique(windows):
+            chosen = windows == window
+            refined[chosen] = cv2.cornerSubPix(
+                gray, corners[chosen].reshape(-1, 1, 2).copy(), (int(window), int(window)), (-1, -1), criteria
+            ).reshape(-1, 2)
+        return refined
+
+    def estimate_pose(self, detection: Detection, K: np.ndarray, dist: np.ndarray | None = None, **kwargs) -> Pose | None:
+        """`deepcharuco.estimate_pose` for this detector's board."""
+        return estimate_pose(detection, K, dist, board=self.board, **kwargs)

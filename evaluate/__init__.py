@@ -1,0 +1,1 @@
+"""The paper's protocols, auto-labelling of captures, timing and the report."""

@@ -1,0 +1,1 @@
+"""Datasets over shards, augmentation, and the ChArUcoNet / RefineNet trainers."""
