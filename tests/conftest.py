@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, Camera, project_corners
+from deepcharuco.synthetic import look_at_pose, render_board_view
+
+# Moderate, varied views: fronto-parallel, tilted both ways, rolled, off-centre.
+VIEW_POSES = [
+    dict(distance=0.35),
+    dict(distance=0.33, tilt_x_deg=30, tilt_y_deg=10, roll_deg=15),
+    dict(distance=0.40, tilt_x_deg=-25, tilt_y_deg=30, roll_deg=-40, offset=(0.02, 0.01)),
+    dict(distance=0.30, tilt_x_deg=10, tilt_y_deg=-35, roll_deg=90),
+    dict(distance=0.45, tilt_x_deg=35, tilt_y_deg=-5, roll_deg=170, offset=(-0.03, 0.0)),
+]
+
+
+@pytest.fixture(scope="session")
+def camera() -> Camera:
+    return Camera.from_fov(320, 240, hfov_deg=60.0)
+
+
+def make_view(board: BoardSpec, camera: Camera, **pose):
+    """(image, rvec, tvec, true corners (C, 2)) of a synthetic view."""
+    rvec, tvec = look_at_pose(board, **pose)
+    image = render_board_view(board, camera.K, rvec, tvec, camera.image_size)
+    return image, rvec, tvec, project_corners(board, rvec, tvec, camera.K)
+
+
+@pytest.fixture(scope="session")
+def default_views(camera):
+    board = BoardSpec()
+    return [make_view(board, camera, **pose) for pose in VIEW_POSES]
+
+
+def rotation_error_deg(rvec_a: np.ndarray, rvec_b: np.ndarray) -> float:
+    import cv2
+
+    ra, _ = cv2.Rodrigues(np.asarray(rvec_a, np.float64))
+    rb, _ = cv2.Rodrigues(np.asarray(rvec_b, np.float64))
+    cos = (np.trace(ra.T @ rb) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))

@@ -1,0 +1,141 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, BoardSpecError, dictionary_names
+
+
+def test_default_is_the_papers_board():
+    board = BoardSpec()
+    assert (board.squares_x, board.squares_y, board.dictionary) == (5, 5, "DICT_5X5_50")
+    assert board.num_corners == 16 and board.num_markers == 12
+    ids, corners = board.marker_corners()
+    assert ids.tolist() == list(range(12)) and corners.shape == (12, 4, 3)
+
+
+def test_corner_points_are_opencvs_ids():
+    board = BoardSpec(7, 5, 0.03, 0.02, "DICT_6X6_250")
+    points = board.corner_points()
+    assert points.shape == (24, 3) and points.dtype == np.float64
+    np.testing.assert_allclose(points, np.asarray(board.cv_board().getChessboardCorners()))
+    # ID 0 is the top-left inner corner; IDs run along X first.
+    np.testing.assert_allclose(points[0], [0.03, 0.03, 0.0])
+    np.testing.assert_allclose(points[1], [0.06, 0.03, 0.0])
+    np.testing.assert_allclose(points[6], [0.03, 0.06, 0.0])
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(dictionary="DICT_9X9_50"), "unknown ArUco dictionary"),
+        (dict(squares_x=11, squares_y=11, dictionary="DICT_4X4_50"), "needs 60 markers but DICT_4X4_50 has only 50"),
+        (dict(marker_length=0.05), "must be smaller than square_length"),
+        (dict(marker_length=0.04), "must be smaller than square_length"),
+        (dict(square_length=-1.0), "positive length"),
+        (dict(square_length=float("nan")), "positive length"),
+        (dict(squares_x=2), "must be >= 3"),
+        (dict(squares_y=4.0), "must be an integer"),
+        (dict(squares_x=True), "must be an integer"),
+        (dict(legacy="yes"), "legacy must be true or false"),
+        (dict(dictionary=5), "dictionary must be a name"),
+    ],
+)
+def test_invalid_boards_are_refused_clearly(kwargs, message):
+    with pytest.raises(BoardSpecError, match=message):
+        BoardSpec(**kwargs)
+
+
+def test_unknown_dictionary_error_lists_the_valid_names():
+    with pytest.raises(BoardSpecError) as info:
+        BoardSpec(dictionary="DICT_5x5_51")
+    assert "DICT_5X5_50" in str(info.value) and "DICT_6X6_250" in str(info.value)
+    assert "DICT_APRILTAG_36H11" in dictionary_names()
+
+
+def test_dictionary_name_is_case_insensitive():
+    assert BoardSpec(dictionary="dict_5x5_50") == BoardSpec()
+
+
+@pytest.mark.parametrize("suffix", [".json", ".yaml", ".yml"])
+def test_save_load_round_trip(tmp_path, suffix):
+    board = BoardSpec(7, 5, 0.035, 0.026, "DICT_6X6_250", legacy=True)
+    path = board.save(tmp_path / f"board{suffix}")
+    assert BoardSpec.load(path) == board
+    assert BoardSpec.from_json(board.to_json()) == board
+
+
+def test_hand_written_yaml_without_directive(tmp_path):
+    path = tmp_path / "board.yaml"
+    path.write_text("squares_x: 7\nsquares_y: 5\nsquare_length: 0.04\nmarker_length: 0.03\n"
+                    "dictionary: DICT_6X6_250\nlegacy: false\n")
+    assert BoardSpec.load(path) == BoardSpec(7, 5, 0.04, 0.03, "DICT_6X6_250")
+
+
+def test_bad_board_files(tmp_path):
+    with pytest.raises(BoardSpecError, match="does not exist"):
+        BoardSpec.load(tmp_path / "missing.json")
+    (tmp_path / "b.json").write_text(json.dumps({"squares_x": 5, "colour": "red"}))
+    with pytest.raises(BoardSpecError, match=r"unknown board field\(s\) \['colour'\]"):
+        BoardSpec.load(tmp_path / "b.json")
+    (tmp_path / "c.json").write_text("{not json")
+    with pytest.raises(BoardSpecError, match="not valid JSON"):
+        BoardSpec.load(tmp_path / "c.json")
+    (tmp_path / "d.txt").write_text("{}")
+    with pytest.raises(BoardSpecError, match="name it .json, .yaml or .yml"):
+        BoardSpec.load(tmp_path / "d.txt")
+
+
+@pytest.mark.parametrize(
+    "board",
+    [
+        BoardSpec(5, 5, 0.04, 0.028),
+        BoardSpec(7, 5, 0.04, 0.032, "DICT_6X6_250"),
+        BoardSpec(6, 6, 0.04, 0.024, "DICT_4X4_50", legacy=True),
+    ],
+)
+def test_texture_matches_opencv_where_edges_fall_on_pixels(board):
+    # 100 px squares, marker cells of whole pixels: the area-exact texture must equal OpenCV's print.
+    texture = board.render_texture(px_per_m=2500.0)
+    height, width = texture.image.shape
+    expected = board.cv_board().generateImage((width, height), marginSize=0, borderBits=1)
+    assert np.array_equal(texture.image, expected)
+
+
+def test_texture_is_area_exact_between_pixels():
+    board = BoardSpec()
+    # 101.25 px per square: a square edge at 101.25 px leaves a pixel 25% covered.
+    texture = board.render_texture(px_per_m=101.25 / 0.04)
+    row = texture.image[20].astype(int)  # first row of squares: black, white(marker), ...
+    assert row[100] == 0 and row[102] == 255
+    assert row[101] == round(255 * 0.75)
+
+
+def test_texture_margin_and_map():
+    board = BoardSpec()
+    texture = board.render_texture(px_per_m=1000.0, margin=0.01)
+    assert texture.image.shape == (220, 220)
+    assert np.all(texture.image[:10] == 255) and np.all(texture.image[:, :10] == 255)
+    np.testing.assert_allclose(texture.size_m, (0.22, 0.22))
+    # The grid's top-left corner is pixel edge (10, 10), i.e. pixel-centre coordinate 9.5.
+    np.testing.assert_allclose(texture.board_to_texture(np.array([0.0, 0.0])), [9.5, 9.5])
+    uv = np.random.default_rng(0).uniform(0, 220, (50, 2))
+    np.testing.assert_allclose(texture.board_to_texture(texture.texture_to_board(uv)), uv)
+    homogeneous = texture.texture_to_board_matrix() @ np.c_[uv, np.ones(50)].T
+    np.testing.assert_allclose(homogeneous[:2].T, texture.texture_to_board(uv))
+
+
+def test_texture_partial_pixel_is_white_paper():
+    texture = BoardSpec().render_texture(px_per_m=1002.5)  # 200.5 px of board
+    assert texture.image.shape == (201, 201)
+    assert np.all(texture.image[-1] >= 127) and np.all(texture.image[:, -1] >= 127)
+
+
+def test_texture_size_guard():
+    with pytest.raises(BoardSpecError, match="pixels per metre, not per millimetre"):
+        BoardSpec().render_texture(px_per_m=1e6)
+    with pytest.raises(BoardSpecError, match="px_per_m must be positive"):
+        BoardSpec().render_texture(px_per_m=0)
+    with pytest.raises(BoardSpecError, match="margin"):
+        BoardSpec().render_texture(px_per_m=1000, margin=-0.1)

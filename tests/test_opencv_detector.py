@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+
+from conftest import VIEW_POSES, make_view, rotation_error_deg
+from deepcharuco import BoardSpec, Detection, ImageError, OpenCVDetector, match_corners
+from deepcharuco.opencv_detector import charuco_detector_bias
+
+
+@pytest.mark.parametrize("refine", ["subpix", "none"])
+def test_recovers_corners_and_pose_on_clean_views(default_views, camera, refine):
+    detector = OpenCVDetector(refine=refine)
+    corner_errors = []
+    for image, rvec, tvec, truth in default_views:
+        detection = detector.detect(image)
+        assert isinstance(detection, Detection)
+        assert detection.ids.tolist() == list(range(16))
+        assert detection.corners.dtype == np.float32 and detection.scores.dtype == np.float32
+        np.testing.assert_array_equal(detection.scores, 1.0)
+        match = match_corners(detection, truth)
+        assert match.accuracy == 1.0
+        corner_errors.append(match.errors)
+        pose = detector.estimate_pose(detection, camera.K, camera.dist)
+        assert pose is not None
+        assert pose.reprojection_error < 0.3
+        assert rotation_error_deg(pose.rvec, rvec) < 1.0
+        assert np.linalg.norm(pose.tvec - tvec) < 0.01 * np.linalg.norm(tvec)
+    assert np.median(np.concatenate(corner_errors)) < 0.1
+
+
+def test_opencv_half_pixel_bias_is_measured_and_removed():
+    bias = charuco_detector_bias()
+    assert bias.shape == (2,)
+    assert set(bias.tolist()) <= {0.0, 0.5}
+
+
+def test_non_default_board_through_the_same_code(camera):
+    board = BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250")
+    detector = OpenCVDetector(board)
+    for pose_args in VIEW_POSES[:3]:
+        image, rvec, tvec, truth = make_view(board, camera, **{**pose_args, "distance": 0.38})
+        detection = detector.detect(image)
+        assert len(detection) == 24
+        assert match_corners(detection, truth).accuracy == 1.0
+        pose = detector.estimate_pose(detection, camera.K, camera.dist)
+        assert pose.reprojection_error < 0.3
+        assert rotation_error_deg(pose.rvec, rvec) < 1.0
+    # The paper's detector does not see corners on this other board.
+    assert len(OpenCVDetector().detect(image)) == 0
+
+
+def test_empty_scene_gives_empty_detection():
+    detection = OpenCVDetector().detect(np.full((240, 320), 128, np.uint8))
+    assert len(detection) == 0 and detection.corners.shape == (0, 2)
+
+
+def test_colour_input_is_converted(default_views):
+    image = default_views[1][0]
+    bgr = np.dstack([image, image, image])
+    a, b = OpenCVDetector().detect(image), OpenCVDetector().detect(bgr)
+    np.testing.assert_array_equal(a.ids, b.ids)
+    np.testing.assert_allclose(a.corners, b.corners, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "image, message",
+    [
+        (np.zeros((240, 320), np.float32), "expected a uint8 image, got dtype float32"),
+        (np.zeros((240, 320), np.uint16), "expected a uint8 image, got dtype uint16"),
+        (np.zeros((0, 0), np.uint8), "the image is empty"),
+        (np.zeros((240, 320, 2), np.uint8), r"got shape \(240, 320, 2\)"),
+        (np.zeros((2, 240, 320, 3), np.uint8), "got shape"),
+        ([[0, 1], [2, 3]], "expected a numpy array image, got list"),
+    ],
+)
+def test_bad_images_are_refused_clearly(image, message):
+    with pytest.raises(ImageError, match=message):
+        OpenCVDetector().detect(image)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="refine must be one of"):
+        OpenCVDetector(refine="refinenet")
+    with pytest.raises(ValueError, match="max_window"):
+        OpenCVDetector(max_window=0)
+
+
+def test_deep_detector_import_explains_itself():
+    with pytest.raises(ImportError, match="not available in this version"):
+        from deepcharuco import Detector  # noqa: F401
