@@ -204,7 +204,8 @@ def run(args: argparse.Namespace) -> dict:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m deepcharuco.detect",
-        description=__doc__.strip().splitlines()[0].split(": ", 1)[1],
+        description="Find the ChArUco board (and its pose) in images, a video or a camera; write an "
+                    "overlay and per-frame results (CSV, JSON) into --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("source", help="image file, folder of images, video file, or camera index (0, 1, ...)")

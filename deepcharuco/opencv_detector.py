@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from functools import cache
 
 import cv2
@@ -10,7 +11,8 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.detection import Detection
 from deepcharuco.image import to_gray_u8
-from deepcharuco.pose import Pose, estimate_pose
+from deepcharuco.pose import Pose, estimate_pose, project_corners
+from deepcharuco.synthetic import look_at_pose, render_board_view
 
 REFINE_MODES = ("subpix", "none")
 
@@ -23,15 +25,14 @@ def charuco_detector_bias() -> np.ndarray:
     half-pixel shift around its internal cornerSubPix, fixed in #28380). Rather than trust a
     version number, measure it once on an exact synthetic view and round to half pixels.
     """
-    from deepcharuco.pose import project_corners  # noqa: PLC0415 - light, avoids a cycle at import
-    from deepcharuco.synthetic import look_at_pose, render_board_view  # noqa: PLC0415
-
     board = BoardSpec()
     K = np.array([[280.0, 0.0, 159.5], [0.0, 280.0, 119.5], [0.0, 0.0, 1.0]])
     rvec, tvec = look_at_pose(board, 0.35, tilt_x_deg=20.0, tilt_y_deg=-15.0, roll_deg=10.0)
     image = render_board_view(board, K, rvec, tvec, (320, 240))
     corners, ids, _, _ = cv2.aruco.CharucoDetector(board.cv_board()).detectBoard(image)
     if ids is None or len(ids) < board.num_corners // 2:
+        warnings.warn("OpenCV's ChArUco detector failed on a clean synthetic view; assuming it has no "
+                      "half-pixel bias", RuntimeWarning, stacklevel=2)
         return np.zeros(2, np.float32)
     offset = corners.reshape(-1, 2) - project_corners(board, rvec, tvec, K, ids=ids.ravel())
     return (np.round(np.median(offset, axis=0) * 2.0) / 2.0).astype(np.float32)
@@ -44,9 +45,10 @@ class OpenCVDetector:
         board: the board to find; default the paper's board.
         refine: ``"none"`` returns OpenCV's corners as OpenCV computes them (it already runs
             a coarse cornerSubPix, 30 iterations to 0.1 px, when it interpolates corners from
-            markers), less the half-pixel bias of OpenCV 4.7-4.12 (`charuco_detector_bias`). ``"subpix"`` — the paper's "OpenCV + cornerSubPix" baseline — adds an
-            explicit cornerSubPix pass converged to 0.001 px, with each corner's window kept
-            clear of the nearest detected marker corner as OpenCV does.
+            markers), less the half-pixel bias of OpenCV 4.7-4.12 (`charuco_detector_bias`).
+            ``"subpix"`` — the paper's "OpenCV + cornerSubPix" baseline — adds an explicit
+            cornerSubPix pass converged to 0.001 px, with each corner's window kept clear of
+            the nearest detected marker corner as OpenCV does.
         max_window: the largest cornerSubPix half-window (px) for ``"subpix"``.
     """
 
