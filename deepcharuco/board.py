@@ -273,9 +273,9 @@ class BoardTexture:
         ink = np.zeros((height, width), dtype=np.float64)
 
         def add(x0: float, y0: float, x1: float, y1: float, sign: float) -> None:
-            to_px = lambda m: (m + margin) * px_per_m  # noqa: E731 - board metres -> pixel edges
-            cx0, cov_x = _coverage_1d(width, to_px(x0), to_px(x1))
-            cy0, cov_y = _coverage_1d(height, to_px(y0), to_px(y1))
+            """Add ``sign`` x the coverage of the board rectangle [x0, x1) x [y0, y1) (metres)."""
+            cx0, cov_x = _coverage_1d(width, (x0 + margin) * px_per_m, (x1 + margin) * px_per_m)
+            cy0, cov_y = _coverage_1d(height, (y0 + margin) * px_per_m, (y1 + margin) * px_per_m)
             ink[cy0 : cy0 + cov_y.size, cx0 : cx0 + cov_x.size] += sign * np.outer(cov_y, cov_x)
 
         square = board.square_length

@@ -111,14 +111,18 @@ def frame_record(index: int, name: str, detection: Detection, pose: Pose | None)
     return record
 
 
+def _join(values) -> str:
+    return " ".join(f"{v:g}" for v in values)
+
+
 def _csv_row(record: dict) -> dict:
+    """One CSV row per frame: lists as space-separated numbers, corners as x0 y0 x1 y1 ..."""
     pose = record["pose"] or {}
-    join = lambda values: " ".join(f"{v:g}" for v in values)  # noqa: E731
     return {
         "frame": record["frame"], "source": record["source"], "num_corners": record["num_corners"],
         "ids": " ".join(str(i) for i in record["ids"]),
-        "corners": join(np.ravel(record["corners"])), "scores": join(record["scores"]),
-        "rvec": join(pose.get("rvec", [])), "tvec": join(pose.get("tvec", [])),
+        "corners": _join(np.ravel(record["corners"])), "scores": _join(record["scores"]),
+        "rvec": _join(pose.get("rvec", [])), "tvec": _join(pose.get("tvec", [])),
         "reprojection_error": pose.get("reprojection_error", ""),
         "num_inliers": len(pose["inliers"]) if pose else "",
     }

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 
@@ -33,8 +34,6 @@ def default_views(camera):
 
 
 def rotation_error_deg(rvec_a: np.ndarray, rvec_b: np.ndarray) -> float:
-    import cv2
-
     ra, _ = cv2.Rodrigues(np.asarray(rvec_a, np.float64))
     rb, _ = cv2.Rodrigues(np.asarray(rvec_b, np.float64))
     cos = (np.trace(ra.T @ rb) - 1.0) / 2.0

@@ -16,8 +16,11 @@ EXAMPLES = Path(__file__).parents[1] / "deepcharuco" / "examples"
 
 
 def test_bundled_example_is_current():
-    image, camera = make_example()
-    np.testing.assert_array_equal(cv2.imread(str(EXAMPLES / "board_320x240.png"), cv2.IMREAD_GRAYSCALE), image)
+    image, _ = make_example()
+    shipped = cv2.imread(str(EXAMPLES / "board_320x240.png"), cv2.IMREAD_GRAYSCALE)
+    # OpenCV's SIMD paths may round a grey level differently on another CPU: allow that, no more.
+    difference = np.abs(shipped.astype(int) - image)
+    assert difference.max() <= 2 and difference.mean() < 0.05
 
 
 def test_image_with_pose(tmp_path):
