@@ -1,1 +1,69 @@
-"""Blender scene building (board mesh and material, lights, camera, clutter); the only package that imports bpy."""
+"""Blender scene building — the only package that imports bpy.
+
+`render_scene(spec, board, threads=..., device=...)` builds the scene a
+`datagen.scene.SceneSpec` describes in an empty Blender file, renders it with Cycles and
+returns linear radiance plus which board corners are unoccluded. Submodules, one concern each:
+
+- `conversions`: OpenCV K / pose <-> Blender camera (plain numpy, importable without bpy)
+- `textures`: board, distractor and poster images (plain numpy)
+- `render_setup`: scene reset, Cycles settings, radiance read-back
+- `objects`: board, shapes, lamps, HDRI world, camera with its shake trajectory
+- `visibility`: ray-cast occlusion of the board's corners
+
+Importing this package does not import bpy; `render_scene` does, on first call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class SceneRender:
+    """radiance: (H, W, 3) float32 linear, row 0 at the top; unoccluded: (C,) bool per board corner."""
+
+    radiance: np.ndarray
+    unoccluded: np.ndarray
+
+
+def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRender:
+    """Build ``spec`` (a `datagen.scene.SceneSpec`) for ``board`` (a `BoardSpec`) and render it.
+
+    ``threads``: Cycles render threads (0: all cores). ``device``: "cpu" or "gpu".
+    """
+    import os
+
+    from blender_scenes import objects, render_setup, visibility
+    from blender_scenes.conversions import blender_camera_from_K
+
+    scene = render_setup.reset()
+    params = blender_camera_from_K(spec.K, spec.width, spec.height)
+    render_setup.configure_cycles(scene, spec.width, spec.height, (params.pixel_aspect_x, params.pixel_aspect_y),
+                                  spec.samples, spec.render_seed, threads or os.cpu_count() or 1, device)
+    objects.set_world(spec.world)
+    if spec.board_present:
+        objects.add_board(board, spec)
+    for i, distractor in enumerate(spec.distractors):
+        objects.add_distractor(i, distractor)
+    for i, shape in enumerate(spec.shapes):
+        objects.add_shape(i, shape)
+    for i, light in enumerate(spec.lights):
+        objects.add_light(i, light)
+    objects.add_camera(spec)
+    bpy_view_layer_update()
+
+    corners_world = (spec.board_matrix[:3, :3] @ board.corner_points().T).T + spec.board_matrix[:3, 3]
+    if spec.board_present:
+        unoccluded = visibility.unoccluded(corners_world, spec.camera_matrix[:3, 3])
+    else:
+        unoccluded = np.zeros(board.num_corners, dtype=bool)
+    radiance = render_setup.render_radiance(scene)
+    return SceneRender(radiance=radiance, unoccluded=unoccluded)
+
+
+def bpy_view_layer_update() -> None:
+    import bpy
+
+    bpy.context.view_layer.update()

@@ -39,6 +39,7 @@ class SensorParams:
     min_exposure_s: float = 1e-4
     max_exposure_s: float = 1.0 / 30.0  # the frame time at 30 fps
     max_gain: float = 16.0
+    noise: bool = True  # False: an ideal sensor (mean electrons, no shot/read/row noise) for label checks
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,15 @@ def auto_exposure(luminance: np.ndarray, params: SensorParams = SensorParams()) 
     return Exposure(exposure, gain)
 
 
+def auto_gain(luminance: np.ndarray, exposure_s: float, params: SensorParams = SensorParams()) -> Exposure:
+    """The gain that brings the mean level to target with the exposure time already fixed
+    (the renderer fixes the time first: camera shake blur depends on it)."""
+    rate = float(electrons_per_second(luminance, params).mean())
+    wanted = params.target_level * params.full_well
+    gain = params.max_gain if rate <= 0.0 else min(max(wanted / (rate * exposure_s), 1.0), params.max_gain)
+    return Exposure(float(exposure_s), float(gain))
+
+
 def capture(
     luminance: np.ndarray,
     rng: np.random.Generator,
@@ -94,9 +104,12 @@ def capture(
         raise ValueError("luminance must be finite and >= 0 (cd/m^2)")
     exposure = exposure or auto_exposure(luminance, params)
     mean_electrons = electrons_per_second(luminance, params) * exposure.exposure_s
-    electrons = np.minimum(rng.poisson(mean_electrons).astype(np.float64), params.full_well)
-    electrons += rng.normal(0.0, params.read_noise, electrons.shape)
-    electrons += rng.normal(0.0, params.row_noise, (electrons.shape[0], 1))
+    if params.noise:
+        electrons = np.minimum(rng.poisson(mean_electrons).astype(np.float64), params.full_well)
+        electrons += rng.normal(0.0, params.read_noise, electrons.shape)
+        electrons += rng.normal(0.0, params.row_noise, (electrons.shape[0], 1))
+    else:
+        electrons = np.minimum(mean_electrons, params.full_well)
     level = np.clip(electrons * exposure.gain / params.full_well, 0.0, 1.0)
     frame = np.round(255.0 * level ** (1.0 / params.gamma)).astype(np.uint8)
     return frame, exposure
