@@ -8,6 +8,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from deepcharuco.errors import DeepCharucoError
+
 
 def reset() -> bpy.types.Scene:
     """An empty scene: every frame is built from scratch, so nothing leaks between frames."""
@@ -18,7 +20,7 @@ def reset() -> bpy.types.Scene:
 
 
 def enable_gpu() -> str:
-    """Switch Cycles to the best GPU backend present; raises RuntimeError when there is none."""
+    """Switch Cycles to the best GPU backend present; raises DeepCharucoError when there is none."""
     cycles = bpy.context.preferences.addons["cycles"].preferences
     for backend in ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL"):
         try:
@@ -31,7 +33,7 @@ def enable_gpu() -> str:
             for device in cycles.devices:
                 device.use = device.type == backend
             return backend
-    raise RuntimeError("--device gpu: Cycles finds no CUDA/OptiX/HIP/oneAPI/Metal GPU here; use --device cpu")
+    raise DeepCharucoError("--device gpu: Cycles finds no CUDA/OptiX/HIP/oneAPI/Metal GPU here; use --device cpu")
 
 
 def configure_cycles(scene: bpy.types.Scene, width: int, height: int, pixel_aspect: tuple[float, float],

@@ -332,7 +332,14 @@ def sample_scene(rng: np.random.Generator, board_size_m: tuple[float, float], co
     eye = _direction_in_cone(rng, normal, config.max_view_angle_deg) * distance
     spread = 0.6 if rng.random() < config.out_of_frame_p else 0.12
     target = rotation @ np.append(rng.uniform(-spread, spread, size=2) * (board_w, board_h), 0.0)
-    centre = look_at(eye, target, roll_deg=float(rng.uniform(-35.0, 35.0)))
+    roll = float(rng.uniform(-35.0, 35.0))
+    centre = look_at(eye, target, roll_deg=roll)
+    # Close and oblique, part of the board could reach behind the lens: back off until the whole
+    # board is at least 3 cm in front of the camera.
+    outline = np.array([[0, 0, 0], [board_w, 0, 0], [0, board_h, 0], [board_w, board_h, 0]]) @ rotation.T + board_matrix[:3, 3]
+    while np.min((outline - centre[:3, 3]) @ centre[:3, 2]) < 0.03:
+        eye = eye * 1.1
+        centre = look_at(eye, target, roll_deg=roll)
 
     look = sample_board_look(rng, config.board_kinds_p)
     margin_m = float(rng.uniform(0.03, 0.15)) * board_w  # white paper around the grid, as printed

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import socket
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -20,18 +21,24 @@ import h5py
 import numpy as np
 
 from deepcharuco.board import BoardSpec
+from deepcharuco.errors import DeepCharucoError
 
 SCHEMA_VERSION = 1
 INDEX_NAME = "index.json"
 _SHARD_RE = re.compile(r"^shard-(\d{5,})\.h5$")
 
 
-class ShardError(ValueError):
+class ShardError(DeepCharucoError, ValueError):
     """A shard or shard folder that does not follow the schema."""
 
 
 def shard_name(index: int) -> str:
     return f"shard-{index:05d}.h5"
+
+
+def temporary_prefix(index: int) -> str:
+    """Shard ``index`` is written as ``<prefix><host>-<pid>`` until complete (unique across a cluster)."""
+    return f".{shard_name(index)}.tmp-"
 
 
 @dataclass
@@ -84,13 +91,13 @@ def write_shard(
     """Write ``frames`` as shard ``index`` in ``directory`` atomically, then refresh index.json.
 
     ``generator`` (package version, command-line arguments ...) is stored as JSON; ``created``
-    defaults to now (UTC, ISO 8601). Everything else in the file is a function of the inputs.
+    defaults to `creation_time()`. Everything else in the file is a function of the inputs.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     width, height = _check_frames(frames, board)
     final = directory / shard_name(index)
-    temporary = directory / f".{final.name}.tmp-{os.getpid()}"
+    temporary = directory / f"{temporary_prefix(index)}{socket.gethostname()}-{os.getpid()}"
     n = len(frames)
     try:
         with h5py.File(temporary, "w", track_order=True) as f:
@@ -98,7 +105,7 @@ def write_shard(
             f.attrs["board"] = board.to_json()
             f.attrs["generator"] = json.dumps(generator, sort_keys=True)
             f.attrs["image_size"] = np.array([width, height], dtype=np.int64)
-            f.attrs["created"] = created or datetime.now(timezone.utc).isoformat(timespec="seconds")
+            f.attrs["created"] = created or creation_time()
             f.create_dataset("images", data=np.stack([fr.image for fr in frames]), chunks=(1, height, width),
                              compression="gzip", compression_opts=4, shuffle=True, track_times=False)
             for name, dtype, stack in [
@@ -122,6 +129,14 @@ def write_shard(
         temporary.unlink(missing_ok=True)
     update_index(directory)
     return final
+
+
+def creation_time() -> str:
+    """Now (UTC, ISO 8601), or SOURCE_DATE_EPOCH when set, so that re-running a seeded render
+    can give byte-identical files (the reproducible-builds convention)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    moment = datetime.fromtimestamp(int(epoch), timezone.utc) if epoch else datetime.now(timezone.utc)
+    return moment.isoformat(timespec="seconds")
 
 
 def list_shards(directory: str | Path) -> list[Path]:
@@ -191,3 +206,57 @@ class ShardReader:
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_file": None}  # h5py handles do not cross processes
+
+
+PATCH_SIZE = 24
+
+
+def write_patch_shard(directory: str | Path, index: int, patches: np.ndarray, offsets: np.ndarray, meta: dict,
+                      generator: dict, created: str | None = None) -> Path:
+    """Write a RefineNet patch shard (DESIGN.md): ``patches`` uint8 (N, 24, 24), ``offset`` float32 (N, 2)
+    = the corner's position inside the patch in pixels (OpenCV convention), ``meta/*`` 1-D per patch
+    (``source`` required). Atomic like `write_shard`."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    n = len(patches)
+    if n == 0 or patches.dtype != np.uint8 or patches.shape[1:] != (PATCH_SIZE, PATCH_SIZE):
+        raise ShardError(f"patches must be uint8 (N>0, {PATCH_SIZE}, {PATCH_SIZE}), got {patches.dtype} {patches.shape}")
+    if offsets.shape != (n, 2) or not np.all(np.isfinite(offsets)):
+        raise ShardError(f"offsets must be finite (N, 2) = ({n}, 2), got {offsets.shape}")
+    if "source" not in meta:
+        raise ShardError("patch meta must hold 'source' (e.g. 'render' or 'synthetic')")
+    final = directory / shard_name(index)
+    temporary = directory / f"{temporary_prefix(index)}{socket.gethostname()}-{os.getpid()}"
+    try:
+        with h5py.File(temporary, "w", track_order=True) as f:
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["generator"] = json.dumps(generator, sort_keys=True)
+            f.attrs["patch_size"] = PATCH_SIZE
+            f.attrs["created"] = created or creation_time()
+            f.create_dataset("patches", data=patches, chunks=(min(n, 1024), PATCH_SIZE, PATCH_SIZE),
+                             compression="gzip", compression_opts=4, shuffle=True, track_times=False)
+            f.create_dataset("offset", data=offsets.astype(np.float32), track_times=False)
+            group = f.create_group("meta", track_order=True)
+            for key, values in meta.items():
+                data = np.asarray(values)
+                if data.dtype.kind in "US":
+                    data = np.array([str(v) for v in values], dtype=h5py.string_dtype())
+                if data.shape != (n,):
+                    raise ShardError(f"patch meta {key!r} must be one scalar per patch")
+                group.create_dataset(key, data=data, track_times=False)
+        os.replace(temporary, final)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return final
+
+
+def read_patch_shard(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(patches (N, 24, 24) uint8, offsets (N, 2) float32, meta) of one patch shard (a few MB: read whole)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ShardError(f"patch shard {path} does not exist (make some with python -m datagen.patches)")
+    with h5py.File(path, "r") as f:
+        if "patches" not in f:
+            raise ShardError(f"{path} is not a patch shard (no 'patches' dataset): is it a frame shard?")
+        meta = {key: f["meta"][key][()] for key in f["meta"]}
+        return f["patches"][()], f["offset"][()], meta

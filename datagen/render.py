@@ -1,0 +1,226 @@
+"""Render training frames with Blender into HDF5 shards: ``python -m datagen.render --n 50000``.
+
+Frame ``i`` is a pure function of (seed, i, board, size, samples, --clean) and lands in shard
+``i // shard_size``. Shards are the unit of work: local worker processes take them from a
+pool (and are replaced every ``--recycle`` frames, as Blender's memory grows), and a cluster
+splits them with ``--shard-index j --num-shards n`` (job j renders shards s with s % n == j)
+with no coordination. A shard file appears only when complete, so a run killed at any moment
+and started again with ``--resume`` renders exactly the missing shards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import queue
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+import deepcharuco
+from datagen.shards import ShardReader, list_shards, temporary_prefix, update_index, write_shard
+from deepcharuco.board import BoardSpec
+from deepcharuco.errors import DeepCharucoError
+
+# Arguments that decide the pixels and labels; a resumed run must agree on all of them.
+CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean")
+
+
+@dataclass(frozen=True)
+class RenderJob:
+    """What one run renders (everything a worker needs, picklable)."""
+
+    n: int
+    out: str
+    seed: int
+    board: BoardSpec
+    width: int
+    height: int
+    samples: int | None
+    shard_size: int
+    clean: bool
+    device: str
+    threads: int
+
+    def content(self) -> dict:
+        return {"n": self.n, "seed": self.seed, "board": self.board.to_dict(), "width": self.width,
+                "height": self.height, "samples": self.samples, "shard_size": self.shard_size, "clean": self.clean}
+
+    def generator(self) -> dict:
+        return {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "datagen.render",
+                "args": self.content(), "device": self.device}
+
+    @property
+    def num_shards(self) -> int:
+        return -(-self.n // self.shard_size)
+
+    def frames_of(self, shard: int) -> range:
+        return range(shard * self.shard_size, min(self.n, (shard + 1) * self.shard_size))
+
+
+def scene_config(job: RenderJob):
+    from dataclasses import replace
+
+    from datagen.scene import SceneConfig
+
+    config = SceneConfig.clean() if job.clean else SceneConfig()
+    config = replace(config, width=job.width, height=job.height)
+    return replace(config, samples=job.samples) if job.samples else config
+
+
+_PROGRESS: "mp.Queue | None" = None
+
+
+def _init_worker(progress: "mp.Queue") -> None:
+    global _PROGRESS
+    _PROGRESS = progress
+    # Blender prints a line per render on the C stdout; keep the parent's progress bar readable.
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+
+
+def render_shard(job: RenderJob, shard: int) -> int:
+    """Render and write one shard; returns its frame count."""
+    from datagen.frames import make_frame
+
+    config = scene_config(job)
+    frames = []
+    for index in job.frames_of(shard):
+        frames.append(make_frame(index, job.seed, job.board, config, threads=job.threads, device=job.device))
+        if _PROGRESS is not None:
+            _PROGRESS.put(1)
+    write_shard(job.out, shard, frames, job.board, job.generator())
+    return len(frames)
+
+
+def check_existing(job: RenderJob, resume: bool) -> set[int]:
+    """Shards already complete in job.out; refuses to mix runs or overwrite without --resume."""
+    out = Path(job.out)
+    if not out.exists():
+        return set()
+    existing = list_shards(out)
+    if not existing:
+        return set()
+    if not resume:
+        raise DeepCharucoError(
+            f"{out} already holds {len(existing)} complete shard(s). Pass --resume to finish that run "
+            f"(same arguments), or choose another --out; nothing was touched."
+        )
+    previous = ShardReader(existing[0]).generator.get("args", {})
+    differences = [f"{key}: {previous.get(key)!r} there, {value!r} now" for key, value in job.content().items()
+                   if previous.get(key) != value]
+    if differences:
+        raise DeepCharucoError(
+            f"--resume: {out} was rendered with other arguments ({'; '.join(differences)}). "
+            f"Rerun with the original arguments, or choose another --out; nothing was touched."
+        )
+    return {int(p.stem.split("-")[1]) for p in existing}
+
+
+def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
+    """Leftovers of a killed run for the shards this job owns (never complete, never read)."""
+    for shard in shards:
+        for path in out.glob(f"{temporary_prefix(shard)}*"):
+            path.unlink(missing_ok=True)
+
+
+def run(job: RenderJob, *, workers: int, shard_index: int, num_shards: int, resume: bool, recycle: int,
+        quiet: bool = False) -> dict:
+    """Render this job's missing shards with ``workers`` processes; returns index.json's content."""
+    done = check_existing(job, resume)
+    mine = [s for s in range(job.num_shards) if s % num_shards == shard_index]
+    todo = [s for s in mine if s not in done]
+    out = Path(job.out)
+    out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out, todo)
+    total = sum(len(job.frames_of(s)) for s in todo)
+    skipped = sum(len(job.frames_of(s)) for s in mine if s in done)
+    if not quiet:
+        print(f"datagen.render: {len(todo)} shard(s), {total} frame(s) to render into {out}"
+              + (f" ({skipped} frame(s) already there)" if skipped else ""), file=sys.stderr)
+    if todo:
+        context = mp.get_context("spawn")
+        progress = context.Queue()
+        tasks_per_child = max(1, recycle // job.shard_size)
+        with context.Pool(workers, initializer=_init_worker, initargs=(progress,), maxtasksperchild=tasks_per_child) as pool, \
+                tqdm(total=total, unit="frame", disable=quiet, smoothing=0.1) as bar:
+            try:
+                results = [pool.apply_async(render_shard, (job, s)) for s in todo]
+                while True:
+                    try:
+                        bar.update(progress.get(timeout=0.5))
+                    except queue.Empty:
+                        pass
+                    for result in results:
+                        if result.ready() and not result.successful():
+                            result.get()  # re-raises the worker's exception
+                    if all(r.ready() for r in results):
+                        break
+                while not progress.empty():
+                    bar.update(progress.get())
+            except KeyboardInterrupt:
+                pool.terminate()
+                complete = len(list_shards(out))
+                raise DeepCharucoError(f"interrupted: {complete} complete shard(s) kept in {out}; "
+                                       f"rerun the same command with --resume to finish") from None
+    return update_index(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m datagen.render", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Render ChArUco training frames with Blender (Cycles) into HDF5 shards with sub-pixel labels.")
+    parser.add_argument("--n", type=int, default=1000, help="number of frames in the whole run")
+    parser.add_argument("--out", default="data/renders", help="output folder of shard-*.h5 + index.json")
+    parser.add_argument("--seed", type=int, default=0, help="run seed: frame i depends only on (seed, i, arguments)")
+    parser.add_argument("--board", default=None, help="BoardSpec .json/.yaml file (default: the paper's 5x5 DICT_5X5_50 board)")
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: 4, --clean 64)")
+    parser.add_argument("--shard-size", type=int, default=100, help="frames per shard file")
+    parser.add_argument("--clean", action="store_true",
+                        help="well-lit, unblurred, noiseless frames of the board alone (label checks, benchmarks)")
+    parser.add_argument("--workers", type=int, default=1, help="parallel local render processes")
+    parser.add_argument("--threads", type=int, default=0, help="Cycles threads per worker (0: cores / workers)")
+    parser.add_argument("--shard-index", type=int, default=0, help="this job's index in a cluster array job")
+    parser.add_argument("--num-shards", type=int, default=1, help="number of jobs in the cluster array job")
+    parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu", help="Cycles device (gpu: CUDA/OptiX/...)")
+    parser.add_argument("--resume", action="store_true", help="continue a run in --out, rendering only missing shards")
+    parser.add_argument("--recycle", type=int, default=500, help="replace each worker process after about this many frames")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+
+    problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
+                for name, low in (("n", 1), ("width", 16), ("height", 16), ("shard_size", 1), ("workers", 1),
+                                  ("num_shards", 1), ("recycle", 1), ("threads", 0), ("seed", 0))
+                if getattr(args, name) < low]
+    if args.samples is not None and args.samples < 1:
+        problems.append(f"--samples must be >= 1, got {args.samples}")
+    if not 0 <= args.shard_index < args.num_shards:
+        problems.append(f"--shard-index must be in [0, --num-shards), got {args.shard_index} of {args.num_shards}")
+    if problems:
+        parser.error("; ".join(problems))
+    try:
+        board = BoardSpec.load(args.board) if args.board else BoardSpec()
+        threads = args.threads or max(1, (os.cpu_count() or 1) // args.workers)
+        job = RenderJob(n=args.n, out=args.out, seed=args.seed, board=board, width=args.width, height=args.height,
+                        samples=args.samples or (64 if args.clean else None), shard_size=args.shard_size,
+                        clean=args.clean, device=args.device, threads=threads)
+        started = time.perf_counter()
+        index = run(job, workers=args.workers, shard_index=args.shard_index, num_shards=args.num_shards,
+                    resume=args.resume, recycle=args.recycle, quiet=args.quiet)
+    except DeepCharucoError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    if not args.quiet:
+        print(f"datagen.render: {index['frames']} frame(s) in {len(index['shards'])} shard(s) in {args.out} "
+              f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
