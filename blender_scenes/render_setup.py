@@ -58,7 +58,7 @@ def configure_cycles(scene: bpy.types.Scene, width: int, height: int, pixel_aspe
     cycles.use_animated_seed = False
     # Measured at 320x240 on 2 cores: the light tree and deep bounces cost ~25 % of a frame and
     # change little in a webcam-sized image of a board.
-    cycles.use_light_tree = False
+    cycles.use_light_tree = True
     cycles.max_bounces = 2
     cycles.diffuse_bounces = 1
     cycles.glossy_bounces = 1

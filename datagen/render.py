@@ -97,28 +97,29 @@ def render_shard(job: RenderJob, shard: int) -> int:
     return len(frames)
 
 
-def check_existing(job: RenderJob, resume: bool) -> set[int]:
-    """Shards already complete in job.out; refuses to mix runs or overwrite without --resume."""
+def check_existing(job: RenderJob, mine: list[int], resume: bool) -> set[int]:
+    """Shards already complete in job.out. Refuses to mix runs with other arguments, and to
+    re-run this job over its own finished shards without --resume (shards of the other jobs
+    of a cluster split are expected and fine)."""
     out = Path(job.out)
-    if not out.exists():
-        return set()
-    existing = list_shards(out)
+    existing = list_shards(out) if out.exists() else []
     if not existing:
         return set()
-    if not resume:
-        raise DeepCharucoError(
-            f"{out} already holds {len(existing)} complete shard(s). Pass --resume to finish that run "
-            f"(same arguments), or choose another --out; nothing was touched."
-        )
     previous = ShardReader(existing[0]).generator.get("args", {})
     differences = [f"{key}: {previous.get(key)!r} there, {value!r} now" for key, value in job.content().items()
                    if previous.get(key) != value]
     if differences:
         raise DeepCharucoError(
-            f"--resume: {out} was rendered with other arguments ({'; '.join(differences)}). "
+            f"{out} holds shards rendered with other arguments ({'; '.join(differences)}). "
             f"Rerun with the original arguments, or choose another --out; nothing was touched."
         )
-    return {int(p.stem.split("-")[1]) for p in existing}
+    done = {int(p.stem.split("-")[1]) for p in existing}
+    if not resume and done & set(mine):
+        raise DeepCharucoError(
+            f"{out} already holds {len(done & set(mine))} complete shard(s) of this run. Pass --resume to "
+            f"finish it (same arguments), or choose another --out; nothing was touched."
+        )
+    return done
 
 
 def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
@@ -131,8 +132,8 @@ def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
 def run(job: RenderJob, *, workers: int, shard_index: int, num_shards: int, resume: bool, recycle: int,
         quiet: bool = False) -> dict:
     """Render this job's missing shards with ``workers`` processes; returns index.json's content."""
-    done = check_existing(job, resume)
     mine = [s for s in range(job.num_shards) if s % num_shards == shard_index]
+    done = check_existing(job, mine, resume)
     todo = [s for s in mine if s not in done]
     out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -342,7 +342,8 @@ def sample_scene(rng: np.random.Generator, board_size_m: tuple[float, float], co
         centre = look_at(eye, target, roll_deg=roll)
 
     look = sample_board_look(rng, config.board_kinds_p)
-    margin_m = float(rng.uniform(0.03, 0.15)) * board_w  # white paper around the grid, as printed
+    # White paper around the grid, as printed; a few fixed widths so the texture is drawn once per width.
+    margin_m = float(rng.choice([0.03, 0.06, 0.09, 0.12])) * board_w
     lux = _log_uniform(rng, *config.lux)
     exposure_s = exposure_time_for(lux, look, config.sensor)
     shake = bool(rng.random() < config.shake_p)

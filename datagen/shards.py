@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from contextlib import contextmanager
 import socket
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -39,6 +40,17 @@ def shard_name(index: int) -> str:
 def temporary_prefix(index: int) -> str:
     """Shard ``index`` is written as ``<prefix><host>-<pid>`` until complete (unique across a cluster)."""
     return f".{shard_name(index)}.tmp-"
+
+
+@contextmanager
+def _atomic(final: Path, index: int):
+    """Yields a temporary path beside ``final``, renamed to it only if the block completes."""
+    temporary = final.parent / f"{temporary_prefix(index)}{socket.gethostname()}-{os.getpid()}"
+    try:
+        yield temporary
+        os.replace(temporary, final)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 @dataclass
@@ -97,9 +109,8 @@ def write_shard(
     directory.mkdir(parents=True, exist_ok=True)
     width, height = _check_frames(frames, board)
     final = directory / shard_name(index)
-    temporary = directory / f"{temporary_prefix(index)}{socket.gethostname()}-{os.getpid()}"
     n = len(frames)
-    try:
+    with _atomic(final, index) as temporary:
         with h5py.File(temporary, "w", track_order=True) as f:
             f.attrs["schema_version"] = SCHEMA_VERSION
             f.attrs["board"] = board.to_json()
@@ -124,9 +135,6 @@ def write_shard(
                 if data.shape != (n,):
                     raise ShardError(f"meta {key!r} must be one scalar per frame")
                 meta.create_dataset(key, data=data, track_times=False)
-        os.replace(temporary, final)
-    finally:
-        temporary.unlink(missing_ok=True)
     update_index(directory)
     return final
 
@@ -226,8 +234,7 @@ def write_patch_shard(directory: str | Path, index: int, patches: np.ndarray, of
     if "source" not in meta:
         raise ShardError("patch meta must hold 'source' (e.g. 'render' or 'synthetic')")
     final = directory / shard_name(index)
-    temporary = directory / f"{temporary_prefix(index)}{socket.gethostname()}-{os.getpid()}"
-    try:
+    with _atomic(final, index) as temporary:
         with h5py.File(temporary, "w", track_order=True) as f:
             f.attrs["schema_version"] = SCHEMA_VERSION
             f.attrs["generator"] = json.dumps(generator, sort_keys=True)
@@ -244,9 +251,6 @@ def write_patch_shard(directory: str | Path, index: int, patches: np.ndarray, of
                 if data.shape != (n,):
                     raise ShardError(f"patch meta {key!r} must be one scalar per patch")
                 group.create_dataset(key, data=data, track_times=False)
-        os.replace(temporary, final)
-    finally:
-        temporary.unlink(missing_ok=True)
     return final
 
 

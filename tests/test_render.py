@@ -145,9 +145,12 @@ def test_resume_after_a_kill_completes_without_duplicates(reference, tmp_path):
 
 
 def test_cluster_split_covers_every_shard_once(tmp_path):
-    for job in range(2):
-        render("--n", 3, "--shard-size", 1, "--shard-index", job, "--num-shards", 2, "--out", tmp_path, *SMALL, "--resume")
+    """Jobs of an array job share --out and start in any order, without --resume."""
+    for job in (1, 0):
+        render("--n", 3, "--shard-size", 1, "--shard-index", job, "--num-shards", 2, "--out", tmp_path, *SMALL)
     assert [p.name for p in list_shards(tmp_path)] == ["shard-00000.h5", "shard-00001.h5", "shard-00002.h5"]
+    again = render("--n", 3, "--shard-size", 1, "--shard-index", 1, "--num-shards", 2, "--out", tmp_path, *SMALL, check=False)
+    assert again.returncode == 2 and "--resume" in again.stderr
 
 
 def test_cli_rejects_bad_arguments(tmp_path):
@@ -155,6 +158,9 @@ def test_cli_rejects_bad_arguments(tmp_path):
     assert bad.returncode == 2 and "--n must be >= 1" in bad.stderr
     bad = render("--shard-index", 2, "--num-shards", 2, "--out", tmp_path, check=False)
     assert bad.returncode == 2 and "--shard-index" in bad.stderr
+    if not any(Path("/dev").glob("nvidia*")):
+        bad = render("--n", 1, "--device", "gpu", "--out", tmp_path / "gpu", *SMALL, check=False)
+        assert bad.returncode == 2 and "--device cpu" in bad.stderr and not list((tmp_path / "gpu").glob("*.h5"))
     (tmp_path / "board.json").write_text('{"squares_x": 2}')
     bad = render("--board", tmp_path / "board.json", "--out", tmp_path / "x", check=False)
     assert bad.returncode == 2 and "squares_x" in bad.stderr
