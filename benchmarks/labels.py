@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=100)
     args = parser.parse_args()
     subprocess.run([sys.executable, "-m", "datagen.render", "--clean", "--n", str(args.frames), "--seed", str(args.seed),
-                    "--shard-size", "20", "--workers", str(args.workers), "--out", args.out, "--resume"], check=True)
+                    "--shard-size", str(max(1, args.frames // (4 * args.workers))), "--workers", str(args.workers), "--out", args.out, "--resume"], check=True)
     board = BoardSpec()
     for refine in ("subpix", "none"):
         detector = OpenCVDetector(board, refine=refine)

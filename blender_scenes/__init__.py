@@ -43,6 +43,13 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
     render_setup.configure_cycles(scene, spec.width, spec.height, (params.pixel_aspect_x, params.pixel_aspect_y),
                                   spec.samples, spec.render_seed, threads or os.cpu_count() or 1, device)
     objects.set_world(spec.world)
+    # Fireflies (rare paths finding a small bright source) would read as salt noise at a few
+    # samples per pixel. Clamp each sample at a few times the radiance of white paper in this
+    # light: brighter pixels saturate the sensor anyway.
+    white_paper = spec.world.strength * objects.hdri_mean_radiance(spec.world.hdri) + sum(
+        objects.light_irradiance(light, spec.board_matrix[:3, 3]) for light in spec.lights) / np.pi
+    scene.cycles.sample_clamp_direct = 4.0 * white_paper
+    scene.cycles.sample_clamp_indirect = 2.0 * white_paper
     if spec.board_present:
         objects.add_board(board, spec)
     for i, distractor in enumerate(spec.distractors):

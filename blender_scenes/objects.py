@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from functools import lru_cache
 from pathlib import Path
 
 import bpy  # first: bmesh and mathutils load with it
@@ -212,6 +213,26 @@ def add_light(index: int, light: Light) -> bpy.types.Object:
         data.spot_size = math.radians(light.spot_size_deg)
         data.spot_blend = light.spot_blend
     return _link(f"lamp{index}", data, light.matrix)
+
+
+@lru_cache(maxsize=16)
+def hdri_mean_radiance(name: str) -> float:
+    """Mean luminance of an HDRI over the sphere (equirectangular rows weighted by cos(latitude))."""
+    image = bpy.data.images.load(str(HDRI_DIR / f"{name}.exr"), check_existing=True)
+    width, height = image.size
+    pixels = np.empty(width * height * 4, dtype=np.float32)
+    image.pixels.foreach_get(pixels)
+    luminance = pixels.reshape(height, width, 4)[:, :, :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    weights = np.cos((np.arange(height) + 0.5) / height * np.pi - np.pi / 2)
+    return float((luminance.mean(axis=1) * weights).sum() / weights.sum())
+
+
+def light_irradiance(light: Light, point: np.ndarray) -> float:
+    """Irradiance (W/m^2, Blender units) a lamp would give a surface facing it at ``point``."""
+    if light.kind == "SUN":
+        return light.power
+    distance2 = max(float(np.sum((light.matrix[:3, 3] - point) ** 2)), 1e-6)
+    return light.power / ((math.pi if light.kind == "AREA" else 4 * math.pi) * distance2)
 
 
 def set_world(world_spec: World) -> None:

@@ -67,7 +67,6 @@ def configure_cycles(scene: bpy.types.Scene, width: int, height: int, pixel_aspe
     cycles.transparent_max_bounces = 2
     cycles.caustics_reflective = False
     cycles.caustics_refractive = False
-    cycles.sample_clamp_indirect = 10.0
     cycles.blur_glossy = 1.0  # fireflies from glossy paths would read as salt noise at 4 spp
     settings = scene.render.image_settings
     settings.file_format = "OPEN_EXR"

@@ -233,7 +233,7 @@ def sample_board_look(rng: np.random.Generator, probabilities=(0.6, 0.3, 0.1)) -
 def _camera_K(rng: np.random.Generator, config: SceneConfig) -> np.ndarray:
     w, h = config.width, config.height
     fx = (w / 2.0) / math.tan(math.radians(rng.uniform(*config.hfov_deg)) / 2.0)
-    fy = fx * rng.uniform(0.995, 1.005)
+    fy = fx  # square pixels, as webcams have (non-square ones mis-project in Blender when fy > fx: measured 0.8 px)
     cx = (w - 1) / 2.0 + rng.uniform(-1, 1) * config.principal_jitter_px
     cy = (h - 1) / 2.0 + rng.uniform(-1, 1) * config.principal_jitter_px
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

@@ -14,7 +14,7 @@ from deepcharuco import BoardSpec, project_corners
 
 @pytest.mark.parametrize("K, size", [
     (np.array([[277.1, 0, 159.5], [0, 277.1, 119.5], [0, 0, 1]]), (320, 240)),
-    (np.array([[500.0, 0, 301.2], [0, 520.0, 222.9], [0, 0, 1]]), (640, 480)),
+    (np.array([[520.0, 0, 301.2], [0, 500.0, 222.9], [0, 0, 1]]), (640, 480)),
     (np.array([[300.0, 0, 100.3], [0, 290.0, 150.2], [0, 0, 1]]), (200, 300)),  # portrait, fx > fy
 ])
 def test_blender_camera_round_trip(K, size):
@@ -22,9 +22,11 @@ def test_blender_camera_round_trip(K, size):
     np.testing.assert_allclose(K_from_blender_camera(params), K, atol=1e-9)
 
 
-def test_blender_camera_rejects_skew():
+def test_blender_camera_rejects_what_it_cannot_render():
     with pytest.raises(ValueError, match="no skew"):
         blender_camera_from_K(np.array([[300.0, 2.0, 160], [0, 300, 120], [0, 0, 1]]), 320, 240)
+    with pytest.raises(ValueError, match="fy <= fx"):
+        blender_camera_from_K(np.array([[500.0, 0, 301.2], [0, 520.0, 222.9], [0, 0, 1]]), 640, 480)
 
 
 def test_camera_matrix_conventions():
