@@ -15,6 +15,7 @@ Importing this package does not import bpy; `render_scene` does, on first call.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,8 +34,6 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
 
     ``threads``: Cycles render threads (0: all cores). ``device``: "cpu" or "gpu".
     """
-    import os
-
     from blender_scenes import objects, render_setup, visibility
     from blender_scenes.conversions import blender_camera_from_K
 
@@ -46,8 +45,7 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
     # Fireflies (rare paths finding a small bright source) would read as salt noise at a few
     # samples per pixel. Clamp each sample at a few times the radiance of white paper in this
     # light: brighter pixels saturate the sensor anyway.
-    white_paper = spec.world.strength * objects.hdri_mean_radiance(spec.world.hdri) + sum(
-        objects.light_irradiance(light, spec.board_matrix[:3, 3]) for light in spec.lights) / np.pi
+    white_paper = objects.white_paper_radiance(spec)
     scene.cycles.sample_clamp_direct = 4.0 * white_paper
     scene.cycles.sample_clamp_indirect = 2.0 * white_paper
     if spec.board_present:
@@ -59,7 +57,6 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
     for i, light in enumerate(spec.lights):
         objects.add_light(i, light)
     objects.add_camera(spec)
-    bpy_view_layer_update()
 
     corners_world = (spec.board_matrix[:3, :3] @ board.corner_points().T).T + spec.board_matrix[:3, 3]
     if spec.board_present:
@@ -69,8 +66,3 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
     radiance = render_setup.render_radiance(scene)
     return SceneRender(radiance=radiance, unoccluded=unoccluded)
 
-
-def bpy_view_layer_update() -> None:
-    import bpy
-
-    bpy.context.view_layer.update()

@@ -235,6 +235,15 @@ def light_irradiance(light: Light, point: np.ndarray) -> float:
     return light.power / ((math.pi if light.kind == "AREA" else 4 * math.pi) * distance2)
 
 
+def white_paper_radiance(spec: SceneSpec) -> float:
+    """Rough radiance of white paper (albedo 1) at the board in this scene's light, or of the
+    brightest emissive (monitor) board: the scale that firefly clamping is set from."""
+    irradiance = math.pi * spec.world.strength * hdri_mean_radiance(spec.world.hdri)
+    irradiance += sum(light_irradiance(light, spec.board_matrix[:3, 3]) for light in spec.lights)
+    looks = [spec.board_look] * spec.board_present + [d.look for d in spec.distractors]
+    return max([irradiance / math.pi] + [look.emission for look in looks if look.kind == "monitor"])
+
+
 def set_world(world_spec: World) -> None:
     """An HDRI environment (Blender's bundled CC0 studio-light worlds), rotated about Z and scaled."""
     world = bpy.data.worlds.new("world")

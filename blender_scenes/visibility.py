@@ -10,6 +10,7 @@ from mathutils import Vector
 def unoccluded(points_world: np.ndarray, eye: np.ndarray, tolerance_m: float = 1e-3) -> np.ndarray:
     """(N,) bool: True where nothing lies on the segment from ``eye`` to the world point
     (ending ``tolerance_m`` short of it, so the surface the point lies on does not count)."""
+    bpy.context.view_layer.update()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     scene = bpy.context.scene
     origin = Vector(map(float, eye))
