@@ -1,7 +1,7 @@
 """Deep ChArUco runtime: board geometry, detectors (deep and OpenCV) and pose.
 
-    from deepcharuco import BoardSpec, OpenCVDetector
-    det = OpenCVDetector(BoardSpec(), refine="subpix")
+    from deepcharuco import BoardSpec, Detector, OpenCVDetector
+    det = Detector(weights="detector.pt")     # or OpenCVDetector(BoardSpec(), refine="subpix")
     d = det.detect(gray_u8)                   # Detection: ids, corners, scores
     pose = det.estimate_pose(d, K, dist)      # Pose or None
 """
@@ -18,17 +18,16 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BoardSpec", "BoardTexture", "dictionary_names", "Camera", "read_camera", "write_camera",
-    "Detection", "BoardSpecError", "CameraFileError", "DeepCharucoError", "ImageError",
+    "Detection", "Detector", "BoardSpecError", "CameraFileError", "DeepCharucoError", "ImageError",
     "CornerMatch", "match_corners", "OpenCVDetector", "Pose", "estimate_pose", "project_corners",
 ]
 
 
 def __getattr__(name: str):
+    # The deep detector imports torch: loaded on first use, so `import deepcharuco` stays light
+    # (the Blender render workers import the board geometry and must not pull torch in).
     if name == "Detector":
-        # ImportError (not AttributeError) so that `from deepcharuco import Detector` shows this text.
-        raise ImportError(
-            "deepcharuco.Detector (ChArUcoNet + RefineNet) is not available in this version: "
-            "the deep detector and its shipped weights are still being built; use "
-            "deepcharuco.OpenCVDetector meanwhile"
-        )
+        from deepcharuco.deep_detector import Detector
+
+        return Detector
     raise AttributeError(f"module 'deepcharuco' has no attribute {name!r}")

@@ -94,15 +94,15 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
     return Source(path.stem, "video", _video_frames(capture, max_frames), capture.get(cv2.CAP_PROP_FPS) or 30.0, total)
 
 
-def make_detector(name: str, board: BoardSpec, refine: str):
+def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
+                  refine_weights: str | None = None):
     if name == "opencv":
         if refine == "refinenet":
             raise DeepCharucoError("--refine refinenet needs --detector deep; OpenCV takes subpix or none")
         return OpenCVDetector(board, refine=refine)
-    raise DeepCharucoError(
-        "--detector deep is not available yet: ChArUcoNet/RefineNet and their shipped weights are "
-        "still being built. Use --detector opencv (the default) meanwhile."
-    )
+    from deepcharuco.deep_detector import Detector
+
+    return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights)
 
 
 def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
@@ -144,9 +144,10 @@ def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    board = BoardSpec.load(args.board) if args.board else BoardSpec()
+    board = BoardSpec.load(args.board) if args.board else None  # deep: default to the weights' board
     camera = read_camera(args.camera) if args.camera else None
-    detector = make_detector(args.detector, board, args.refine)
+    detector = make_detector(args.detector, board, args.refine, args.weights, args.refine_weights)
+    board = detector.board
     source = open_source(args.source, args.max_frames)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -219,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--detector", choices=["opencv", "deep"], default="opencv", help="which detector")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default="subpix",
                         help="corner refinement")
+    parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle "
+                                                         "(default: the shipped weights)")
+    parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
+                                                                "checkpoint when --weights holds only ChArUcoNet")
     parser.add_argument("--out", default="detect_out", help="output folder")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     parser.add_argument("--no-overlay", action="store_true", help="write results only, no overlay images/video")

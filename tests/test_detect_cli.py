@@ -70,7 +70,7 @@ def test_folder_of_images_without_camera(tmp_path, camera, default_views):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--detector", "deep"], "--detector deep is not available yet"),
+        (["--detector", "deep"], "no shipped weights in this version"),
         (["--refine", "refinenet"], "needs --detector deep"),
         (["--camera", "missing.yaml"], "camera file missing.yaml does not exist"),
         (["--board", "missing.json"], "board file missing.json does not exist"),

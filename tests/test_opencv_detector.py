@@ -84,6 +84,8 @@ def test_bad_arguments():
         OpenCVDetector(max_window=0)
 
 
-def test_deep_detector_import_explains_itself():
-    with pytest.raises(ImportError, match="not available in this version"):
-        from deepcharuco import Detector  # noqa: F401
+def test_deep_detector_without_weights_explains_itself():
+    from deepcharuco import DeepCharucoError, Detector
+
+    with pytest.raises(DeepCharucoError, match="no shipped weights"):
+        Detector()

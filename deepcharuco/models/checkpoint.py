@@ -1,0 +1,111 @@
+"""Checkpoint files of the two networks: weights plus everything needed to use them.
+
+A checkpoint is a ``torch.save`` dict:
+
+    format: "deepcharuco-checkpoint", format_version: 1
+    kind: "charuconet" | "refinenet"
+    config: the architecture (ChArUcoNetConfig / RefineNetConfig as a dict)
+    board: BoardSpec dict (ChArUcoNet only: its ID head is that board's)
+    input_size: [W, H] it was trained at (ChArUcoNet), [24, 24] (RefineNet)
+    state_dict: the weights
+    training: free-form (step, metrics, command ...)
+
+A "bundle" holds both: {"format": ..., "kind": "bundle", "charuconet": {...}, "refinenet": {...}}.
+Loading checks all of it and says what is wrong and what to do.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
+from deepcharuco.models.refinenet import RefineNet, RefineNetConfig
+
+FORMAT = "deepcharuco-checkpoint"
+FORMAT_VERSION = 1
+
+
+class CheckpointError(DeepCharucoError, ValueError):
+    """A weights file that cannot be used as asked."""
+
+
+def checkpoint_dict(model: torch.nn.Module, board: BoardSpec | None = None, input_size: tuple[int, int] | None = None,
+                    training: dict | None = None) -> dict:
+    """The dict to ``torch.save`` for ``model`` (a ChArUcoNet needs ``board``)."""
+    if isinstance(model, ChArUcoNet):
+        if board is None or board.num_corners != model.config.num_corners:
+            raise CheckpointError("a ChArUcoNet checkpoint needs the BoardSpec whose corners its ID head classifies")
+        kind = "charuconet"
+    elif isinstance(model, RefineNet):
+        kind, input_size = "refinenet", (24, 24)
+    else:
+        raise CheckpointError(f"not a ChArUcoNet or RefineNet: {type(model).__name__}")
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    return {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "config": model.config.to_dict(),
+            "board": board.to_dict() if board else None, "input_size": list(input_size) if input_size else None,
+            "state_dict": state, "training": training or {}}
+
+
+def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
+    """Write a checkpoint atomically (temporary file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    torch.save(checkpoint_dict(model, **kwargs), temporary)
+    temporary.replace(path)
+    return path
+
+
+def read_checkpoint(path: str | Path, kind: str) -> dict:
+    """The ``kind`` ("charuconet" / "refinenet") checkpoint in ``path`` (a checkpoint or a bundle), validated."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"weights file {path} does not exist")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # pickle, zip and torch errors all mean "not our file"
+        raise CheckpointError(f"{path} is not a readable PyTorch checkpoint ({type(error).__name__}: {error})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a Deep ChArUco checkpoint (no format={FORMAT!r}); "
+                              f"train one with python -m train.{kind}")
+    if data.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path} has checkpoint format {data.get('format_version')}, this code reads {FORMAT_VERSION}")
+    if data.get("kind") == "bundle":
+        if kind not in data:
+            raise CheckpointError(f"the bundle {path} holds no {kind}")
+        data = {**data[kind], "format": FORMAT, "format_version": FORMAT_VERSION}
+    if data.get("kind") != kind:
+        raise CheckpointError(f"{path} holds a {data.get('kind')} checkpoint, a {kind} was expected")
+    return data
+
+
+def load_charuconet(path: str | Path, board: BoardSpec | None = None) -> tuple[ChArUcoNet, BoardSpec, dict]:
+    """(network in eval mode, its board, the checkpoint) from ``path``; ``board``, when given, must match."""
+    data = read_checkpoint(path, "charuconet")
+    trained_for = BoardSpec.from_dict(data["board"])
+    if board is not None and board != trained_for:
+        raise CheckpointError(f"{path} was trained for {trained_for}, not for {board}: "
+                              f"train a ChArUcoNet for this board (python -m train.charuconet --board ...)")
+    model = ChArUcoNet(ChArUcoNetConfig.from_dict(data["config"]))
+    _load_state(model, data, path)
+    return model.eval(), trained_for, data
+
+
+def load_refinenet(path: str | Path) -> tuple[RefineNet, dict]:
+    data = read_checkpoint(path, "refinenet")
+    model = RefineNet(RefineNetConfig.from_dict(data["config"]))
+    _load_state(model, data, path)
+    return model.eval(), data
+
+
+def _load_state(model: torch.nn.Module, data: dict, path: Path) -> None:
+    try:
+        model.load_state_dict(data["state_dict"])
+    except RuntimeError as error:
+        first = str(error).strip().splitlines()[:3]
+        raise CheckpointError(f"the weights in {path} do not fit the architecture it declares "
+                              f"({data['config']}): {' '.join(first)}") from None
