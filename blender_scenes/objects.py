@@ -19,6 +19,7 @@ from mathutils import Matrix
 from blender_scenes.conversions import blender_camera_from_K, blender_camera_matrix
 from blender_scenes.textures import board_texture, distractor_texture, poster_texture
 from datagen.scene import BoardLook, Distractor, Light, SceneSpec, Shape, Surface, World
+from datagen.sensor import REC709_LUMA
 from deepcharuco.board import BoardSpec
 
 HDRI_DIR = Path(bpy.utils.system_resource("DATAFILES")) / "studiolights" / "world"
@@ -222,7 +223,7 @@ def hdri_mean_radiance(name: str) -> float:
     width, height = image.size
     pixels = np.empty(width * height * 4, dtype=np.float32)
     image.pixels.foreach_get(pixels)
-    luminance = pixels.reshape(height, width, 4)[:, :, :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    luminance = pixels.reshape(height, width, 4)[:, :, :3] @ REC709_LUMA
     weights = np.cos((np.arange(height) + 0.5) / height * np.pi - np.pi / 2)
     return float((luminance.mean(axis=1) * weights).sum() / weights.sum())
 

@@ -20,17 +20,16 @@ import math
 import cv2
 import numpy as np
 
-from datagen.scene import SceneConfig, SceneSpec, sample_scene
-from datagen.sensor import auto_gain, capture, sensor_record
-from datagen.shards import FrameLabels
 from blender_scenes.conversions import board_pose_in_camera
 from blender_scenes.textures import board_texture
+from datagen.scene import SceneConfig, SceneSpec, sample_scene
+from datagen.sensor import REC709_LUMA, auto_gain, capture, sensor_record
+from datagen.shards import FrameLabels
 from deepcharuco.board import BoardSpec
 from deepcharuco.pose import project_corners
 from deepcharuco.synthetic import texture_homography
 
 MONITOR_EQUIVALENT_ALBEDO = 0.8
-REC709_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
 
 def frame_rng(seed: int, index: int) -> np.random.Generator:

@@ -16,12 +16,13 @@ import os
 import queue
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
 import deepcharuco
+from datagen.scene import SceneConfig
 from datagen.shards import ShardReader, list_shards, temporary_prefix, update_index, write_shard
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
@@ -62,11 +63,7 @@ class RenderJob:
         return range(shard * self.shard_size, min(self.n, (shard + 1) * self.shard_size))
 
 
-def scene_config(job: RenderJob):
-    from dataclasses import replace
-
-    from datagen.scene import SceneConfig
-
+def scene_config(job: RenderJob) -> SceneConfig:
     config = SceneConfig.clean() if job.clean else SceneConfig()
     config = replace(config, width=job.width, height=job.height)
     return replace(config, samples=job.samples) if job.samples else config

@@ -25,6 +25,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 
+# Luminance from linear Rec.709 RGB (Blender's scene-linear space), the sensor's spectral response.
+REC709_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
 @dataclass(frozen=True)
 class SensorParams:
     """A small-pixel USB webcam (defaults) — the paper's kind of camera."""
