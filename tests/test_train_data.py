@@ -1,0 +1,92 @@
+"""Augmentation keeps labels on the image; the dataset gives consistent targets; shards split by file."""
+
+import cv2
+import numpy as np
+import pytest
+
+from datagen.shards import FrameLabels, ShardError, write_shard
+from deepcharuco import BoardSpec
+from deepcharuco.models.cells import decode_cells
+from train.augment import AugmentConfig, augment, warp_labels
+from train.dataset import FrameDataset, split_shards
+
+GEOMETRY_ONLY = AugmentConfig(probabilities=())
+
+
+def test_homography_moves_labels_with_the_image(default_views):
+    """Labels pushed through the sampled homography sit on the warped image's corners (cornerSubPix)."""
+    errors = []
+    for k, (image, _, _, corners) in enumerate(default_views):
+        rng = np.random.default_rng(k)
+        warped, moved, visible = augment(image / 255.0, corners.astype(np.float32), np.ones(16, bool), True, rng, GEOMETRY_ONLY)
+        gray = np.round(warped * 255).astype(np.uint8)
+        inner = visible & np.all((moved > 6) & (moved < [314, 234]), axis=1)
+        assert inner.sum() >= 6
+        start = (moved[inner] + rng.uniform(-0.7, 0.7, (inner.sum(), 2))).reshape(-1, 1, 2).astype(np.float32)
+        found = cv2.cornerSubPix(gray, start, (3, 3), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+        errors += list(np.linalg.norm(found.reshape(-1, 2) - moved[inner], axis=1))
+        assert not np.array_equal(moved, corners.astype(np.float32))
+    assert np.median(errors) < 0.15, np.median(errors)
+
+
+def test_corners_leaving_the_frame_become_invisible():
+    corners = np.array([[10.0, 10.0], [300.0, 200.0]], np.float32)
+    shift = np.array([[1, 0, 50.0], [0, 1, 0], [0, 0, 1]])
+    moved, visible = warp_labels(corners, np.array([True, True]), shift, 320, 240)
+    np.testing.assert_allclose(moved, [[60, 10], [350, 200]])
+    assert visible.tolist() == [True, False]
+
+
+def test_photometric_effects_keep_range_and_negatives_stay_put():
+    rng = np.random.default_rng(0)
+    image = np.full((48, 64), 0.5, np.float32)
+    corners = np.full((16, 2), np.nan, np.float32)
+    means = []
+    for _ in range(40):
+        out, moved, visible = augment(image, corners, np.zeros(16, bool), False, rng)
+        assert out.dtype == np.float32 and out.min() >= 0 and out.max() <= 1
+        assert np.all(np.isnan(moved)) and not visible.any()
+        means.append(out.mean())
+    assert min(means) < 0.1 and max(means) > 0.4  # brightness rescale reaches near-black
+
+
+def _shard(tmp_path, index, board, n=3, has_board=True):
+    rng = np.random.default_rng(index)
+    frames = []
+    for i in range(n):
+        corners = rng.uniform(10, [300, 220], (16, 2)).astype(np.float32) if has_board else np.full((16, 2), np.nan, np.float32)
+        frames.append(FrameLabels(image=rng.integers(0, 255, (240, 320), dtype=np.uint8), corners=corners,
+                                  visible=np.full(16, has_board), K=np.eye(3), rvec=np.zeros(3), tvec=np.zeros(3),
+                                  meta={"has_board": has_board, "frame": index * n + i}))
+    write_shard(tmp_path, index, frames, board, {"test": True})
+
+
+def test_dataset_targets_and_split(tmp_path):
+    board = BoardSpec()
+    for index in range(5):
+        _shard(tmp_path, index, board, has_board=index != 2)
+    train, validation = split_shards(tmp_path, val_fraction=0.2)
+    assert [p.name for p in validation] == ["shard-00004.h5"] and len(train) == 4
+    dataset = FrameDataset(train, board, augmentation=None)
+    assert len(dataset) == 12
+    sample = dataset[0]
+    assert sample["image"].shape == (1, 240, 320) and sample["points"].shape == (30, 40)
+    point_logits = np.full((65, 30, 40), -20.0, np.float32)
+    id_logits = np.full((17, 30, 40), -20.0, np.float32)
+    r, c = np.indices((30, 40))
+    point_logits[sample["points"].numpy(), r, c] = 20
+    id_logits[sample["ids"].numpy(), r, c] = 20
+    import torch
+
+    ids, pixels, _ = decode_cells(torch.from_numpy(point_logits), torch.from_numpy(id_logits), 0.5)
+    assert len(ids) >= 14
+    assert np.all(np.abs(pixels - sample["corners"].numpy()[ids]) <= 0.5 + 1e-5)
+    negative = dataset[7]  # shard 2 is all negatives
+    assert not negative["has_board"] and (negative["points"] == 64).all() and (negative["ids"] == 16).all()
+    augmented = FrameDataset(train, board, seed=3)
+    a, b = augmented[5], augmented[5]
+    assert torch.equal(a["image"], b["image"])
+    augmented.set_epoch(1)
+    assert not torch.equal(augmented[5]["image"], a["image"])
+    with pytest.raises(ShardError, match="rendered for"):
+        FrameDataset(train, BoardSpec(squares_x=6, squares_y=6, dictionary="DICT_5X5_50"))
