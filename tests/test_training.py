@@ -1,0 +1,109 @@
+"""The shared training loop: loss falls, resume is exact, SIGTERM checkpoints, refusals."""
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.patches import synthetic_patches
+from datagen.shards import FrameLabels, write_patch_shard, write_shard
+from deepcharuco import BoardSpec, DeepCharucoError
+from deepcharuco.models import load_charuconet, load_refinenet
+from train.charuconet import ChArUcoNetTask
+from train.loop import TrainConfig, train
+from train.refinenet import RefineNetTask
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def patches(tmp_path_factory):
+    out = tmp_path_factory.mktemp("patches")
+    for shard in range(3):
+        p, o = synthetic_patches(np.random.default_rng(shard), 256)
+        write_patch_shard(out, shard, p, o, {"source": np.array(["synthetic"] * 256)}, {})
+    return out
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory, default_views):
+    out = tmp_path_factory.mktemp("frames")
+    for shard in range(2):
+        write_shard(out, shard, [FrameLabels(image=img, corners=c.astype(np.float32), visible=np.ones(16, bool), K=np.eye(3),
+                                             rvec=r, tvec=t, meta={"has_board": True}) for img, r, t, c in default_views],
+                    BoardSpec(), {})
+    return out
+
+
+def config(data, out, **kw):
+    base = dict(data=str(data), out=str(out), steps=40, batch_size=16, lr=3e-3, warmup=5, width="lite", val_every=20,
+                val_batches=2, checkpoint_every=20, log_every=5, workers=0, seed=1, quiet=True, val_fraction=0.34)
+    return TrainConfig(**{**base, **kw})
+
+
+def test_refinenet_loss_falls(patches, tmp_path):
+    cfg = config(patches, tmp_path, steps=80)
+    result = train(RefineNetTask(cfg), cfg, "refinenet")
+    losses = result["losses"]
+    assert np.mean(losses[-10:]) < np.mean(losses[:10]) - 1.0, (losses[:10], losses[-10:])
+    model, _ = load_refinenet(tmp_path / "best.pt")
+    log = (tmp_path / "log.csv").read_text().splitlines()
+    assert log[0] == "step,loss,lr,seconds,score,mean_error_px" and len(log) == 1 + 16
+
+
+def test_charuconet_loss_falls(frames, tmp_path):
+    cfg = config(frames, tmp_path, steps=30, batch_size=4, val_every=15, checkpoint_every=15)
+    result = train(ChArUcoNetTask(cfg), cfg, "charuconet")
+    assert np.mean(result["losses"][-5:]) < 0.7 * np.mean(result["losses"][:5])
+    _, board, checkpoint = load_charuconet(tmp_path / "last.pt")
+    assert board == BoardSpec() and checkpoint["input_size"] == [320, 240] and checkpoint["training"]["step"] == 30
+
+
+def test_resume_is_exact(patches, tmp_path):
+    whole = config(patches, tmp_path / "whole")
+    train(RefineNetTask(whole), whole, "refinenet")
+    half = config(patches, tmp_path / "split")
+    assert train(RefineNetTask(half), half, "refinenet", stop_at=20)["step"] == 20
+    rest = config(patches, tmp_path / "split", resume=True)
+    train(RefineNetTask(rest), rest, "refinenet")
+    a = torch.load(tmp_path / "whole" / "last.pt", weights_only=False)
+    b = torch.load(tmp_path / "split" / "last.pt", weights_only=False)
+    assert a["training"]["step"] == b["training"]["step"] == 40
+    for key in a["state_dict"]:
+        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
+
+
+def test_refusals(patches, tmp_path):
+    cfg = config(patches, tmp_path, steps=5, val_every=5, checkpoint_every=5)
+    with pytest.raises(DeepCharucoError, match="no .* to resume"):
+        train(RefineNetTask(cfg), TrainConfig(**{**cfg.__dict__, "resume": True}), "refinenet")
+    train(RefineNetTask(cfg), cfg, "refinenet")
+    with pytest.raises(DeepCharucoError, match="--resume"):
+        train(RefineNetTask(cfg), cfg, "refinenet")
+    changed = TrainConfig(**{**cfg.__dict__, "resume": True, "lr": 0.1})
+    with pytest.raises(DeepCharucoError, match="lr"):
+        train(RefineNetTask(changed), changed, "refinenet")
+
+
+def test_sigterm_saves_and_resume_finishes(patches, tmp_path):
+    args = [sys.executable, "-m", "train.refinenet", "--data", str(patches), "--out", str(tmp_path), "--steps", "100000",
+            "--batch-size", "16", "--width", "lite", "--workers", "0", "--checkpoint-every", "100000", "--val-every", "100000",
+            "--quiet"]
+    process = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while not (tmp_path / "log.csv").exists() or len((tmp_path / "log.csv").read_text().splitlines()) < 3:
+        assert time.time() < deadline and process.poll() is None
+        time.sleep(0.1)
+    process.send_signal(signal.SIGTERM)
+    out, _ = process.communicate(timeout=60)
+    assert process.returncode == 0 and "--resume" in out
+    step = torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"]
+    assert 0 < step < 100000
+    done = subprocess.run(args[:8] + [str(step + 10)] + args[9:] + ["--resume"], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"] == step + 10

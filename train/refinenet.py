@@ -1,0 +1,81 @@
+"""Train RefineNet on corner patches: ``python -m train.refinenet --data data/patches --out runs/refinenet``.
+
+Loss: 4096-way cross-entropy against the grid cell of the true offset. Validation: mean
+distance (px) between the decoded offset (argmax + soft-argmax) and the truth.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from datagen.shards import ShardError, list_shards, read_patch_shard
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.models.refinenet import RefineNet, RefineNetConfig, decode_offsets, offset_to_cell
+from train.cli import parse_config
+from train.loop import TrainConfig, train
+
+
+class PatchDataset(torch.utils.data.Dataset):
+    """All patches of the given patch shards (small: read whole) -> dict(image (1, 24, 24), target, offset)."""
+
+    def __init__(self, shards: list[Path]):
+        parts = [read_patch_shard(p) for p in shards]
+        self.patches = np.concatenate([p for p, _, _ in parts])
+        self.offsets = np.concatenate([o for _, o, _ in parts]).astype(np.float32)
+
+    def __len__(self) -> int:
+        return len(self.patches)
+
+    def __getitem__(self, index: int) -> dict:
+        offset = torch.from_numpy(self.offsets[index])
+        return {"image": torch.from_numpy(self.patches[index].astype(np.float32) / 255.0)[None],
+                "target": offset_to_cell(offset), "offset": offset}
+
+
+class RefineNetTask:
+    higher_is_better = False
+    metric_names = ("score", "mean_error_px")
+
+    def __init__(self, config: TrainConfig):
+        paths = list_shards(config.data)
+        if not paths:
+            raise ShardError(f"{config.data} holds no patch shards (make some with python -m datagen.patches)")
+        step = max(2, round(1 / config.val_fraction)) if config.val_fraction > 0 else len(paths) + 1
+        validation = paths[step - 1::step] or paths[-1:]
+        training = [p for p in paths if p not in validation] or validation
+        torch.manual_seed(config.seed)
+        self.model = RefineNet(RefineNetConfig.lite() if config.width == "lite" else RefineNetConfig.paper())
+        self.train_set, self.val_set = PatchDataset(training), PatchDataset(validation)
+
+    def loss(self, model, batch: dict, device: torch.device) -> torch.Tensor:
+        return F.cross_entropy(model(batch["image"].to(device)).float(), batch["target"].to(device))
+
+    def validate(self, model, batches: list[dict], device: torch.device) -> dict:
+        errors = [torch.linalg.norm(decode_offsets(model(b["image"].to(device)).float()).cpu() - b["offset"], dim=1)
+                  for b in batches]
+        error = float(torch.cat(errors).mean())
+        return {"score": error, "mean_error_px": error}
+
+    def checkpoint_kwargs(self) -> dict:
+        return {}
+
+
+def main(argv: list[str] | None = None) -> int:
+    config = parse_config("python -m train.refinenet", __doc__.splitlines()[0],
+                          {"data": "data/patches", "out": "runs/refinenet", "batch_size": 256, "steps": 20000}, argv)
+    try:
+        result = train(RefineNetTask(config), config, "refinenet")
+    except DeepCharucoError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(f"step {result['step']}: best validation mean error {result['best']} px")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
