@@ -15,14 +15,13 @@ import torch.nn.functional as F
 
 from datagen.shards import ShardReader
 from deepcharuco.detection import Detection
-from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
 from deepcharuco.models.cells import decode_cells
 from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
 from train.augment import AugmentConfig
-from train.cli import parse_config
+from train.cli import run_trainer
 from train.dataset import FrameDataset, split_shards
-from train.loop import TrainConfig, train
+from train.loop import TrainConfig
 
 
 class ChArUcoNetTask:
@@ -65,16 +64,8 @@ class ChArUcoNetTask:
 
 
 def main(argv: list[str] | None = None) -> int:
-    config = parse_config("python -m train.charuconet", __doc__.splitlines()[0],
-                          {"data": "data/renders", "out": "runs/charuconet"}, argv)
-    try:
-        result = train(ChArUcoNetTask(config), config, "charuconet")
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"step {result['step']}: best validation corner accuracy {result['best']}")
-    return 0
-
+    return run_trainer("charuconet", ChArUcoNetTask, __doc__, "corner accuracy",
+                       {"data": "data/renders", "out": "runs/charuconet"}, argv)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import fields
 
-from train.loop import TrainConfig
+from deepcharuco.errors import DeepCharucoError
+from train.loop import TrainConfig, train
 
 HELP = {
     "data": "folder of shards", "out": "run folder (last.pt, best.pt, log.csv)", "steps": "optimizer steps in all",
@@ -38,3 +40,15 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
     if problems:
         parser.error("; ".join(problems))
     return config
+
+
+def run_trainer(kind: str, task_class, doc: str, score_name: str, defaults: dict, argv: list[str] | None = None) -> int:
+    """``python -m train.<kind>``: parse options, build the task, train; 2 with a message on bad input."""
+    config = parse_config(f"python -m train.{kind}", doc.splitlines()[0], defaults, argv)
+    try:
+        result = train(task_class(config), config, kind)
+    except DeepCharucoError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(f"step {result['step']}: best validation {score_name} {result['best']}")
+    return 0

@@ -20,12 +20,14 @@ from deepcharuco.models.charuconet import CELL
 from train.augment import AugmentConfig, augment
 
 
-def split_shards(directory: str | Path, val_fraction: float = 0.1) -> tuple[list[Path], list[Path]]:
+def split_shards(directory: str | Path, val_fraction: float = 0.1,
+                 make_them: str = "render some with python -m datagen.render") -> tuple[list[Path], list[Path]]:
     """(train, validation) shard paths: every k-th shard validates, k = round(1 / val_fraction).
-    With a single shard, it serves both (a tiny run still gets a validation number)."""
+    With a single shard, it serves both (a tiny run still gets a validation number).
+    ``make_them`` completes the error message of an empty folder."""
     paths = list_shards(directory)
     if not paths:
-        raise ShardError(f"{directory} holds no shards (render some with python -m datagen.render)")
+        raise ShardError(f"{directory} holds no shards ({make_them})")
     if len(paths) == 1 or val_fraction <= 0:
         return paths, paths[:1]
     step = max(2, round(1.0 / val_fraction))

@@ -13,11 +13,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from datagen.shards import ShardError, list_shards, read_patch_shard
-from deepcharuco.errors import DeepCharucoError
+from datagen.shards import read_patch_shard
 from deepcharuco.models.refinenet import RefineNet, RefineNetConfig, decode_offsets, offset_to_cell
-from train.cli import parse_config
-from train.loop import TrainConfig, train
+from train.cli import run_trainer
+from train.dataset import split_shards
+from train.loop import TrainConfig
 
 
 class PatchDataset(torch.utils.data.Dataset):
@@ -42,12 +42,8 @@ class RefineNetTask:
     metric_names = ("score", "mean_error_px")
 
     def __init__(self, config: TrainConfig):
-        paths = list_shards(config.data)
-        if not paths:
-            raise ShardError(f"{config.data} holds no patch shards (make some with python -m datagen.patches)")
-        step = max(2, round(1 / config.val_fraction)) if config.val_fraction > 0 else len(paths) + 1
-        validation = paths[step - 1::step] or paths[-1:]
-        training = [p for p in paths if p not in validation] or validation
+        training, validation = split_shards(config.data, config.val_fraction,
+                                            "make some with python -m datagen.patches")
         torch.manual_seed(config.seed)
         self.model = RefineNet(RefineNetConfig.lite() if config.width == "lite" else RefineNetConfig.paper())
         self.train_set, self.val_set = PatchDataset(training), PatchDataset(validation)
@@ -66,16 +62,8 @@ class RefineNetTask:
 
 
 def main(argv: list[str] | None = None) -> int:
-    config = parse_config("python -m train.refinenet", __doc__.splitlines()[0],
-                          {"data": "data/patches", "out": "runs/refinenet", "batch_size": 256, "steps": 20000}, argv)
-    try:
-        result = train(RefineNetTask(config), config, "refinenet")
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"step {result['step']}: best validation mean error {result['best']} px")
-    return 0
-
+    return run_trainer("refinenet", RefineNetTask, __doc__, "mean error (px)",
+                       {"data": "data/patches", "out": "runs/refinenet", "batch_size": 256}, argv)
 
 if __name__ == "__main__":
     sys.exit(main())
