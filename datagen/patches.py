@@ -135,18 +135,17 @@ def main(argv: list[str] | None = None) -> int:
             shard = int(path.stem.split("-")[1])
             rng = np.random.default_rng([args.seed, shard])
             reader = ShardReader(path)
-            cut, offsets, frames, ids = [], [], [], []
+            per_frame = []  # (patches, offsets, corner ids, frame numbers) of each frame
             for i in range(len(reader)):
                 frame = reader[i]
-                p, o, c = cut_patches(frame.image, frame.corners, frame.visible, rng, args.per_corner)
-                cut.append(p), offsets.append(o), ids.append(c), frames.append(np.full(len(c), frame.meta["frame"]))
+                patches, offsets, ids = cut_patches(frame.image, frame.corners, frame.visible, rng, args.per_corner)
+                per_frame.append((patches, offsets, ids, np.full(len(ids), frame.meta["frame"])))
             reader.close()
-            if sum(len(c) for c in ids):
-                n = sum(len(c) for c in ids)
-                write_patch_shard(out, shard, np.concatenate(cut), np.concatenate(offsets),
-                                  {"source": np.array(["render"] * n), "frame": np.concatenate(frames),
-                                   "corner_id": np.concatenate(ids)}, generator)
-                total += n
+            patches, offsets, ids, frames = (np.concatenate(column) for column in zip(*per_frame))
+            if len(ids):
+                write_patch_shard(out, shard, patches, offsets, {"source": np.array(["render"] * len(ids)),
+                                                                 "frame": frames, "corner_id": ids}, generator)
+                total += len(ids)
         for j in tqdm(range(-(-args.synthetic // args.synthetic_shard_size)), desc="synthetic patches", unit="shard"):
             count = min(args.synthetic_shard_size, args.synthetic - j * args.synthetic_shard_size)
             patches, offsets = synthetic_patches(np.random.default_rng([args.seed, SYNTHETIC_SHARD_BASE + j]), count)

@@ -53,17 +53,15 @@ def decode_cells(point_logits: torch.Tensor, id_logits: torch.Tensor, threshold:
     # Best cell per ID: visit cells above the threshold by falling score, keep each ID's first.
     above = torch.nonzero(score >= threshold).flatten()
     order = above[torch.argsort(score[above], descending=True)].tolist()
-    ids, cells, scores = [], [], []
+    best: dict[int, int] = {}  # ID -> its best cell
     for cell in order:
-        cid = int(corner_id[cell])
-        if cid not in ids:
-            ids.append(cid), cells.append(cell), scores.append(float(score[cell]))
-        if len(ids) == num_corners:
+        best.setdefault(int(corner_id[cell]), cell)
+        if len(best) == num_corners:
             break
-    if not ids:
+    if not best:
         return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
     cols = point_logits.shape[2]
-    cells = np.array(cells)
+    cells = np.array(list(best.values()))
     pos = position.flatten()[torch.from_numpy(cells)].numpy()
     pixels = np.stack([(cells % cols) * CELL + pos % CELL, (cells // cols) * CELL + pos // CELL], axis=1)
-    return np.array(ids, np.int64), pixels.astype(np.float32), np.array(scores, np.float32)
+    return np.array(list(best), np.int64), pixels.astype(np.float32), score[cells].numpy().astype(np.float32)
