@@ -1,0 +1,237 @@
+"""Export both networks to TorchScript and ONNX, each checked numerically against PyTorch.
+
+    python -m deepcharuco.export --weights runs/charuconet/best.pt --refine-weights runs/refinenet/best.pt --out exported/
+
+writes, for each network present (ChArUcoNet always, RefineNet when weights for it are given
+or the checkpoint is a bundle):
+
+    charuconet.ts      TorchScript (torch.jit.load)        image (B, 1, H, W) float32 in [0, 1],
+    charuconet.onnx    ONNX, opset 17, B/H/W dynamic        H, W multiples of 8 -> point (B, 65, H/8, W/8),
+                                                            ids (B, N+1, H/8, W/8) logits
+    refinenet.ts       TorchScript                          patches (B, 1, 24, 24) -> logits (B, 4096)
+    refinenet.onnx     ONNX, B dynamic
+    export.json        board, architectures, input/output names, and the measured differences
+
+The outputs are the raw logits: decoding (`deepcharuco.models.cells.decode_cells`,
+`deepcharuco.models.refinenet.decode_offsets`) stays outside, as in the Python `Detector`.
+Every file is run on random inputs at two sizes and compared with PyTorch; the export fails
+if any logit differs by more than ``tolerance``.
+ONNX files are run with onnxruntime when installed, otherwise with OpenCV's DNN module.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet, read_checkpoint
+from deepcharuco.models.refinenet import PATCH
+
+FORMATS = ("torchscript", "onnx")
+OPSET = 17
+TOLERANCE = 1e-3  # on logits of magnitude ~10: float32 reassociation differences are ~1e-5
+
+
+class ExportError(DeepCharucoError):
+    """An export that could not be written or does not reproduce PyTorch's outputs."""
+
+
+@dataclass(frozen=True)
+class NetworkSpec:
+    """How to call one network: names and shapes of its inputs and outputs."""
+
+    name: str
+    input_name: str
+    output_names: tuple[str, ...]
+    dynamic_axes: dict
+    check_shapes: tuple[tuple[int, ...], ...]  # inputs the check runs on
+
+
+def network_specs(example_size: tuple[int, int]) -> dict[str, NetworkSpec]:
+    """The two networks' interfaces; ``example_size`` (W, H) is the ChArUcoNet training size."""
+    width, height = example_size
+    return {
+        "charuconet": NetworkSpec("charuconet", "image", ("point_logits", "id_logits"),
+                                  {"image": {0: "batch", 2: "height", 3: "width"},
+                                   "point_logits": {0: "batch", 2: "rows", 3: "cols"},
+                                   "id_logits": {0: "batch", 2: "rows", 3: "cols"}},
+                                  ((1, 1, height, width), (2, 1, 8 * (height // 16) + 8, width + 16))),
+        "refinenet": NetworkSpec("refinenet", "patches", ("logits",),
+                                 {"patches": {0: "batch"}, "logits": {0: "batch"}},
+                                 ((1, 1, PATCH, PATCH), (16, 1, PATCH, PATCH))),
+    }
+
+
+def export_torchscript(model: torch.nn.Module, example: torch.Tensor, path: Path) -> Path:
+    """Trace ``model`` (no data-dependent control flow in either network) and save it."""
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch.jit's deprecation notice: the format itself is what users load
+        traced = torch.jit.trace(model, example, check_trace=False)
+        traced = torch.jit.freeze(traced.eval())
+        torch.jit.save(traced, str(path))
+    return path
+
+
+def export_onnx(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec, path: Path) -> Path:
+    """Write ``model`` as ONNX with dynamic batch (and image size for ChArUcoNet)."""
+    try:
+        import onnx  # noqa: F401  (torch's exporter needs it)
+    except ImportError:
+        raise ExportError("ONNX export needs the onnx package: pip install 'deepcharuco[export]' "
+                          "(or pass --format torchscript)") from None
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notice
+        # dynamo=False: the TorchScript-based exporter handles these plain conv nets with no extra
+        # packages (the torch.export-based one needs onnxscript, which wants numpy 2).
+        torch.onnx.export(model, (example,), str(path), dynamo=False, opset_version=OPSET,
+                          input_names=[spec.input_name], output_names=list(spec.output_names),
+                          dynamic_axes=spec.dynamic_axes)
+    return path
+
+
+def run_torchscript(path: Path, inputs: np.ndarray) -> list[np.ndarray]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch.jit's deprecation notice
+        module = torch.jit.load(str(path), map_location="cpu")
+    with torch.no_grad():
+        outputs = module(torch.from_numpy(inputs))
+    outputs = outputs if isinstance(outputs, tuple) else (outputs,)
+    return [o.numpy() for o in outputs]
+
+
+def run_onnx(path: Path, inputs: np.ndarray, spec: NetworkSpec) -> tuple[list[np.ndarray], str]:
+    """Outputs of the ONNX file and the runtime that produced them."""
+    try:
+        import onnxruntime
+    except ImportError:
+        onnxruntime = None
+    if onnxruntime is not None:
+        session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        return list(session.run(list(spec.output_names), {spec.input_name: inputs})), "onnxruntime"
+    import cv2
+
+    net = cv2.dnn.readNetFromONNX(str(path))
+    net.setInput(inputs, spec.input_name)
+    return list(net.forward(list(spec.output_names))), "opencv-dnn"
+
+
+def compare(reference: list[np.ndarray], candidate: list[np.ndarray], what: str, tolerance: float) -> float:
+    """Largest |difference| over all outputs; raises ExportError above ``tolerance``.
+
+    (Within the tolerance, a decoder's argmax can only change where PyTorch's own top two are
+    closer than 2 x tolerance: a tie either way.)"""
+    if len(reference) != len(candidate):
+        raise ExportError(f"{what}: {len(candidate)} outputs, PyTorch gives {len(reference)}")
+    worst = 0.0
+    for ref, got in zip(reference, candidate):
+        if ref.shape != got.shape:
+            raise ExportError(f"{what}: output shape {got.shape}, PyTorch gives {ref.shape}")
+        worst = max(worst, float(np.abs(ref - got).max()))
+    if worst > tolerance:
+        raise ExportError(f"{what}: outputs differ from PyTorch's by up to {worst:.2e} (> {tolerance:.0e})")
+    return worst
+
+
+def export_network(model: torch.nn.Module, spec: NetworkSpec, out: Path, formats: tuple[str, ...],
+                   seed: int = 0, tolerance: float = TOLERANCE) -> dict:
+    """Write ``model`` in ``formats`` under ``out`` and check each; returns {format: {file, max_abs_diff, ...}}."""
+    model = model.eval().cpu()
+    rng = np.random.default_rng(seed)
+    inputs = [rng.random(shape, dtype=np.float32) for shape in spec.check_shapes]
+    with torch.no_grad():
+        references = []
+        for x in inputs:
+            outputs = model(torch.from_numpy(x))
+            references.append([o.numpy() for o in (outputs if isinstance(outputs, tuple) else (outputs,))])
+    example = torch.from_numpy(inputs[0])
+    results = {}
+    for fmt in formats:
+        if fmt == "torchscript":
+            path = export_torchscript(model, example, out / f"{spec.name}.ts")
+            runtime = "torch.jit"
+            diffs = [compare(ref, run_torchscript(path, x), f"{path.name} on {x.shape}", tolerance)
+                     for x, ref in zip(inputs, references)]
+        elif fmt == "onnx":
+            path = export_onnx(model, example, spec, out / f"{spec.name}.onnx")
+            diffs = []
+            for x, ref in zip(inputs, references):
+                outputs, runtime = run_onnx(path, x, spec)
+                diffs.append(compare(ref, outputs, f"{path.name} ({runtime}) on {x.shape}", tolerance))
+        else:
+            raise ExportError(f"unknown format {fmt!r}: choose from {FORMATS}")
+        results[fmt] = {"file": path.name, "runtime_checked": runtime, "max_abs_diff": max(diffs),
+                        "checked_shapes": [list(x.shape) for x in inputs]}
+    return results
+
+
+def export(weights: str | Path, out: str | Path, refine_weights: str | Path | None = None,
+           formats: tuple[str, ...] = FORMATS, tolerance: float = TOLERANCE) -> dict:
+    """Export ChArUcoNet from ``weights`` and RefineNet from ``refine_weights`` (or from ``weights`` if it is a
+    bundle) into ``out``; returns (and writes as export.json) the manifest with the measured differences."""
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise ExportError(f"formats must be among {FORMATS}, got {list(formats)}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    charuconet, board, checkpoint = load_charuconet(weights)
+    input_size = tuple(checkpoint.get("input_size") or (320, 240))
+    specs = network_specs(input_size)
+    manifest = {"board": board.to_dict(), "input_size": list(input_size), "opset": OPSET, "networks": {}}
+    manifest["networks"]["charuconet"] = {
+        "config": charuconet.config.to_dict(), "input": specs["charuconet"].input_name,
+        "outputs": list(specs["charuconet"].output_names),
+        "exports": export_network(charuconet, specs["charuconet"], out, formats, tolerance=tolerance)}
+    refinenet = None
+    if refine_weights is not None:
+        refinenet, _ = load_refinenet(refine_weights)
+    else:
+        try:
+            read_checkpoint(weights, "refinenet")
+            refinenet, _ = load_refinenet(weights)
+        except CheckpointError:
+            pass  # a ChArUcoNet-only checkpoint: nothing more to export
+    if refinenet is not None:
+        manifest["networks"]["refinenet"] = {
+            "config": refinenet.config.to_dict(), "input": specs["refinenet"].input_name,
+            "outputs": list(specs["refinenet"].output_names),
+            "exports": export_network(refinenet, specs["refinenet"], out, formats, tolerance=tolerance)}
+    (out / "export.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m deepcharuco.export", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--weights", default=None,
+                        help="ChArUcoNet checkpoint or bundle (default: the shipped deepcharuco/weights/detector.pt)")
+    parser.add_argument("--refine-weights", default=None, help="RefineNet checkpoint, when --weights is not a bundle")
+    parser.add_argument("--out", default="exported", help="output folder")
+    parser.add_argument("--format", nargs="+", choices=FORMATS, default=list(FORMATS), help="formats to write")
+    parser.add_argument("--tolerance", type=float, default=TOLERANCE, help="largest allowed |logit difference|")
+    args = parser.parse_args(argv)
+    from deepcharuco.deep_detector import DEFAULT_WEIGHTS
+
+    weights = args.weights or DEFAULT_WEIGHTS
+    try:
+        manifest = export(weights, args.out, args.refine_weights, tuple(args.format), args.tolerance)
+    except DeepCharucoError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    for name, network in manifest["networks"].items():
+        for fmt, result in network["exports"].items():
+            print(f"{Path(args.out) / result['file']}: max |diff| vs PyTorch {result['max_abs_diff']:.1e} "
+                  f"({result['runtime_checked']}, shapes {result['checked_shapes']})")
+    print(f"{Path(args.out) / 'export.json'}: board and interfaces")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
