@@ -176,8 +176,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="data/renders", help="output folder of shard-*.h5 + index.json")
     parser.add_argument("--seed", type=int, default=0, help="run seed: frame i depends only on (seed, i, arguments)")
     parser.add_argument("--board", default=None, help="BoardSpec .json/.yaml file (default: the paper's 5x5 DICT_5X5_50 board)")
-    parser.add_argument("--width", type=int, default=320)
-    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--width", type=int, default=320, help="image width in pixels")
+    parser.add_argument("--height", type=int, default=240, help="image height in pixels")
     parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: 4, --clean 64)")
     parser.add_argument("--shard-size", type=int, default=100, help="frames per shard file")
     parser.add_argument("--clean", action="store_true",

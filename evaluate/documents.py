@@ -1,0 +1,159 @@
+"""report.md (figures as files beside it) and report.html (self-contained: figures inlined) from the results."""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+
+from evaluate.experiments import LABELS
+
+PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}
+
+
+def _number(value, digits: int = 3, percent: bool = False) -> str:
+    if value is None:
+        return "nan"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    return f"{100 * value:.1f}" if percent else f"{value:.{digits}f}"
+
+
+def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list[str]]]:
+    """(title, text, table rows (first = header) or None, figure names) for each section of the report."""
+    out = []
+    deep = "deep" in results.get("detectors", {})
+    notes = results.get("notes", [])
+    out.append(("Summary", " ".join(notes), None, []))
+    if results.get("targets"):
+        rows = [["target", "value", "goal", "met"]]
+        for t in results["targets"]:
+            rows.append([t["target"], _number(t["value"]), t["goal"], "n/a" if t["met"] is None else ("**yes**" if t["met"] else "no")])
+        out.append(("Targets", "The project's targets, measured by this report.", rows, []))
+    synthetic = results.get("synthetic")
+    if synthetic:
+        names = list(synthetic["blur"])
+        rows = [["k"] + [f"blur: {LABELS.get(n, n)}" for n in names] + [f"darkness: {LABELS.get(n, n)}" for n in names]]
+        for i, k in enumerate(synthetic["levels"]):
+            rows.append([str(k)] + [_number(synthetic["blur"][n]["accuracy"][i], 2) for n in names]
+                        + [_number(synthetic["darkness"][n]["accuracy"][i], 2) for n in names])
+        text = (f"The paper's synthetic tests on {len(synthetic['images'])} well-lit images with different static poses: "
+                "a horizontal motion-blur kernel of size k, and the image multiplied by 0.6^k. Mean corner detection "
+                "accuracy (right ID within 3 px, over the 16 corners).")
+        out.append(("Synthetic motion blur and darkness", text, rows, ["synthetic_blur", "synthetic_darkness"]))
+    for key, title in (("sequences", "Rendered capture sequences"), ("captures", "Auto-labelled captures")):
+        experiment = results.get(key)
+        if not experiment:
+            continue
+        has = lambda name: name in experiment["overall"]  # noqa: E731
+        header = ["sequence", "frames"]
+        header += ["deep acc %"] if has("deep") else []
+        header += ["cv acc %"]
+        header += ["deep eps_re (no RefineNet)"] if has("deep") else []
+        header += ["cv eps_re", "wrong poses deep / cv" if has("deep") else "wrong poses cv"]
+        rows = [header]
+        for row in experiment["table"] + [{"sequence": "**all**", "frames": sum(r["frames"] for r in experiment["table"]),
+                                           **experiment["overall"]}]:
+            cells = [row["sequence"], str(row["frames"])]
+            if has("deep"):
+                cells.append(_number(row["deep"]["pose_accuracy"], percent=True))
+            cells.append(_number(row["opencv"]["pose_accuracy"], percent=True))
+            if has("deep"):
+                norefine = row.get("deep_norefine", {}).get("mean_eps_re")
+                cells.append(f"{_number(row['deep']['mean_eps_re'])} ({_number(norefine)})")
+            cells.append(_number(row["opencv"]["mean_eps_re"]))
+            wrong = [str(row["deep"]["confidently_wrong"])] if has("deep") else []
+            cells.append(" / ".join(wrong + [str(row["opencv"]["confidently_wrong"])]))
+            rows.append(cells)
+        text = ("The paper's per-video table: acc = % of frames whose pose has eps_re < 3 px (frames without a pose "
+                "count as failures); eps_re = mean reprojection error over the frames with a pose (nan: none). "
+                "Wrong poses: poses returned more than 10 degrees or 10 % of the distance from the truth.")
+        if key == "sequences":
+            text += (" Each rendered sequence films a static board with a still camera: 30 well-lit frames, then "
+                     "the condition (illuminance in lux, a moving shadow, or camera shake).")
+        out.append((title, text, rows, [f"{key}_threshold"]))
+        if experiment.get("autolabel"):
+            a = experiment["autolabel"]
+            out.append(("The auto-labelling recipe, measured on renders",
+                        f"The paper's recipe (OpenCV + cornerSubPix on the average of the first 30 frames) applied to "
+                        f"the rendered sequences, against the render truth: median {_number(a.get('median_px'))} px, "
+                        f"p95 {_number(a.get('p95_px'))} px, max {_number(a.get('max_px'))} px over "
+                        f"{a.get('corners', 0)} corners of {a.get('sequences', 0)} sequences.", None, []))
+    renders = results.get("renders")
+    if renders:
+        names = list(renders["overall"])
+        rows = [["lux", "frames"] + [f"{LABELS.get(n, n)}: corners / pose acc % / wrong" for n in names]]
+        for b in renders["by_lux"] + [{"lux_from": None, "lux_to": None, "frames": renders["frames"], **renders["overall"]}]:
+            span = "**all**" if b["lux_from"] is None else f"{b['lux_from']:g}-{b['lux_to']:g}" if b["lux_to"] else f">= {b['lux_from']:g}"
+            rows.append([span, str(b["frames"])] + [
+                f"{_number(b[n]['corner_accuracy'], 2)} / {_number(b[n]['pose_accuracy'], percent=True)} / {b[n]['confidently_wrong']}"
+                for n in names])
+        out.append(("Held-out renders", "Random frames of the training distribution rendered with a held-out seed "
+                    "(shake, shadows, clutter, distractor boards, 0.2-1000 lux), by illuminance at the board: mean "
+                    "corner accuracy, pose accuracy (eps_re < 3 px), confidently wrong poses.", rows, []))
+    timing = results.get("timing")
+    if timing:
+        rows = [["configuration", "fps here (detect + pose)", "paper (GTX 1080)"]]
+        for name, fps in timing["fps"].items():
+            rows.append([LABELS.get(name, name), f"{fps:.1f}", f"{PAPER_FPS.get(name, float('nan')):.1f}"])
+        w, h = timing["image_size"]
+        out.append(("Timing", f"Frames per second at {w}x{h} on {timing.get('machine', 'this machine')}, every "
+                    f"configuration in one run on the same {timing['frames']} frames, interleaved. The paper's "
+                    "numbers are on a GPU.", rows, []))
+    if results.get("gallery"):
+        shown = " (left) and ".join(LABELS.get(n, n) for n in results["gallery_detectors"])
+        shown += " (right)" if len(results["gallery_detectors"]) > 1 else ""
+        out.append(("Hardest frames", f"The frames where {shown} did worst. Red dots: the truth; green circles and "
+                    "yellow numbers: detections. Images are contrast-stretched for viewing only.", None,
+                    [g["figure"] for g in results["gallery"]]))
+    return out
+
+
+def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
+    lines = ["# Deep ChArUco evaluation report", "", f"`{results.get('command', '')}`", ""]
+    for title, text, rows, names in sections(results):
+        lines += [f"## {title}", "", text, ""]
+        if rows:
+            lines.append("| " + " | ".join(rows[0]) + " |")
+            lines.append("|" + "---|" * len(rows[0]))
+            lines += ["| " + " | ".join(r) + " |" for r in rows[1:]]
+            lines.append("")
+        for name in names:
+            lines += [f"![{name}](figures/{name}.png)", ""]
+    (path.parent / "figures").mkdir(exist_ok=True)
+    for name, data in figures.items():
+        (path.parent / "figures" / f"{name}.png").write_bytes(data)
+    path.write_text("\n".join(lines))
+    return path
+
+
+CSS = """body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;
+color:#222;line-height:1.45}h1{margin-bottom:.2em}h2{border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
+table{border-collapse:collapse;margin:.8em 0;font-size:.9em}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}code{background:#f3f3f3;padding:.1em .3em}
+.figures{display:flex;flex-wrap:wrap;gap:1em}.figures img{max-width:100%;border:1px solid #eee}"""
+
+
+def _inline(text: str) -> str:
+    """Markdown's **bold** in table cells and text, escaped otherwise."""
+    parts = html.escape(text).split("**")
+    return "".join(f"<b>{p}</b>" if i % 2 else p for i, p in enumerate(parts))
+
+
+def write_html(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
+    body = [f"<h1>Deep ChArUco evaluation report</h1><p><code>{html.escape(results.get('command', ''))}</code></p>"]
+    for title, text, rows, names in sections(results):
+        body.append(f"<h2>{html.escape(title)}</h2><p>{_inline(text)}</p>")
+        if rows:
+            body.append("<table><tr>" + "".join(f"<th>{_inline(c)}</th>" for c in rows[0]) + "</tr>")
+            body += ["<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows[1:]]
+            body.append("</table>")
+        if names:
+            body.append('<div class="figures">' + "".join(
+                f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figures[name]).decode()}">'
+                for name in names if name in figures) + "</div>")
+    path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>Deep ChArUco report</title>"
+                    f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>")
+    return path
