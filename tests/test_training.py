@@ -1,5 +1,6 @@
 """The shared training loop: loss falls, resume is exact, SIGTERM checkpoints, refusals."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -90,18 +91,20 @@ def test_refusals(patches, tmp_path):
         train(RefineNetTask(changed), changed, "refinenet")
 
 
-def test_sigterm_saves_and_resume_finishes(patches, tmp_path):
+def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path):
+    """SIGINT to the whole process group, as Ctrl-C sends it, DataLoader workers included: a checkpoint, exit 0."""
     args = [sys.executable, "-m", "train.refinenet", "--data", str(patches), "--out", str(tmp_path), "--steps", "100000",
-            "--batch-size", "16", "--width", "lite", "--workers", "0", "--checkpoint-every", "100000", "--val-every", "100000",
+            "--batch-size", "16", "--width", "lite", "--workers", "1", "--checkpoint-every", "100000", "--val-every", "100000",
             "--quiet"]
-    process = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
     deadline = time.time() + 60
     while not (tmp_path / "log.csv").exists() or len((tmp_path / "log.csv").read_text().splitlines()) < 3:
         assert time.time() < deadline and process.poll() is None
         time.sleep(0.1)
-    process.send_signal(signal.SIGTERM)
-    out, _ = process.communicate(timeout=60)
-    assert process.returncode == 0 and "--resume" in out
+    os.killpg(process.pid, signal.SIGINT)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 0 and "--resume" in out, err[-2000:]
     step = torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"]
     assert 0 < step < 100000
     done = subprocess.run(args[:8] + [str(step + 10)] + args[9:] + ["--resume"], cwd=ROOT, capture_output=True, text=True)

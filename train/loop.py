@@ -125,6 +125,13 @@ class _Stop:
             signal.signal(sig, handler)
 
 
+def _ignore_stop_signals(worker_id: int) -> None:
+    """DataLoader workers leave SIGINT/SIGTERM to the main process: Ctrl-C (or a kill of the process group)
+    reaches them too, and a worker dying of it would abort the run before the main process checkpoints."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None) -> dict:
     """Run ``task`` to ``config.steps`` (or stop as on SIGTERM at step ``stop_at``); returns the step,
     the best validation score, this run's losses and the last validation metrics."""
@@ -173,7 +180,8 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
     log_file = open(log_path, "a", newline="")
     writer = None
     board = _tensorboard(out) if rank == 0 else None
-    loader_args = dict(num_workers=config.workers, collate_fn=collate, persistent_workers=False)
+    loader_args = dict(num_workers=config.workers, collate_fn=collate, persistent_workers=False,
+                       worker_init_fn=_ignore_stop_signals if config.workers else None)
     metrics: dict = {}
     started = time.perf_counter()
     with _Stop() as stop, tqdm(total=config.steps, initial=step, disable=config.quiet or rank != 0, unit="step") as bar:
