@@ -1,10 +1,10 @@
-# Fresh machine: `make demo` runs the main job, `make test` the test suite. Both build .venv first.
+# Fresh machine: `make demo` runs the main job (the evaluation report), `make test` the test suite. Both build .venv first.
 PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv clean
+.PHONY: demo example test venv clean
 
 venv: $(STAMP)
 
@@ -17,6 +17,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
+	$(BIN)/python -m evaluate.report
+
+example: $(STAMP)
 	$(BIN)/python -m deepcharuco.detect deepcharuco/examples/board_320x240.png \
 		--camera deepcharuco/examples/webcam_320x240.yaml --out demo_out
 
@@ -24,4 +27,4 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 clean:
-	rm -rf $(VENV) demo_out detect_out .pytest_cache
+	rm -rf $(VENV) demo_out detect_out report .pytest_cache

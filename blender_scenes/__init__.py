@@ -40,7 +40,8 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
     scene = render_setup.reset()
     params = blender_camera_from_K(spec.K, spec.width, spec.height)
     render_setup.configure_cycles(scene, spec.width, spec.height, (params.pixel_aspect_x, params.pixel_aspect_y),
-                                  spec.samples, spec.render_seed, threads or os.cpu_count() or 1, device)
+                                  spec.samples, spec.render_seed, threads or os.cpu_count() or 1, device,
+                                  denoise=spec.denoise)
     objects.set_world(spec.world)
     # Fireflies (rare paths finding a small bright source) would read as salt noise at a few
     # samples per pixel. Clamp each sample at a few times the radiance of white paper in this

@@ -11,11 +11,16 @@ board's white paper has the luminance of paper of its albedo under the sampled i
 paper of albedo 0.8). That is the ``lux`` recorded: the illuminance at the board, shadows and
 spotlights included in the median. Negatives (no board) are scaled so that their 90th
 percentile pixel has that luminance.
+
+The steps are separate functions — `render_labelled` (Cycles + labels), `luminance_scale` (to
+cd/m^2 at a lux), `expose` (the sensor) — so that a frame's render can be exposed many times:
+`evaluate.sequences` films a static scene under changing light from one render.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -23,7 +28,7 @@ import numpy as np
 from blender_scenes.conversions import board_pose_in_camera
 from blender_scenes.textures import board_texture
 from datagen.scene import SceneConfig, SceneSpec, sample_scene
-from datagen.sensor import REC709_LUMA, auto_gain, capture, sensor_record
+from datagen.sensor import REC709_LUMA, Exposure, SensorParams, auto_gain, capture, sensor_record
 from datagen.shards import FrameLabels
 from deepcharuco.board import BoardSpec
 from deepcharuco.pose import project_corners
@@ -70,16 +75,37 @@ def blur_extent_px(board: BoardSpec, spec: SceneSpec) -> float:
     return float(np.nanmax(np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0)))
 
 
-def make_frame(index: int, seed: int, board: BoardSpec, config: SceneConfig = SceneConfig(), *,
-               threads: int = 0, device: str = "cpu") -> FrameLabels:
-    """Render, expose and label frame ``index`` of the run with ``seed``."""
-    from blender_scenes import render_scene
+@dataclass
+class LabelledRender:
+    """One Cycles render of a scene and its true labels, before any sensor: several frames can share it
+    (a still camera filming a static board under changing light is one render, exposed many times).
 
-    rng = frame_rng(seed, index)
-    spec = sample_scene(rng, board.size_m, config)
-    rendered = render_scene(spec, board, threads=threads, device=device)
-    luminance = rendered.radiance @ REC709_LUMA
+    Attributes:
+        spec: the scene rendered.
+        luminance: (H, W) float32 luminance in the renderer's arbitrary radiance units (Rec.709 luma
+            of linear RGB); `luminance_scale` takes it to cd/m^2.
+        white_mask: (H, W) bool white-paper pixels (`white_paper_mask`), None without a board.
+        corners: (C, 2) float32 true positions at the shutter centre, NaN behind the camera (all NaN
+            for negatives).
+        visible: (C,) bool, inside the image and not occluded.
+        rvec, tvec: (3,) float32 board -> camera at the shutter centre (zeros for negatives).
+    """
 
+    spec: SceneSpec
+    luminance: np.ndarray
+    white_mask: np.ndarray | None
+    corners: np.ndarray
+    visible: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+
+
+def label_scene(board: BoardSpec, spec: SceneSpec, unoccluded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """True labels of a scene: (corners (C, 2) float32, visible (C,) bool, rvec (3,), tvec (3,) float64).
+
+    ``unoccluded``: (C,) bool from the renderer's ray casts. Corners behind the camera are NaN;
+    a negative (no board) has all corners NaN, none visible, and its board pose is returned
+    unused (callers store zeros)."""
     rvec, tvec = board_pose_in_camera(spec.camera_matrix, spec.board_matrix)
     corners = project_corners(board, rvec, tvec, spec.K).astype(np.float32)
     in_front = ((board.corner_points() @ cv2.Rodrigues(rvec)[0].T)[:, 2] + tvec[2]) > 1e-6
@@ -87,26 +113,53 @@ def make_frame(index: int, seed: int, board: BoardSpec, config: SceneConfig = Sc
     inside = (in_front & (corners[:, 0] >= -0.5) & (corners[:, 0] < spec.width - 0.5)
               & (corners[:, 1] >= -0.5) & (corners[:, 1] < spec.height - 0.5))
     if spec.board_present:
-        mask = white_paper_mask(board, spec, rvec, tvec)
-        visible = inside & rendered.unoccluded
+        visible = inside & unoccluded
     else:
-        mask = None
         corners[:] = np.nan
         visible = np.zeros(board.num_corners, dtype=bool)
+    return corners, visible, rvec, tvec
 
-    luminance = luminance.astype(np.float64) * luminance_scale(luminance, spec, mask)
-    exposure = auto_gain(luminance, spec.exposure_s, config.sensor)
-    image, exposure = capture(luminance, rng, config.sensor, exposure)
 
-    meta = {
-        "seed": int(seed), "frame": int(index), "render_seed": spec.render_seed, "has_board": spec.board_present,
+def render_labelled(spec: SceneSpec, board: BoardSpec, *, threads: int = 0, device: str = "cpu") -> LabelledRender:
+    """Render ``spec`` with Cycles (`blender_scenes.render_scene`) and label it."""
+    from blender_scenes import render_scene
+
+    rendered = render_scene(spec, board, threads=threads, device=device)
+    luminance = rendered.radiance @ REC709_LUMA
+    corners, visible, rvec, tvec = label_scene(board, spec, rendered.unoccluded)
+    mask = white_paper_mask(board, spec, rvec, tvec) if spec.board_present else None
+    zeros = np.zeros(3)
+    return LabelledRender(spec=spec, luminance=luminance, white_mask=mask, corners=corners, visible=visible,
+                          rvec=(rvec if spec.board_present else zeros).astype(np.float32),
+                          tvec=(tvec if spec.board_present else zeros).astype(np.float32))
+
+
+def expose(luminance: np.ndarray, exposure_s: float, rng: np.random.Generator, sensor: SensorParams) -> tuple[np.ndarray, Exposure]:
+    """A (H, W) uint8 frame of ``luminance`` (cd/m^2) taken with the exposure time fixed and the gain
+    set by auto-exposure (`auto_gain`), with the noise drawn from ``rng``; and the exposure used."""
+    exposure = auto_gain(luminance, exposure_s, sensor)
+    return capture(luminance, rng, sensor, exposure)
+
+
+def scene_meta(board: BoardSpec, spec: SceneSpec, visible: np.ndarray, sensor: SensorParams, exposure: Exposure) -> dict:
+    """Per-frame meta of a frame of ``spec``: render seed, has_board, lux, blur, view, scene tags, exposure, sensor."""
+    return {
+        "render_seed": spec.render_seed, "has_board": spec.board_present,
         "lux": float(spec.lux), "blur_px": blur_extent_px(board, spec), "visible_count": int(visible.sum()),
         "focal_px": float(spec.K[0, 0]), "samples": int(spec.samples),
         **{k: v for k, v in spec.tags.items() if k != "negative"},
-        **sensor_record(config.sensor, exposure),
+        **sensor_record(sensor, exposure),
     }
-    return FrameLabels(
-        image=image, corners=corners, visible=visible, K=spec.K.astype(np.float32),
-        rvec=(rvec if spec.board_present else np.zeros(3)).astype(np.float32),
-        tvec=(tvec if spec.board_present else np.zeros(3)).astype(np.float32), meta=meta,
-    )
+
+
+def make_frame(index: int, seed: int, board: BoardSpec, config: SceneConfig = SceneConfig(), *,
+               threads: int = 0, device: str = "cpu") -> FrameLabels:
+    """Render, expose and label frame ``index`` of the run with ``seed``."""
+    rng = frame_rng(seed, index)
+    spec = sample_scene(rng, board.size_m, config)
+    shot = render_labelled(spec, board, threads=threads, device=device)
+    luminance = shot.luminance.astype(np.float64) * luminance_scale(shot.luminance, spec, shot.white_mask)
+    image, exposure = expose(luminance, spec.exposure_s, rng, config.sensor)
+    meta = {"seed": int(seed), "frame": int(index), **scene_meta(board, spec, shot.visible, config.sensor, exposure)}
+    return FrameLabels(image=image, corners=shot.corners, visible=shot.visible, K=spec.K.astype(np.float32),
+                       rvec=shot.rvec, tvec=shot.tvec, meta=meta)

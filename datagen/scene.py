@@ -123,6 +123,7 @@ class SceneSpec:
     render_seed: int
     samples: int
     tags: dict = field(default_factory=dict)
+    denoise: bool = False  # OpenImageDenoise on the render: for a render many frames share (evaluate.sequences)
 
     @property
     def camera_matrix(self) -> np.ndarray:
@@ -156,6 +157,7 @@ class SceneConfig:
     shadow_p: float = 0.4
     occluder_p: float = 0.25
     clutter_count: tuple[int, int] = (0, 5)
+    clutter_kinds: tuple[str, ...] = SHAPE_KINDS
     board_kinds_p: tuple[float, float, float] = (0.6, 0.3, 0.1)
     samples: int = 4
     sensor: SensorParams = SensorParams()
@@ -370,7 +372,7 @@ def sample_scene(rng: np.random.Generator, board_size_m: tuple[float, float], co
         size = _log_uniform(rng, 0.03, 0.4)
         if np.linalg.norm(position - eye) < size + 0.05:
             continue  # keep clear of the lens
-        kind = SHAPE_KINDS[rng.integers(len(SHAPE_KINDS))]
+        kind = config.clutter_kinds[rng.integers(len(config.clutter_kinds))]
         shapes.append(Shape(kind, rigid(_random_rotation(rng), position) @ np.diag([size, size, size, 1.0]),
                             sample_surface(rng), "clutter"))
     lamps = [light for light in lights if light.kind != "SUN"]

@@ -68,6 +68,19 @@ class Camera:
         K[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
         return Camera(K=K, dist=self.dist.copy(), image_size=(width, height))
 
+    def for_image_size(self, width: int, height: int) -> "Camera":
+        """These intrinsics for frames of (width, height): themselves, or `scaled` when the frames are
+        resized; `CameraFileError` when the aspect ratio differs (a crop cannot be undone by scaling)."""
+        if (width, height) == self.image_size:
+            return self
+        cw, ch = self.image_size
+        if abs(width / height - cw / ch) > 0.01:
+            raise CameraFileError(
+                f"frames are {width}x{height} but the camera file is for {cw}x{ch}, a different aspect "
+                "ratio (cropped?): calibrate at this resolution"
+            )
+        return self.scaled(width, height)
+
 
 def read_camera(path: str | Path) -> Camera:
     """Read intrinsics from an OpenCV FileStorage file (YAML/XML/JSON), as calibration writes them.

@@ -129,18 +129,7 @@ def _csv_row(record: dict) -> dict:
 
 
 def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
-    if camera is None:
-        return None
-    height, width = shape[:2]
-    if (width, height) == camera.image_size:
-        return camera
-    cw, ch = camera.image_size
-    if abs(width / height - cw / ch) > 0.01:
-        raise DeepCharucoError(
-            f"frames are {width}x{height} but the camera file is for {cw}x{ch}, a different aspect "
-            "ratio (cropped?): calibrate at this resolution"
-        )
-    return camera.scaled(width, height)
+    return None if camera is None else camera.for_image_size(shape[1], shape[0])
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -46,6 +46,11 @@ def test_scaling_follows_resized_images():
     # Pixel-centre convention: u' = (u + 0.5) * s - 0.5.
     assert scaled.K[0, 2] == pytest.approx((big.K[0, 2] + 0.5) * 0.5 - 0.5)
     np.testing.assert_allclose(scaled.scaled(640, 480).K, big.K)
+    # For frames of another size: the same camera, scaled, or refused when the frames are cropped.
+    assert big.for_image_size(640, 480) is big
+    np.testing.assert_allclose(big.for_image_size(320, 240).K, scaled.K)
+    with pytest.raises(CameraFileError, match="different aspect ratio"):
+        big.for_image_size(640, 360)
 
 
 def test_missing_and_malformed_files(tmp_path):
