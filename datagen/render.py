@@ -11,19 +11,16 @@ and started again with ``--resume`` renders exactly the missing shards.
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
 import os
-import queue
 import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from tqdm import tqdm
-
 import deepcharuco
 from datagen.scene import SceneConfig
 from datagen.shards import ShardReader, list_shards, temporary_prefix, update_index, write_shard
+from datagen.workers import report_progress, run_tasks
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 
@@ -69,17 +66,6 @@ def scene_config(job: RenderJob) -> SceneConfig:
     return replace(config, samples=job.samples) if job.samples else config
 
 
-_PROGRESS: "mp.Queue | None" = None
-
-
-def _init_worker(progress: "mp.Queue") -> None:
-    global _PROGRESS
-    _PROGRESS = progress
-    # Blender prints a line per render on the C stdout; keep the parent's progress bar readable.
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 1)
-
-
 def render_shard(job: RenderJob, shard: int) -> int:
     """Render and write one shard; returns its frame count."""
     from datagen.frames import make_frame
@@ -88,8 +74,7 @@ def render_shard(job: RenderJob, shard: int) -> int:
     frames = []
     for index in job.frames_of(shard):
         frames.append(make_frame(index, job.seed, job.board, config, threads=job.threads, device=job.device))
-        if _PROGRESS is not None:
-            _PROGRESS.put(1)
+        report_progress(1)
     write_shard(job.out, shard, frames, job.board, job.generator())
     return len(frames)
 
@@ -141,30 +126,13 @@ def run(job: RenderJob, *, workers: int, shard_index: int, num_shards: int, resu
         print(f"datagen.render: {len(todo)} shard(s), {total} frame(s) to render into {out}"
               + (f" ({skipped} frame(s) already there)" if skipped else ""), file=sys.stderr)
     if todo:
-        context = mp.get_context("spawn")
-        progress = context.Queue()
-        tasks_per_child = max(1, recycle // job.shard_size)
-        with context.Pool(workers, initializer=_init_worker, initargs=(progress,), maxtasksperchild=tasks_per_child) as pool, \
-                tqdm(total=total, unit="frame", disable=quiet, smoothing=0.1) as bar:
-            try:
-                results = [pool.apply_async(render_shard, (job, s)) for s in todo]
-                while True:
-                    try:
-                        bar.update(progress.get(timeout=0.5))
-                    except queue.Empty:
-                        pass
-                    for result in results:
-                        if result.ready() and not result.successful():
-                            result.get()  # re-raises the worker's exception
-                    if all(r.ready() for r in results):
-                        break
-                while not progress.empty():
-                    bar.update(progress.get())
-            except KeyboardInterrupt:
-                pool.terminate()
-                complete = len(list_shards(out))
-                raise DeepCharucoError(f"interrupted: {complete} complete shard(s) kept in {out}; "
-                                       f"rerun the same command with --resume to finish") from None
+        try:
+            run_tasks(render_shard, [(job, s) for s in todo], total=total, unit="frame", workers=workers,
+                      tasks_per_child=max(1, recycle // job.shard_size), quiet=quiet)
+        except KeyboardInterrupt:
+            complete = len(list_shards(out))
+            raise DeepCharucoError(f"interrupted: {complete} complete shard(s) kept in {out}; "
+                                   f"rerun the same command with --resume to finish") from None
     return update_index(out)
 
 
