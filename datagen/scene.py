@@ -175,16 +175,23 @@ def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
     return float(math.exp(rng.uniform(math.log(low), math.log(high))))
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit_vector(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
+
+
+def aim_lamp(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """World from lamp: at ``position``, shining (Blender lamps: along their -Z) at ``target``."""
+    z = -unit_vector(target - position)
+    x = unit_vector(np.cross(np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([1.0, 0.0, 0.0]), z))
+    return rigid(np.column_stack([x, np.cross(z, x), z]), position)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0]), roll_deg: float = 0.0) -> np.ndarray:
     """World from OpenCV camera (Z forward, Y down) at ``eye`` looking at ``target``."""
-    z = _unit(np.asarray(target, float) - np.asarray(eye, float))
+    z = unit_vector(np.asarray(target, float) - np.asarray(eye, float))
     if abs(float(z @ up)) > 0.999:
         up = np.array([0.0, 1.0, 0.0])
-    x = _unit(np.cross(z, -up))  # image right
+    x = unit_vector(np.cross(z, -up))  # image right
     y = np.cross(z, x)  # image down
     rotation = np.column_stack([x, y, z])
     roll, _ = cv2.Rodrigues(np.array([0.0, 0.0, math.radians(roll_deg)]))
@@ -192,7 +199,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
 
 
 def _random_rotation(rng: np.random.Generator, max_angle_rad: float = math.pi) -> np.ndarray:
-    axis = _unit(rng.normal(size=3))
+    axis = unit_vector(rng.normal(size=3))
     rotation, _ = cv2.Rodrigues(axis * rng.uniform(0.0, max_angle_rad))
     return rotation
 
@@ -204,9 +211,9 @@ def _direction_in_cone(rng: np.random.Generator, axis: np.ndarray, max_angle_deg
     phi = rng.uniform(0.0, 2 * math.pi)
     sin_t = math.sqrt(1.0 - cos_t**2)
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = _unit(np.cross(axis, helper))
+    u = unit_vector(np.cross(axis, helper))
     v = np.cross(axis, u)
-    return _unit(cos_t * axis + sin_t * (math.cos(phi) * u + math.sin(phi) * v))
+    return unit_vector(cos_t * axis + sin_t * (math.cos(phi) * u + math.sin(phi) * v))
 
 
 def _colour(rng: np.random.Generator) -> tuple[float, float, float]:
@@ -253,8 +260,8 @@ def exposure_time_for(lux: float, look: BoardLook, sensor: SensorParams) -> floa
 
 def _shake_trajectory(rng: np.random.Generator, centre: np.ndarray, exposure_s: float, config: SceneConfig) -> np.ndarray:
     """Camera poses at the start, centre and end of the shutter for a constant-velocity shake."""
-    omega = _unit(rng.normal(size=3)) * _log_uniform(rng, 0.05, config.max_angular_speed)
-    velocity = _unit(rng.normal(size=3)) * _log_uniform(rng, 0.005, config.max_linear_speed)
+    omega = unit_vector(rng.normal(size=3)) * _log_uniform(rng, 0.05, config.max_angular_speed)
+    velocity = unit_vector(rng.normal(size=3)) * _log_uniform(rng, 0.005, config.max_linear_speed)
     poses = []
     for fraction in (-0.5, 0.0, 0.5):
         dt = fraction * exposure_s
@@ -280,10 +287,7 @@ def _sample_lamp(rng: np.random.Generator, kind: str, board_normal: np.ndarray, 
     distance = _log_uniform(rng, 0.4, 3.0)
     position = direction * distance
     aim = rng.uniform(-0.6, 0.6, size=3) * board_size
-    forward = _unit(aim - position)  # the lamp shines along its -Z
-    z = -forward
-    x = _unit(np.cross(np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([1.0, 0.0, 0.0]), z))
-    matrix = rigid(np.column_stack([x, np.cross(z, x), z]), position)
+    matrix = aim_lamp(position, aim)
     irradiance = world_strength * _log_uniform(rng, 0.3, 30.0)
     if kind == "SUN":
         return Light(kind, matrix, power=irradiance, color=_light_colour(rng), size=float(rng.uniform(0.0, 0.05)))
@@ -320,9 +324,9 @@ def sample_scene(rng: np.random.Generator, board_size_m: tuple[float, float], co
 
     # The board: centred at the origin, its face towards a random direction above the horizon.
     normal = _direction_in_cone(rng, np.array([0.0, 0.0, 1.0]), 85.0)
-    normal = _unit(np.array([normal[0], normal[1], abs(normal[2]) * 0.8 + 0.05]))
+    normal = unit_vector(np.array([normal[0], normal[1], abs(normal[2]) * 0.8 + 0.05]))
     z_board = -normal
-    x_board = _unit(np.cross(np.array([0.0, 0.0, 1.0]), z_board) if abs(z_board[2]) < 0.99 else np.array([1.0, 0.0, 0.0]))
+    x_board = unit_vector(np.cross(np.array([0.0, 0.0, 1.0]), z_board) if abs(z_board[2]) < 0.99 else np.array([1.0, 0.0, 0.0]))
     spin, _ = cv2.Rodrigues(z_board * rng.uniform(-math.pi, math.pi))
     x_board = spin @ x_board
     rotation = np.column_stack([x_board, np.cross(z_board, x_board), z_board])

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet, read_checkpoint
+from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH
 
 FORMATS = ("torchscript", "onnx")
@@ -194,7 +194,6 @@ def export(weights: str | Path, out: str | Path, refine_weights: str | Path | No
         refinenet, _ = load_refinenet(refine_weights)
     else:
         try:
-            read_checkpoint(weights, "refinenet")
             refinenet, _ = load_refinenet(weights)
         except CheckpointError:
             pass  # a ChArUcoNet-only checkpoint: nothing more to export

@@ -25,7 +25,6 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -39,6 +38,7 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.pose import estimate_pose
+from evaluate.protocols import rotation_error_deg
 
 AVERAGE_FRAMES = 30
 MAX_MOTION_PX = 1.0
@@ -300,12 +300,6 @@ class TruthComparison:
                 f"({100 * s['translation_rel_max']:.2f} % of the distance)")
 
 
-def _rotation_angle_deg(rvec_a: np.ndarray, rvec_b: np.ndarray) -> float:
-    ra, _ = cv2.Rodrigues(np.asarray(rvec_a, np.float64).reshape(3))
-    rb, _ = cv2.Rodrigues(np.asarray(rvec_b, np.float64).reshape(3))
-    return float(np.degrees(np.arccos(np.clip((np.trace(ra.T @ rb) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def compare_to_truth(autolabels: AutoLabels | str | Path, truth_shard: str | Path) -> TruthComparison:
     """Per-corner and pose error of auto-labels against a shard of renders.
 
@@ -331,7 +325,7 @@ def compare_to_truth(autolabels: AutoLabels | str | Path, truth_shard: str | Pat
                 corners, visible, rvec, tvec = labelled.corners, labelled.visible, labelled.rvec, labelled.tvec
             compared = np.asarray(visible, bool) & frame.visible
             errors[k, compared] = np.linalg.norm(np.asarray(corners, np.float64)[compared] - frame.corners[compared], axis=1)
-            rotation[k] = _rotation_angle_deg(rvec, frame.rvec)
+            rotation[k] = rotation_error_deg(rvec, frame.rvec)
             translation[k] = float(np.linalg.norm(np.asarray(tvec, np.float64) - frame.tvec))
             relative[k] = translation[k] / max(float(np.linalg.norm(frame.tvec)), 1e-9)
             conditions.append(str(frame.meta.get("condition", "")))

@@ -47,7 +47,9 @@ import deepcharuco
 from blender_scenes.conversions import board_pose_in_camera, rigid
 from datagen.frames import LabelledRender, expose, luminance_scale, render_labelled, scene_meta
 from datagen.render import check_existing, remove_stale_temporaries
-from datagen.scene import Light, SceneConfig, SceneSpec, Shape, exposure_time_for, sample_scene, sample_surface
+from datagen.scene import (
+    Light, SceneConfig, SceneSpec, Shape, aim_lamp, exposure_time_for, sample_scene, sample_surface, unit_vector,
+)
 from datagen.sensor import SensorParams
 from datagen.shards import FrameLabels, list_shards, update_index, write_shard
 from datagen.workers import report_progress, run_tasks
@@ -141,10 +143,6 @@ def noise_rng(seed: int, number: int, attempt: int, frame: int) -> np.random.Gen
     return np.random.default_rng([int(seed), int(number), int(attempt), 1, int(frame)])
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
-
-
 def board_outline(board: BoardSpec) -> np.ndarray:
     """(4, 3) board-frame corners of the square grid (the markers lie inside it)."""
     w, h = board.size_m
@@ -174,13 +172,6 @@ def _board_frame(spec: SceneSpec, board: BoardSpec) -> tuple[np.ndarray, np.ndar
     return centre, -spec.board_matrix[:3, 2], math.hypot(w, h)
 
 
-def _aim(position: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """World from lamp: at ``position``, shining (its -Z) at ``target``."""
-    z = -_unit(target - position)
-    x = _unit(np.cross(np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([1.0, 0.0, 0.0]), z))
-    return rigid(np.column_stack([x, np.cross(z, x), z]), position)
-
-
 def _sight_lines(spec: SceneSpec, board: BoardSpec, n: int = 7) -> tuple[np.ndarray, np.ndarray]:
     """(eye (3,), points (M, 3)): the camera centre and board points spanning the grid, in the world."""
     w, h = board.size_m
@@ -203,7 +194,7 @@ def _shadow_plan(rng: np.random.Generator, spec: SceneSpec, board: BoardSpec, n_
     centre, normal, diag = _board_frame(spec, board)
     eye, targets = _sight_lines(spec, board)
     towards_camera = (eye - centre) - ((eye - centre) @ normal) * normal
-    away = -_unit(towards_camera) if np.linalg.norm(towards_camera) > 1e-6 else spec.board_matrix[:3, 0]
+    away = -unit_vector(towards_camera) if np.linalg.norm(towards_camera) > 1e-6 else spec.board_matrix[:3, 0]
     lux = float(math.exp(rng.uniform(*np.log(SHADOW_LUX))))
     for _ in range(MAX_DRAWS):
         # The lamp on the far side of the normal from the camera, so the caster stays out of view.
@@ -212,24 +203,24 @@ def _shadow_plan(rng: np.random.Generator, spec: SceneSpec, board: BoardSpec, n_
         distance = rng.uniform(0.5, 1.2)
         position = centre + distance * (math.cos(elevation) * normal + math.sin(elevation) * (twist @ away))
         irradiance = spec.world.strength * rng.uniform(40.0, 100.0)  # the world light only fills the shadow
-        lamp = Light("SPOT", _aim(position, centre), power=irradiance * 4 * math.pi * distance**2, color=(1.0, 1.0, 1.0),
+        lamp = Light("SPOT", aim_lamp(position, centre), power=irradiance * 4 * math.pi * distance**2, color=(1.0, 1.0, 1.0),
                      size=float(rng.uniform(0.003, 0.02)),
                      spot_size_deg=math.degrees(2 * math.atan(0.75 * diag / distance)) + 25.0, spot_blend=0.3)
         kind = ("rod", "ball", "box")[rng.integers(3)]
         height = rng.uniform(0.3, 0.6)  # the caster's place on the way from the board to the lamp
         width = rng.uniform(0.3, 0.55) * diag * (1.0 - height)  # its shadow: (0.3-0.55) board diagonals
         angle = rng.uniform(0.0, 2 * math.pi)
-        in_plane = _unit(np.cross(normal, away))
+        in_plane = unit_vector(np.cross(normal, away))
         travel = math.cos(angle) * away + math.sin(angle) * in_plane  # the shadow's path on the board
         surface = sample_surface(rng)
-        tumble, _ = cv2.Rodrigues(_unit(rng.normal(size=3)) * rng.uniform(0, math.pi))
+        tumble, _ = cv2.Rodrigues(unit_vector(rng.normal(size=3)) * rng.uniform(0, math.pi))
         count = n_frames - LIT_FRAMES
         shapes, clear = [], True
         for s in np.linspace(-1.0, 1.0, count) if count > 1 else [0.0]:
             shadow_centre = centre + s * 0.85 * diag * travel
             place = shadow_centre + height * (position - shadow_centre)
             if kind == "rod":  # an arm across the light: long, across the shadow's path
-                along = _unit(np.cross(normal, travel))
+                along = unit_vector(np.cross(normal, travel))
                 rotation = np.column_stack([travel, np.cross(along, travel), along])
                 matrix = rigid(rotation, place) @ np.diag([width, width, 3.0 * diag, 1.0])
                 samples = place + np.linspace(-1.5, 1.5, 200)[:, None] * diag * along
@@ -256,11 +247,11 @@ def _shake(rng: np.random.Generator) -> Callable[[float], tuple[np.ndarray, np.n
     the camera frame), both zero at t = 0 (the rest pose). Sums of sinusoids whose peak angular speed
     is `MOTION_PEAK_RAD_S`."""
     peak = rng.uniform(*MOTION_PEAK_RAD_S)
-    axes = np.stack([_unit(rng.normal(size=3)) for _ in range(3)])
+    axes = np.stack([unit_vector(rng.normal(size=3)) for _ in range(3)])
     freq = rng.uniform(3.0, 7.0, size=3)  # Hz: physiological tremor and hand sway
     phase = rng.uniform(0.0, 2 * math.pi, size=3)
     amplitude = peak * rng.uniform(0.4, 1.0, size=3) / math.sqrt(3) / (2 * math.pi * freq)
-    shifts = np.stack([_unit(rng.normal(size=3)) for _ in range(2)])
+    shifts = np.stack([unit_vector(rng.normal(size=3)) for _ in range(2)])
     shift_freq = rng.uniform(2.0, 5.0, size=2)
     shift_phase = rng.uniform(0.0, 2 * math.pi, size=2)
     shift_amplitude = rng.uniform(0.01, 0.05, size=2) / (2 * math.pi * shift_freq)  # 1-5 cm/s
