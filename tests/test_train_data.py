@@ -7,7 +7,7 @@ import pytest
 from datagen.shards import FrameLabels, ShardError, write_shard
 from deepcharuco import BoardSpec
 from deepcharuco.models.cells import decode_cells
-from train.augment import AugmentConfig, augment, warp_labels
+from train.augment import AugmentConfig, augment, crop_labels, crop_origin, warp_labels
 from train.dataset import FrameDataset, split_shards
 
 GEOMETRY_ONLY = AugmentConfig(probabilities=())
@@ -27,6 +27,36 @@ def test_homography_moves_labels_with_the_image(default_views):
         errors += list(np.linalg.norm(found.reshape(-1, 2) - moved[inner], axis=1))
         assert not np.array_equal(moved, corners.astype(np.float32))
     assert np.median(errors) < 0.15, np.median(errors)
+
+
+def test_crop_keeps_labels_on_the_image(default_views):
+    """A crop's labels sit on the cropped image's corners; those cut off become invisible; crops mostly hold corners."""
+    config = AugmentConfig(probabilities=(), homography_p=0.0, crop=(160, 120))
+    held = 0
+    for k, (image, _, _, corners) in enumerate(default_views * 4):
+        rng = np.random.default_rng(k)
+        cropped, moved, visible = augment(image / 255.0, corners.astype(np.float32), np.ones(16, bool), True, rng, config)
+        assert cropped.shape == (120, 160)
+        inside = np.all((moved >= -0.5) & (moved < [159.5, 119.5]), axis=1)
+        assert np.array_equal(visible, inside)
+        held += visible.any()
+        inner = visible & np.all((moved > 6) & (moved < [154, 114]), axis=1)
+        if inner.any():
+            gray = np.round(cropped * 255).astype(np.uint8)
+            start = (moved[inner] + 0.6).reshape(-1, 1, 2).astype(np.float32)
+            found = cv2.cornerSubPix(gray, start, (3, 3), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+            assert np.median(np.linalg.norm(found.reshape(-1, 2) - moved[inner], axis=1)) < 0.2
+    assert held >= 0.7 * len(default_views) * 4
+
+
+def test_crop_origin_holds_the_chosen_corner_and_stays_in_the_image():
+    rng = np.random.default_rng(0)
+    corners = np.array([[5.0, 5.0], [314.0, 234.0]], np.float32)
+    for _ in range(200):
+        x0, y0 = crop_origin(rng, (320, 240), (160, 120), corners, np.array([True, True]), on_corner_p=1.0)
+        assert 0 <= x0 <= 160 and 0 <= y0 <= 120
+        _, visible = crop_labels(corners, np.array([True, True]), (x0, y0), (160, 120))
+        assert visible.sum() == 1
 
 
 def test_corners_leaving_the_frame_become_invisible():

@@ -65,6 +65,36 @@ def test_charuconet_loss_falls(frames, tmp_path):
     assert board == BoardSpec() and checkpoint["input_size"] == [320, 240] and checkpoint["training"]["step"] == 30
 
 
+def test_charuconet_trains_on_crops_and_validates_on_whole_frames(frames, tmp_path):
+    cfg = config(frames, tmp_path, steps=4, batch_size=4, val_every=4, checkpoint_every=4, crop="160x120")
+    task = ChArUcoNetTask(cfg)
+    task.train_set.set_epoch(0)
+    assert task.train_set[0]["image"].shape == (1, 120, 160) and task.train_set[0]["points"].shape == (15, 20)
+    assert task.val_set[0]["image"].shape == (1, 240, 320)
+    assert train(task, cfg, "charuconet")["step"] == 4
+
+
+def test_bundle_keeps_both_networks_and_drops_optimizer_state(frames, patches, tmp_path):
+    charuconet, refinenet = tmp_path / "c", tmp_path / "r"
+    train(ChArUcoNetTask(c := config(frames, charuconet, steps=2, batch_size=2, val_every=2)), c, "charuconet")
+    train(RefineNetTask(r := config(patches, refinenet, steps=2, val_every=2)), r, "refinenet")
+    out = tmp_path / "weights" / "detector.pt"
+    done = subprocess.run([sys.executable, "-m", "train.bundle", "--charuconet", str(charuconet / "last.pt"), "--refinenet",
+                           str(refinenet / "last.pt"), "--out", str(out), "--note", "hardware=test"],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    data = torch.load(out, weights_only=True)
+    assert data["note"] == {"hardware": "test"} and "optimizer" not in data["charuconet"]["training"]
+    assert data["charuconet"]["training"]["step"] == 2
+    net, _, _ = load_charuconet(out)
+    reference, _, _ = load_charuconet(charuconet / "last.pt")
+    assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), reference.state_dict().values()))
+    load_refinenet(out)
+    swapped = subprocess.run([sys.executable, "-m", "train.bundle", "--charuconet", str(refinenet / "last.pt"), "--refinenet",
+                              str(refinenet / "last.pt"), "--out", str(tmp_path / "bad.pt")], cwd=ROOT, capture_output=True, text=True)
+    assert swapped.returncode == 2 and "a charuconet was expected" in swapped.stderr and not (tmp_path / "bad.pt").exists()
+
+
 def test_resume_is_exact(patches, tmp_path):
     whole = config(patches, tmp_path / "whole")
     train(RefineNetTask(whole), whole, "refinenet")
@@ -89,6 +119,12 @@ def test_refusals(patches, tmp_path):
     changed = TrainConfig(**{**cfg.__dict__, "resume": True, "lr": 0.1})
     with pytest.raises(DeepCharucoError, match="lr"):
         train(RefineNetTask(changed), changed, "refinenet")
+    with pytest.raises(DeepCharucoError, match="--crop applies to ChArUcoNet"):
+        RefineNetTask(TrainConfig(**{**cfg.__dict__, "crop": "16x16"}))
+    for bad in ("160", "161x120", "0x8", "axb"):
+        done = subprocess.run([sys.executable, "-m", "train.charuconet", "--crop", bad, "--out", str(tmp_path / "x")],
+                              cwd=ROOT, capture_output=True, text=True)
+        assert done.returncode == 2 and "WIDTHxHEIGHT in positive multiples of 8" in done.stderr, done.stderr
 
 
 def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path):

@@ -10,8 +10,10 @@
     homographic transform       1.0 on positives, 0.0 on negatives
 
 The photometric effects run in a random order at random strengths; the homography runs first
-(it moves the corner labels: corners it pushes out of the frame become invisible). Every draw
-comes from the ``rng`` passed in. Images are float32 (H, W) in [0, 1].
+(it moves the corner labels: corners it pushes out of the frame become invisible). An optional
+random crop follows the homography: a network that sees 160x120 crops trains ~4x faster on a
+CPU and, being fully convolutional, runs unchanged on whole frames. Every draw comes from the
+``rng`` passed in. Images are float32 (H, W) in [0, 1].
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ class AugmentConfig:
     homography_p: float = 1.0
     max_motion_kernel: int = 15
     min_brightness: float = 0.02
+    crop: tuple[int, int] | None = None  # (width, height) of a random crop, None: whole frames
+    crop_on_corner_p: float = 0.75  # how often the crop is placed to hold a random visible corner
 
 
 def random_homography(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
@@ -54,6 +58,28 @@ def warp_labels(corners: np.ndarray, visible: np.ndarray, homography: np.ndarray
         moved[finite] = cv2.perspectiveTransform(corners[finite].reshape(-1, 1, 2).astype(np.float64), homography).reshape(-1, 2)
     inside = finite & (moved[:, 0] >= -0.5) & (moved[:, 0] < width - 0.5) & (moved[:, 1] >= -0.5) & (moved[:, 1] < height - 0.5)
     return moved.astype(np.float32), visible & inside
+
+
+def crop_origin(rng: np.random.Generator, size: tuple[int, int], crop: tuple[int, int], corners: np.ndarray,
+                visible: np.ndarray, on_corner_p: float) -> tuple[int, int]:
+    """Top-left pixel (x0, y0) of a ``crop`` (w, h) of an image of ``size`` (W, H): uniform, or with
+    probability ``on_corner_p`` uniform among the crops that hold a random visible corner."""
+    (width, height), (crop_w, crop_h) = size, crop
+    low, high = np.zeros(2), np.array([width - crop_w, height - crop_h], float)
+    shown = np.flatnonzero(visible & np.all(np.isfinite(corners), axis=1))
+    if len(shown) and rng.random() < on_corner_p:
+        x, y = corners[shown[rng.integers(len(shown))]]
+        low = np.clip([x - crop_w + 1, y - crop_h + 1], 0, high)
+        high = np.clip([x, y], low, high)
+    return int(rng.integers(low[0], high[0] + 1)), int(rng.integers(low[1], high[1] + 1))
+
+
+def crop_labels(corners: np.ndarray, visible: np.ndarray, origin: tuple[int, int], crop: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (C, 2) in the crop's pixels; visibility cleared for those outside it."""
+    moved = corners - np.asarray(origin, np.float32)
+    inside = (moved[:, 0] >= -0.5) & (moved[:, 0] < crop[0] - 0.5) & (moved[:, 1] >= -0.5) & (moved[:, 1] < crop[1] - 0.5)
+    return moved, visible & inside & np.all(np.isfinite(moved), axis=1)
 
 
 def motion_blur(image: np.ndarray, rng: np.random.Generator, max_kernel: int) -> np.ndarray:
@@ -101,13 +127,21 @@ def photometric(name: str, image: np.ndarray, rng: np.random.Generator, config: 
 
 def augment(image: np.ndarray, corners: np.ndarray, visible: np.ndarray, has_board: bool, rng: np.random.Generator,
             config: AugmentConfig = AugmentConfig()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(image float32 (H, W) in [0, 1], corners (C, 2), visible (C,)) -> the augmented triple."""
+    """(image float32 (H, W) in [0, 1], corners (C, 2), visible (C,)) -> the augmented triple
+    ((h, w) = ``config.crop`` reversed when cropping)."""
     height, width = image.shape
     image = image.astype(np.float32)
     if has_board and rng.random() < config.homography_p:
         homography = random_homography(rng, width, height)
-        image = cv2.warpPerspective(image, homography, (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        # Replicate, not reflect: a mirrored board beyond the edge would show corners without labels.
+        image = cv2.warpPerspective(image, homography, (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         corners, visible = warp_labels(corners, visible, homography, width, height)
+    if config.crop is not None:
+        if config.crop[0] > width or config.crop[1] > height:
+            raise ValueError(f"crop {config.crop[0]}x{config.crop[1]} is larger than the {width}x{height} frames")
+        x0, y0 = crop_origin(rng, (width, height), config.crop, corners, visible, config.crop_on_corner_p)
+        image = image[y0:y0 + config.crop[1], x0:x0 + config.crop[0]]
+        corners, visible = crop_labels(corners, visible, (x0, y0), config.crop)
     effects = list(config.probabilities)
     for index in rng.permutation(len(effects)):
         name, probability = effects[index]

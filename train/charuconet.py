@@ -8,6 +8,7 @@ validation shards' positives, detections on negatives, and the loss.
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -15,11 +16,12 @@ import torch.nn.functional as F
 
 from datagen.shards import ShardReader
 from deepcharuco.detection import Detection
+from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
 from deepcharuco.models.cells import decode_cells
 from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
 from train.augment import AugmentConfig
-from train.cli import run_trainer
+from train.cli import parse_crop, run_trainer
 from train.dataset import FrameDataset, split_shards
 from train.loop import TrainConfig
 
@@ -29,9 +31,15 @@ class ChArUcoNetTask:
     metric_names = ("score", "corner_accuracy", "val_loss", "negative_detections")
 
     def __init__(self, config: TrainConfig, augmentation: AugmentConfig | None = AugmentConfig()):
+        if augmentation is not None and config.crop:
+            augmentation = replace(augmentation, crop=parse_crop(config.crop))
         train_paths, val_paths = split_shards(config.data, config.val_fraction)
         reader = ShardReader(train_paths[0])
         self.board, self.image_size = reader.board, reader.image_size
+        crop = augmentation.crop if augmentation is not None else None
+        if crop and (crop[0] > self.image_size[0] or crop[1] > self.image_size[1]):
+            raise DeepCharucoError(f"--crop {crop[0]}x{crop[1]} is larger than the {self.image_size[0]}x{self.image_size[1]} "
+                                   f"frames in {config.data}: choose a smaller crop")
         architecture = (ChArUcoNetConfig.lite if config.width == "lite" else ChArUcoNetConfig.paper)(self.board.num_corners)
         torch.manual_seed(config.seed)
         self.model = ChArUcoNet(architecture)

@@ -14,7 +14,7 @@ HELP = {
     "width": "network width: paper or lite", "val_every": "steps between validations",
     "val_batches": "validation batches per validation", "checkpoint_every": "steps between last.pt saves",
     "workers": "DataLoader worker processes", "device": "auto, cpu, cuda, cuda:1, mps",
-    "amp": "mixed precision on CUDA", "resume": "continue the run in --out exactly where it stopped",
+    "amp": "mixed precision on CUDA", "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames", "resume": "continue the run in --out exactly where it stopped",
 }
 
 
@@ -37,9 +37,24 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
                 if getattr(config, name) < low]
     if config.lr <= 0:
         problems.append("--lr must be > 0")
+    if config.crop:
+        try:
+            parse_crop(config.crop)
+        except ValueError as error:
+            problems.append(str(error))
     if problems:
         parser.error("; ".join(problems))
     return config
+
+
+def parse_crop(text: str) -> tuple[int, int] | None:
+    """"160x120" -> (160, 120); "" -> None. Both sides positive multiples of 8 (the network's cell)."""
+    if not text:
+        return None
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() for p in parts) or any(int(p) <= 0 or int(p) % 8 for p in parts):
+        raise ValueError(f"--crop {text!r}: give WIDTHxHEIGHT in positive multiples of 8, e.g. 160x120")
+    return int(parts[0]), int(parts[1])
 
 
 def run_trainer(kind: str, task_class, doc: str, score_name: str, defaults: dict, argv: list[str] | None = None) -> int:

@@ -44,6 +44,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup: int = 500
     width: str = "paper"  # "paper" or "lite"
+    crop: str = ""  # ChArUcoNet: train on random WxH crops ("160x120"); "" = whole frames
     val_fraction: float = 0.1
     val_every: int = 1000
     val_batches: int = 50
@@ -154,7 +155,7 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
         state = torch.load(last_path, map_location="cpu", weights_only=False)
         saved = state["training"]["config"]
         differs = [f.name for f in fields(TrainConfig) if f.name not in ("resume", "quiet", "workers", "device", "steps")
-                   and saved.get(f.name) != getattr(config, f.name)]
+                   and saved.get(f.name, f.default) != getattr(config, f.name)]
         if differs:
             raise DeepCharucoError(f"--resume: {', '.join(differs)} differ from the run in {out}; resume with its settings")
         model.load_state_dict(state["state_dict"])

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 from datagen.shards import read_patch_shard
 from deepcharuco.models.refinenet import RefineNet, RefineNetConfig, decode_offsets, offset_to_cell
+from deepcharuco.errors import DeepCharucoError
 from train.cli import run_trainer
 from train.dataset import split_shards
 from train.loop import TrainConfig
@@ -42,6 +43,8 @@ class RefineNetTask:
     metric_names = ("score", "mean_error_px")
 
     def __init__(self, config: TrainConfig):
+        if config.crop:
+            raise DeepCharucoError("--crop applies to ChArUcoNet's frames; RefineNet trains on whole 24x24 patches")
         training, validation = split_shards(config.data, config.val_fraction,
                                             "make some with python -m datagen.patches")
         torch.manual_seed(config.seed)

@@ -60,6 +60,25 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
     return path
 
 
+def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path, note: dict | None = None) -> Path:
+    """Both networks' checkpoints in one shippable file, written atomically.
+
+    Training state that only resuming needs (optimizer, AMP scaler) is dropped, which is most of a
+    checkpoint's size; the step, the run's settings and its validation metrics are kept under
+    ``training``, and ``note`` (free-form: commands, data, hardware) under ``note``."""
+    parts = {}
+    for kind, source in (("charuconet", charuconet), ("refinenet", refinenet)):
+        data = read_checkpoint(source, kind)
+        training = {k: v for k, v in data.get("training", {}).items() if k not in ("optimizer", "scaler")}
+        parts[kind] = {k: v for k, v in data.items() if k not in ("format", "format_version")} | {"training": training}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    torch.save({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts, "note": note or {}}, temporary)
+    temporary.replace(path)
+    return path
+
+
 def read_checkpoint(path: str | Path, kind: str) -> dict:
     """The ``kind`` ("charuconet" / "refinenet") checkpoint in ``path`` (a checkpoint or a bundle), validated."""
     path = Path(path)
