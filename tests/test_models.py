@@ -1,5 +1,7 @@
 """ChArUcoNet / RefineNet: sizes, label encodings and their sub-pixel conventions, checkpoints, the Detector's plumbing."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -7,7 +9,7 @@ import torch
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.deep_detector import PATCH_ORIGIN, Detector
 from deepcharuco.models import (
-    ChArUcoNet, ChArUcoNetConfig, CheckpointError, RefineNet, RefineNetConfig, cell_to_offset, decode_offsets,
+    ChArUcoNet, ChArUcoNetConfig, CheckpointError, fold_batch_norm, RefineNet, RefineNetConfig, cell_to_offset, decode_offsets,
     load_charuconet, offset_to_cell, save_checkpoint,
 )
 from deepcharuco.models.cells import decode_cells, encode_cells
@@ -71,6 +73,47 @@ def test_soft_argmax_recovers_an_off_grid_peak():
     assert torch.abs(decode_offsets(logits, soft_radius=0) - true).max() <= 1 / 16
 
 
+def test_checkpoints_from_before_batch_norm_still_load(tmp_path):
+    """Format-1 files written before ``batch_norm`` existed describe plain networks and load as such."""
+    plain = ChArUcoNet(ChArUcoNetConfig(widths=(8, 8, 8, 8), head=8, batch_norm=False))
+    save_checkpoint(tmp_path / "old.pt", plain, board=BoardSpec(), input_size=(320, 240))
+    data = torch.load(tmp_path / "old.pt", weights_only=True)
+    del data["config"]["batch_norm"]
+    torch.save(data, tmp_path / "old.pt")
+    model, _, _ = load_charuconet(tmp_path / "old.pt")
+    assert not model.config.batch_norm and not any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in ChArUcoNet(ChArUcoNetConfig.lite()).modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in RefineNet(RefineNetConfig.lite()).modules())
+
+
+def test_folding_batch_norm_keeps_the_outputs():
+    torch.manual_seed(0)
+    for model, shape in ((ChArUcoNet(ChArUcoNetConfig.lite()), (2, 1, 64, 80)), (RefineNet(RefineNetConfig.lite()), (5, 1, 24, 24))):
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):  # statistics as after training, not the identity of a fresh layer
+                m.running_mean.uniform_(-0.5, 0.5), m.running_var.uniform_(0.5, 2.0), m.weight.data.uniform_(0.5, 1.5)
+        x = torch.rand(shape)
+        with torch.no_grad():
+            before = model.eval()(x)
+            folded = fold_batch_norm(model)
+            after = folded(x)
+        assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+        for a, b in zip(before if isinstance(before, tuple) else (before,), after if isinstance(after, tuple) else (after,)):
+            assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="eval mode"):
+        fold_batch_norm(RefineNet(RefineNetConfig.lite()).train())
+
+
+def test_gaussian_targets_peak_at_the_label_cell_and_centre_on_the_offset():
+    from train.refinenet import gaussian_targets
+    offsets = torch.tensor([[7.51, 15.49], [11.3, 9.87], [12.01, 12.04]])
+    targets = gaussian_targets(offsets, 2.0)
+    assert targets.shape == (3, 4096) and torch.allclose(targets.sum(1), torch.ones(3))
+    assert torch.equal(targets.argmax(1), offset_to_cell(offsets))
+    mean = (targets[:, :, None] * cell_to_offset(torch.arange(4096))[None]).sum(1)
+    assert torch.allclose(mean[1:], offsets[1:], atol=1e-3)  # away from the grid's edges, the mean is the offset
+
+
 def test_encoding_skips_invisible_and_outside_corners():
     corners = np.array([[5.2, 5.0], [400.0, 10.0], [40.0, 40.0], [np.nan, np.nan]], np.float32)
     points, ids = encode_cells(corners, np.array([True, True, False, True]), 240, 320)
@@ -84,7 +127,7 @@ def test_checkpoint_errors(tmp_path):
     path = save_checkpoint(tmp_path / "net.pt", net, board=board, input_size=(320, 240))
     model, loaded_board, _ = load_charuconet(path)
     assert loaded_board == board
-    for a, b in zip(model.state_dict().values(), net.state_dict().values()):
+    for a, b in zip(model.state_dict().values(), fold_batch_norm(copy.deepcopy(net).eval()).state_dict().values()):
         assert torch.equal(a, b)
     with pytest.raises(CheckpointError, match="does not exist"):
         load_charuconet(tmp_path / "missing.pt")

@@ -14,7 +14,8 @@ HELP = {
     "width": "network width: paper or lite", "val_every": "steps between validations",
     "val_batches": "validation batches per validation", "checkpoint_every": "steps between last.pt saves",
     "workers": "DataLoader worker processes", "device": "auto, cpu, cuda, cuda:1, mps",
-    "amp": "mixed precision on CUDA", "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames", "resume": "continue the run in --out exactly where it stopped",
+    "amp": "mixed precision on CUDA",
+    "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell", "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames", "resume": "continue the run in --out exactly where it stopped",
 }
 
 

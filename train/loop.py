@@ -44,6 +44,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup: int = 500
     width: str = "paper"  # "paper" or "lite"
+    label_sigma: float = 2.0  # RefineNet: Gaussian target width in grid cells (1/8 px); 0 = one-hot
     crop: str = ""  # ChArUcoNet: train on random WxH crops ("160x120"); "" = whole frames
     val_fraction: float = 0.1
     val_every: int = 1000

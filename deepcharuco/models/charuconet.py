@@ -7,6 +7,11 @@
 
 At the paper's width (64, 64, 128, 128; heads 256) the network has 1.24 M parameters, 4.8 MB
 in float32, as the paper reports. The `lite` width is for real time on a 2-core CPU.
+
+Every 3x3 convolution is followed by batch normalisation (``batch_norm``, as in SuperPoint's
+trainers; the paper does not say): without it these 10-layer plain networks collapsed here to
+predicting the label marginals (all-dustbin cells, a uniform RefineNet grid) for the first
+thousand steps at the learning rates that make CPU training affordable.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 CELL = 8  # pixels per output cell side: three 2x poolings
 
@@ -26,6 +32,7 @@ class ChArUcoNetConfig:
     num_corners: int = 16
     widths: tuple[int, int, int, int] = (64, 64, 128, 128)
     head: int = 256
+    batch_norm: bool = True
 
     @classmethod
     def paper(cls, num_corners: int = 16) -> "ChArUcoNetConfig":
@@ -41,11 +48,15 @@ class ChArUcoNetConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "ChArUcoNetConfig":
-        return cls(num_corners=int(data["num_corners"]), widths=tuple(int(w) for w in data["widths"]), head=int(data["head"]))
+        return cls(num_corners=int(data["num_corners"]), widths=tuple(int(w) for w in data["widths"]), head=int(data["head"]),
+                   batch_norm=bool(data.get("batch_norm", False)))  # format 1 files before batch_norm had none
 
 
-def conv(in_channels: int, out_channels: int, kernel: int = 3, relu: bool = True) -> nn.Sequential:
-    layers = [nn.Conv2d(in_channels, out_channels, kernel, padding=kernel // 2)]
+def conv(in_channels: int, out_channels: int, kernel: int = 3, relu: bool = True, batch_norm: bool = False) -> nn.Sequential:
+    """Convolution ('same' padding) [-> BatchNorm] [-> ReLU]."""
+    layers = [nn.Conv2d(in_channels, out_channels, kernel, padding=kernel // 2, bias=not batch_norm)]
+    if batch_norm:
+        layers.append(nn.BatchNorm2d(out_channels))
     if relu:
         layers.append(nn.ReLU(inplace=True))
     return nn.Sequential(*layers)
@@ -54,11 +65,11 @@ def conv(in_channels: int, out_channels: int, kernel: int = 3, relu: bool = True
 class VGGEncoder(nn.Module):
     """SuperPoint's encoder: 4 stages of two 3x3 convolutions, max-pooling between them (/8)."""
 
-    def __init__(self, widths: tuple[int, int, int, int], in_channels: int = 1):
+    def __init__(self, widths: tuple[int, int, int, int], in_channels: int = 1, batch_norm: bool = False):
         super().__init__()
         stages, channels = [], in_channels
         for i, width in enumerate(widths):
-            stage = [conv(channels, width), conv(width, width)]
+            stage = [conv(channels, width, batch_norm=batch_norm), conv(width, width, batch_norm=batch_norm)]
             if i < len(widths) - 1:
                 stage.append(nn.MaxPool2d(2, 2))
             stages.append(nn.Sequential(*stage))
@@ -79,11 +90,27 @@ class ChArUcoNet(nn.Module):
     def __init__(self, config: ChArUcoNetConfig = ChArUcoNetConfig()):
         super().__init__()
         self.config = config
-        self.encoder = VGGEncoder(config.widths)
+        bn = config.batch_norm
+        self.encoder = VGGEncoder(config.widths, batch_norm=bn)
         channels = self.encoder.out_channels
-        self.point_head = nn.Sequential(conv(channels, config.head), conv(config.head, CELL * CELL + 1, 1, relu=False))
-        self.id_head = nn.Sequential(conv(channels, config.head), conv(config.head, config.num_corners + 1, 1, relu=False))
+        self.point_head = nn.Sequential(conv(channels, config.head, batch_norm=bn), conv(config.head, CELL * CELL + 1, 1, relu=False))
+        self.id_head = nn.Sequential(conv(channels, config.head, batch_norm=bn),
+                                     conv(config.head, config.num_corners + 1, 1, relu=False))
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         features = self.encoder(image)
         return self.point_head(features), self.id_head(features)
+
+
+def fold_batch_norm(model: nn.Module) -> nn.Module:
+    """Fold every Conv2d -> BatchNorm2d pair into one Conv2d, in place, for inference: the same outputs
+    (to float rounding) for less work. ``model`` must be in eval mode (running statistics)."""
+    if model.training:
+        raise ValueError("fold_batch_norm needs a model in eval mode: call model.eval() first")
+    for module in model.modules():
+        if isinstance(module, nn.Sequential):
+            for i in range(len(module) - 1):
+                if isinstance(module[i], nn.Conv2d) and isinstance(module[i + 1], nn.BatchNorm2d):
+                    module[i] = fuse_conv_bn_eval(module[i], module[i + 1])
+                    module[i + 1] = nn.Identity()
+    return model

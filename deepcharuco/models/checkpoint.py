@@ -22,7 +22,7 @@ import torch
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
+from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
 from deepcharuco.models.refinenet import RefineNet, RefineNetConfig
 
 FORMAT = "deepcharuco-checkpoint"
@@ -103,7 +103,7 @@ def read_checkpoint(path: str | Path, kind: str) -> dict:
 
 
 def load_charuconet(path: str | Path, board: BoardSpec | None = None) -> tuple[ChArUcoNet, BoardSpec, dict]:
-    """(network in eval mode, its board, the checkpoint) from ``path``; ``board``, when given, must match."""
+    """(network in eval mode, batch norm folded, its board, the checkpoint) from ``path``; ``board``, when given, must match."""
     data = read_checkpoint(path, "charuconet")
     trained_for = BoardSpec.from_dict(data["board"])
     if board is not None and board != trained_for:
@@ -111,14 +111,15 @@ def load_charuconet(path: str | Path, board: BoardSpec | None = None) -> tuple[C
                               f"train a ChArUcoNet for this board (python -m train.charuconet --board ...)")
     model = ChArUcoNet(ChArUcoNetConfig.from_dict(data["config"]))
     _load_state(model, data, path)
-    return model.eval(), trained_for, data
+    return fold_batch_norm(model.eval()), trained_for, data
 
 
 def load_refinenet(path: str | Path) -> tuple[RefineNet, dict]:
+    """(network in eval mode, batch norm folded, the checkpoint) from ``path``."""
     data = read_checkpoint(path, "refinenet")
     model = RefineNet(RefineNetConfig.from_dict(data["config"]))
     _load_state(model, data, path)
-    return model.eval(), data
+    return fold_batch_norm(model.eval()), data
 
 
 def _load_state(model: torch.nn.Module, data: dict, path: Path) -> None:

@@ -1,7 +1,7 @@
 """RefineNet: 24x24 patch -> 4096-way softmax over the central 8x8 pixels at 8x resolution.
 
     patch (B, 1, 24, 24) in [0, 1]
-      -> the VGG encoder of ChArUcoNet                      (B, 128, 3, 3)
+      -> the VGG encoder of ChArUcoNet (with BatchNorm)     (B, 128, 3, 3)
       -> conv3x3 128 -> 128, then the bottleneck conv1x1 128 -> 8   (B, 8, 3, 3)
       -> flatten (72) -> linear -> 4096 logits = a 64 x 64 grid, row-major (row = y)
 
@@ -34,6 +34,7 @@ class RefineNetConfig:
     widths: tuple[int, int, int, int] = (64, 64, 128, 128)
     head: int = 128
     bottleneck: int = 8
+    batch_norm: bool = True  # see charuconet's docstring
 
     @classmethod
     def paper(cls) -> "RefineNetConfig":
@@ -48,7 +49,8 @@ class RefineNetConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefineNetConfig":
-        return cls(widths=tuple(int(w) for w in data["widths"]), head=int(data["head"]), bottleneck=int(data["bottleneck"]))
+        return cls(widths=tuple(int(w) for w in data["widths"]), head=int(data["head"]), bottleneck=int(data["bottleneck"]),
+                   batch_norm=bool(data.get("batch_norm", False)))  # format 1 files before batch_norm had none
 
 
 class RefineNet(nn.Module):
@@ -57,8 +59,10 @@ class RefineNet(nn.Module):
     def __init__(self, config: RefineNetConfig = RefineNetConfig()):
         super().__init__()
         self.config = config
-        self.encoder = VGGEncoder(config.widths)
-        self.head = nn.Sequential(conv(self.encoder.out_channels, config.head), conv(config.head, config.bottleneck, 1))
+        bn = config.batch_norm
+        self.encoder = VGGEncoder(config.widths, batch_norm=bn)
+        self.head = nn.Sequential(conv(self.encoder.out_channels, config.head, batch_norm=bn),
+                                  conv(config.head, config.bottleneck, 1, batch_norm=bn))
         self.classifier = nn.Linear(config.bottleneck * (PATCH // 8) ** 2, GRID * GRID)
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
