@@ -74,6 +74,31 @@ def test_charuconet_trains_on_crops_and_validates_on_whole_frames(frames, tmp_pa
     assert train(task, cfg, "charuconet")["step"] == 4
 
 
+def test_init_warm_starts_and_id_positive_weight_weighs_corner_cells(frames, tmp_path):
+    first = config(frames, tmp_path / "a", steps=2, batch_size=2, val_every=2)
+    train(ChArUcoNetTask(first), first, "charuconet")
+    source = torch.load(tmp_path / "a" / "last.pt", weights_only=False)["state_dict"]
+    warm = config(frames, tmp_path / "b", steps=1, batch_size=2, val_every=1, lr=1e-12, warmup=1,
+                  init=str(tmp_path / "a" / "last.pt"), id_positive_weight=10.0)
+    task = ChArUcoNetTask(warm)
+    train(task, warm, "charuconet")
+    started = torch.load(tmp_path / "b" / "last.pt", weights_only=False)["state_dict"]
+    learned = [k for k in source if "running" not in k and "num_batches" not in k]  # a step in train mode moves BN statistics
+    assert learned and all(torch.allclose(started[k], source[k], atol=1e-5) for k in learned)
+    wrong_width = config(frames, tmp_path / "c", steps=1, width="paper", init=str(tmp_path / "a" / "last.pt"))
+    with pytest.raises(DeepCharucoError, match="--init .* do not fit"):
+        train(ChArUcoNetTask(wrong_width), wrong_width, "charuconet")
+    with pytest.raises(DeepCharucoError, match="--label-sigma applies to RefineNet"):
+        ChArUcoNetTask(config(frames, tmp_path / "d", label_sigma=0.5))
+    # The ID term: corner cells count 10 times, the mean is over the weights (PyTorch's weighted mean).
+    batch = {k: torch.stack([task.train_set[i][k] for i in range(2)]) for k in ("image", "points", "ids")}
+    points, ids = task.model(batch["image"])
+    per_cell = torch.nn.functional.cross_entropy(ids, batch["ids"], reduction="none")
+    weights = torch.where(batch["ids"] < 16, 10.0, 1.0)
+    expected = torch.nn.functional.cross_entropy(points, batch["points"]) + (per_cell * weights).sum() / weights.sum()
+    assert torch.allclose(task.loss(task.model, batch, torch.device("cpu")), expected, atol=1e-5)
+
+
 def test_bundle_keeps_both_networks_and_drops_optimizer_state(frames, patches, tmp_path):
     charuconet, refinenet = tmp_path / "c", tmp_path / "r"
     train(ChArUcoNetTask(c := config(frames, charuconet, steps=2, batch_size=2, val_every=2)), c, "charuconet")
@@ -121,6 +146,8 @@ def test_refusals(patches, tmp_path):
         train(RefineNetTask(changed), changed, "refinenet")
     with pytest.raises(DeepCharucoError, match="--crop applies to ChArUcoNet"):
         RefineNetTask(TrainConfig(**{**cfg.__dict__, "crop": "16x16"}))
+    with pytest.raises(DeepCharucoError, match="--id-positive-weight applies to ChArUcoNet"):
+        RefineNetTask(TrainConfig(**{**cfg.__dict__, "id_positive_weight": 5.0}))
     for bad in ("160", "161x120", "0x8", "axb"):
         done = subprocess.run([sys.executable, "-m", "train.charuconet", "--crop", bad, "--out", str(tmp_path / "x")],
                               cwd=ROOT, capture_output=True, text=True)

@@ -15,6 +15,8 @@ HELP = {
     "val_batches": "validation batches per validation", "checkpoint_every": "steps between last.pt saves",
     "workers": "DataLoader worker processes", "device": "auto, cpu, cuda, cuda:1, mps",
     "amp": "mixed precision on CUDA",
+    "init": "start from these weights (checkpoint or bundle of the same network), with a fresh optimizer and schedule",
+    "id_positive_weight": "ChArUcoNet only: weight of cells holding a corner in the ID cross-entropy (1 = the paper's plain mean)",
     "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell", "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames", "resume": "continue the run in --out exactly where it stopped",
 }
 
@@ -38,6 +40,8 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
                 if getattr(config, name) < low]
     if config.lr <= 0:
         problems.append("--lr must be > 0")
+    if config.id_positive_weight <= 0:
+        problems.append("--id-positive-weight must be > 0")
     if config.crop:
         try:
             parse_crop(config.crop)

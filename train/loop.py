@@ -44,6 +44,8 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup: int = 500
     width: str = "paper"  # "paper" or "lite"
+    init: str = ""  # start from these weights (a checkpoint of the same network), fresh optimizer and schedule
+    id_positive_weight: float = 1.0  # ChArUcoNet: weight of corner cells in the ID cross-entropy; 1 = plain mean
     label_sigma: float = 2.0  # RefineNet: Gaussian target width in grid cells (1/8 px); 0 = one-hot
     crop: str = ""  # ChArUcoNet: train on random WxH crops ("160x120"); "" = whole frames
     val_fraction: float = 0.1
@@ -165,6 +167,8 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
         step, best = state["training"]["step"], state["training"]["best"]
     elif last_path.exists():
         raise DeepCharucoError(f"{out} already holds a run (last.pt): pass --resume to continue it or choose another --out")
+    elif config.init:
+        _load_init(model, config.init, kind)
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
     torch.manual_seed(config.seed + step)
 
@@ -265,6 +269,17 @@ class _EpochBatches:
 
     def __len__(self):
         return len(self.batches)
+
+
+def _load_init(model: torch.nn.Module, path: str, kind: str) -> None:
+    """Warm start: the weights of the ``kind`` checkpoint (or bundle) at ``path``, which must fit ``model``."""
+    from deepcharuco.models.checkpoint import read_checkpoint
+    data = read_checkpoint(path, kind)
+    try:
+        model.load_state_dict(data["state_dict"])
+    except RuntimeError as error:
+        raise DeepCharucoError(f"--init {path}: its weights ({data['config']}) do not fit this run's network "
+                               f"(check --width): {str(error).splitlines()[0]}") from None
 
 
 def _validate(task: Task, model: torch.nn.Module, config: TrainConfig, device: torch.device) -> dict:
