@@ -26,6 +26,7 @@ from deepcharuco.pose import Pose, estimate_pose
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 REFINE_MODES = ("refinenet", "subpix", "none")
+DEFAULT_THRESHOLD = 0.3
 PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)
 
 
@@ -38,12 +39,13 @@ class Detector:
         refine: "refinenet" (the paper's best), "subpix" (OpenCV cornerSubPix) or "none" (cell pixels).
         device: "cpu", "cuda", "mps" ...
         refine_weights: RefineNet checkpoint when ``weights`` holds only ChArUcoNet.
-        threshold: the smallest score (point confidence x ID probability) a corner is reported at.
+        threshold: the smallest score (point confidence x ID probability) a corner is reported at
+            (default: the operating point stored with the weights, chosen on validation frames; else 0.3).
         soft_radius: RefineNet soft-argmax window (cells of 1/8 px) around the argmax; 0 = argmax only.
     """
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
-                 device: str = "cpu", refine_weights: str | Path | None = None, threshold: float = 0.3,
+                 device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2):
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
@@ -57,7 +59,7 @@ class Detector:
         self.charuconet, self.board, self.checkpoint = load_charuconet(weights, board)
         self.charuconet.to(self.device)
         self.refine = refine
-        self.threshold = float(threshold)
+        self.threshold = float(threshold if threshold is not None else self.checkpoint.get("threshold", DEFAULT_THRESHOLD))
         self.soft_radius = int(soft_radius)
         self.refinenet = None
         if refine == "refinenet":

@@ -14,6 +14,7 @@ import torch
 from datagen.patches import synthetic_patches
 from datagen.shards import FrameLabels, write_patch_shard, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
+from deepcharuco.deep_detector import Detector
 from deepcharuco.models import load_charuconet, load_refinenet
 from train.charuconet import ChArUcoNetTask
 from train.loop import TrainConfig, train
@@ -105,7 +106,7 @@ def test_bundle_keeps_both_networks_and_drops_optimizer_state(frames, patches, t
     train(RefineNetTask(r := config(patches, refinenet, steps=2, val_every=2)), r, "refinenet")
     out = tmp_path / "weights" / "detector.pt"
     done = subprocess.run([sys.executable, "-m", "train.bundle", "--charuconet", str(charuconet / "last.pt"), "--refinenet",
-                           str(refinenet / "last.pt"), "--out", str(out), "--note", "hardware=test"],
+                           str(refinenet / "last.pt"), "--out", str(out), "--note", "hardware=test", "--threshold", "0.17"],
                           cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     data = torch.load(out, weights_only=True)
@@ -115,6 +116,8 @@ def test_bundle_keeps_both_networks_and_drops_optimizer_state(frames, patches, t
     reference, _, _ = load_charuconet(charuconet / "last.pt")
     assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), reference.state_dict().values()))
     load_refinenet(out)
+    assert Detector(weights=out).threshold == 0.17 and Detector(weights=out, threshold=0.5).threshold == 0.5
+    assert Detector(weights=charuconet / "last.pt", refine="none").threshold == 0.3  # nothing stored: the default
     swapped = subprocess.run([sys.executable, "-m", "train.bundle", "--charuconet", str(refinenet / "last.pt"), "--refinenet",
                               str(refinenet / "last.pt"), "--out", str(tmp_path / "bad.pt")], cwd=ROOT, capture_output=True, text=True)
     assert swapped.returncode == 2 and "a charuconet was expected" in swapped.stderr and not (tmp_path / "bad.pt").exists()

@@ -21,6 +21,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--charuconet", required=True, help="ChArUcoNet checkpoint (python -m train.charuconet)")
     parser.add_argument("--refinenet", required=True, help="RefineNet checkpoint (python -m train.refinenet)")
     parser.add_argument("--out", default="deepcharuco/weights/detector.pt", help="bundle to write")
+    parser.add_argument("--threshold", type=float, default=None,
+                        help="the Detector's default score threshold, chosen on validation frames (default: none stored, 0.3)")
     parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE", help="provenance to record (repeatable)")
     args = parser.parse_args(argv)
     note = {}
@@ -30,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--note {item!r}: give KEY=VALUE")
         note[key] = value
     try:
-        path = save_bundle(args.out, args.charuconet, args.refinenet, note)
+        path = save_bundle(args.out, args.charuconet, args.refinenet, note, args.threshold)
     except DeepCharucoError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -9,6 +9,7 @@ A checkpoint is a ``torch.save`` dict:
     input_size: [W, H] it was trained at (ChArUcoNet), [24, 24] (RefineNet)
     state_dict: the weights
     training: free-form (step, metrics, command ...)
+    threshold: optional, ChArUcoNet: the score threshold chosen on validation frames
 
 A "bundle" holds both: {"format": ..., "kind": "bundle", "charuconet": {...}, "refinenet": {...}}.
 Loading checks all of it and says what is wrong and what to do.
@@ -60,17 +61,24 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
     return path
 
 
-def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path, note: dict | None = None) -> Path:
+def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path, note: dict | None = None,
+                threshold: float | None = None) -> Path:
     """Both networks' checkpoints in one shippable file, written atomically.
 
     Training state that only resuming needs (optimizer, AMP scaler) is dropped, which is most of a
     checkpoint's size; the step, the run's settings and its validation metrics are kept under
-    ``training``, and ``note`` (free-form: commands, data, hardware) under ``note``."""
+    ``training``, and ``note`` (free-form: commands, data, hardware) under ``note``. ``threshold``, the
+    operating point chosen on validation frames, becomes the ChArUcoNet part's ``threshold``, the
+    `Detector`'s default."""
     parts = {}
     for kind, source in (("charuconet", charuconet), ("refinenet", refinenet)):
         data = read_checkpoint(source, kind)
         training = {k: v for k, v in data.get("training", {}).items() if k not in ("optimizer", "scaler")}
         parts[kind] = {k: v for k, v in data.items() if k not in ("format", "format_version")} | {"training": training}
+    if threshold is not None:
+        if not 0.0 < threshold < 1.0:
+            raise CheckpointError(f"threshold {threshold} is not a score in (0, 1)")
+        parts["charuconet"]["threshold"] = float(threshold)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
