@@ -16,6 +16,7 @@ from datagen.shards import FrameLabels, write_patch_shard, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.deep_detector import Detector
 from deepcharuco.models import load_charuconet, load_refinenet
+from train.bundle import choose_threshold
 from train.charuconet import ChArUcoNetTask
 from train.loop import TrainConfig, train
 from train.refinenet import RefineNetTask
@@ -118,6 +119,8 @@ def test_bundle_keeps_both_networks_and_drops_optimizer_state(frames, patches, t
     load_refinenet(out)
     assert Detector(weights=out).threshold == 0.17 and Detector(weights=out, threshold=0.5).threshold == 0.5
     assert Detector(weights=charuconet / "last.pt", refine="none").threshold == 0.3  # nothing stored: the default
+    threshold, balance = choose_threshold(charuconet / "last.pt")
+    assert threshold in balance and balance[threshold] == max(balance.values())
     swapped = subprocess.run([sys.executable, "-m", "train.bundle", "--charuconet", str(refinenet / "last.pt"), "--refinenet",
                               str(refinenet / "last.pt"), "--out", str(tmp_path / "bad.pt")], cwd=ROOT, capture_output=True, text=True)
     assert swapped.returncode == 2 and "a charuconet was expected" in swapped.stderr and not (tmp_path / "bad.pt").exists()
