@@ -70,7 +70,7 @@ def test_folder_of_images_without_camera(tmp_path, camera, default_views):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--detector", "deep"], "no shipped weights in this version"),
+        (["--detector", "deep", "--weights", "missing.pt"], "weights file missing.pt does not exist"),
         (["--refine", "refinenet"], "needs --detector deep"),
         (["--camera", "missing.yaml"], "camera file missing.yaml does not exist"),
         (["--board", "missing.json"], "board file missing.json does not exist"),

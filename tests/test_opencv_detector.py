@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -84,8 +86,25 @@ def test_bad_arguments():
         OpenCVDetector(max_window=0)
 
 
-def test_deep_detector_without_weights_explains_itself():
-    from deepcharuco import DeepCharucoError, Detector
+def test_deep_detector_without_weights_explains_itself(monkeypatch, tmp_path):
+    from deepcharuco import DeepCharucoError, Detector, deep_detector
 
+    monkeypatch.setattr(deep_detector, "DEFAULT_WEIGHTS", tmp_path / "detector.pt")
     with pytest.raises(DeepCharucoError, match="no shipped weights"):
         Detector()
+
+
+def test_shipped_weights_find_the_bundled_example():
+    """The shipped bundle loads by default, for the paper's board, and agrees with OpenCV on a clean image
+    (>= 8 of its corners within 0.5 px: they are weak, not random; see deepcharuco/weights/MODEL_CARD.md)."""
+    import cv2
+
+    from deepcharuco import Detector
+
+    detector = Detector()
+    assert detector.board == BoardSpec() and detector.refine == "refinenet" and 0 < detector.threshold < 1
+    image = cv2.imread(str(Path(__file__).resolve().parents[1] / "deepcharuco/examples/board_320x240.png"), cv2.IMREAD_GRAYSCALE)
+    found, reference = detector.detect(image), OpenCVDetector(BoardSpec()).detect(image)
+    truth = dict(zip(reference.ids.tolist(), reference.corners))
+    close = [i for i, c in zip(found.ids.tolist(), found.corners) if i in truth and np.linalg.norm(c - truth[i]) < 0.5]
+    assert len(reference.ids) == 16 and len(close) >= 8, (found.ids, len(close))
