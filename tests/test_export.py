@@ -20,8 +20,9 @@ def checkpoints(tmp_path_factory):
     charuconet = ChArUcoNet(ChArUcoNetConfig.lite(board.num_corners))
     refinenet = RefineNet(RefineNetConfig.lite())
     for module in (charuconet, refinenet):  # larger weights than the init: logits of realistic magnitude
-        for p in module.parameters():
-            p.data.mul_(3.0)
+        for layer in module.modules():  # (BatchNorm left at its init: x3 there too compounds to absurd logits)
+            if isinstance(layer, (torch.nn.Conv2d, torch.nn.Linear)):
+                layer.weight.data.mul_(3.0)
     save_checkpoint(folder / "charuconet.pt", charuconet, board=board, input_size=(96, 64))
     save_checkpoint(folder / "refinenet.pt", refinenet)
     return folder, charuconet.eval(), refinenet.eval()
