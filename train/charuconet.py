@@ -3,8 +3,9 @@
 Loss: cross-entropy on the 65-way point labels plus on the (N+1)-way ID labels of every 8x8
 cell; ``--id-positive-weight w`` weights the cells holding a corner w times in the ID term
 (the point head learns "corner here" within a few hundred steps, while the ID head, whose
-corner cells are ~2 % of all cells, stayed near chance for thousands of steps on a CPU run). Validation: the paper's corner accuracy (right ID within 3 px, / N corners) on the
-validation shards' positives, detections on negatives, and the loss.
+corner cells are ~2 % of all cells, stayed near chance for thousands of steps on a CPU run).
+Validation: the paper's corner accuracy (right ID within 3 px, / N corners) on the validation
+shards' positives, detections on negatives, and the loss.
 """
 
 from __future__ import annotations

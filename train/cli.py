@@ -17,7 +17,9 @@ HELP = {
     "amp": "mixed precision on CUDA",
     "init": "start from these weights (checkpoint or bundle of the same network), with a fresh optimizer and schedule",
     "id_positive_weight": "ChArUcoNet only: weight of cells holding a corner in the ID cross-entropy (1 = the paper's plain mean)",
-    "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell", "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames", "resume": "continue the run in --out exactly where it stopped",
+    "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell",
+    "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames",
+    "resume": "continue the run in --out exactly where it stopped",
 }
 
 

@@ -29,7 +29,7 @@ import torch
 from tqdm import tqdm
 
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.checkpoint import checkpoint_dict
+from deepcharuco.models.checkpoint import read_checkpoint, save_checkpoint
 
 
 @dataclass
@@ -175,12 +175,9 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
     def save(path: Path, metrics: dict | None = None) -> None:
         if rank != 0:
             return
-        data = checkpoint_dict(model, **task.checkpoint_kwargs(), training={
+        save_checkpoint(path, model, **task.checkpoint_kwargs(), training={
             "step": step, "best": best, "config": asdict(config), "optimizer": optimizer.state_dict(),
             "scaler": scaler.state_dict(), "metrics": metrics or {}, "kind": kind})
-        temporary = path.with_name(f".{path.name}.tmp")
-        torch.save(data, temporary)
-        temporary.replace(path)
 
     log_path = out / "log.csv"
     log_file = open(log_path, "a", newline="")
@@ -273,7 +270,6 @@ class _EpochBatches:
 
 def _load_init(model: torch.nn.Module, path: str, kind: str) -> None:
     """Warm start: the weights of the ``kind`` checkpoint (or bundle) at ``path``, which must fit ``model``."""
-    from deepcharuco.models.checkpoint import read_checkpoint
     data = read_checkpoint(path, kind)
     try:
         model.load_state_dict(data["state_dict"])

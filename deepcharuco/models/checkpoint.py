@@ -53,10 +53,15 @@ def checkpoint_dict(model: torch.nn.Module, board: BoardSpec | None = None, inpu
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
     """Write a checkpoint atomically (temporary file + rename)."""
+    return _save_atomically(checkpoint_dict(model, **kwargs), path)
+
+
+def _save_atomically(data: dict, path: str | Path) -> Path:
+    """``torch.save`` to a temporary name, then rename: a reader never sees half a file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
-    torch.save(checkpoint_dict(model, **kwargs), temporary)
+    torch.save(data, temporary)
     temporary.replace(path)
     return path
 
@@ -79,12 +84,8 @@ def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path,
         if not 0.0 < threshold < 1.0:
             raise CheckpointError(f"threshold {threshold} is not a score in (0, 1)")
         parts["charuconet"]["threshold"] = float(threshold)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    torch.save({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts, "note": note or {}}, temporary)
-    temporary.replace(path)
-    return path
+    return _save_atomically({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts,
+                             "note": note or {}}, path)
 
 
 def read_checkpoint(path: str | Path, kind: str) -> dict:
