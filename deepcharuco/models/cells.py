@@ -13,6 +13,8 @@ P(ID). Then for each ID the best-scoring cell is kept if its score reaches ``thr
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -37,31 +39,61 @@ def encode_cells(corners: np.ndarray, visible: np.ndarray, height: int, width: i
     return points, ids
 
 
+@dataclass(frozen=True)
+class CellCandidates:
+    """Cells where ChArUcoNet sees a corner, before IDs are settled.
+
+    Attributes:
+        pixels: (M, 2) float32 x, y of each cell's most likely corner pixel.
+        confidence: (M,) float32 point confidence, 1 - P(point dustbin).
+        id_prob: (M, N) float32 P(ID) over the board's N corners (the ID dustbin left out).
+    """
+
+    pixels: np.ndarray
+    confidence: np.ndarray
+    id_prob: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.confidence)
+
+
+def cell_candidates(point_logits: torch.Tensor, id_logits: torch.Tensor, min_confidence: float) -> CellCandidates:
+    """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``."""
+    point_prob = torch.softmax(point_logits.float(), dim=0)
+    id_prob = torch.softmax(id_logits.float(), dim=0)
+    confidence = (1.0 - point_prob[-1]).flatten()
+    position = point_prob[:-1].argmax(dim=0).flatten()  # 0..63 inside each cell
+    cells = torch.nonzero(confidence >= min_confidence).flatten()
+    cols = point_logits.shape[2]
+    pos, cells_np = position[cells].numpy(), cells.numpy()
+    pixels = np.stack([(cells_np % cols) * CELL + pos % CELL, (cells_np // cols) * CELL + pos // CELL], axis=1)
+    num_corners = id_logits.shape[0] - 1
+    return CellCandidates(
+        pixels=pixels.astype(np.float32).reshape(-1, 2),
+        confidence=confidence[cells].numpy().astype(np.float32),
+        id_prob=id_prob[:-1].flatten(1)[:, cells].T.numpy().astype(np.float32).reshape(-1, num_corners),
+    )
+
+
+def best_per_id(candidates: CellCandidates, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The paper's decoding: each cell takes its most likely ID, score = confidence x P(ID); for each ID the
+    best-scoring cell is kept if its score reaches ``threshold``. -> (ids (M,), pixels (M, 2), scores (M,))."""
+    if len(candidates) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
+    corner_id = candidates.id_prob.argmax(axis=1)
+    score = candidates.confidence * candidates.id_prob.max(axis=1)
+    order = np.argsort(-score, kind="stable")
+    order = order[score[order] >= threshold]
+    _, first = np.unique(corner_id[order], return_index=True)  # each ID's best cell, IDs ascending
+    keep = order[first]
+    keep = keep[np.argsort(-score[keep], kind="stable")]  # strongest first
+    return corner_id[keep].astype(np.int64), candidates.pixels[keep], score[keep].astype(np.float32)
+
+
 def decode_cells(point_logits: torch.Tensor, id_logits: torch.Tensor, threshold: float = 0.3
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> (ids (M,), pixels (M, 2) float32 x,y, scores (M,)).
 
     At most one detection per ID: the best-scoring cell (see the module docstring)."""
-    point_prob = torch.softmax(point_logits.float(), dim=0)
-    id_prob = torch.softmax(id_logits.float(), dim=0)
-    confidence = 1.0 - point_prob[-1]
-    position = point_prob[:-1].argmax(dim=0)  # (Hc, Wc) in 0..63
-    id_score, corner_id = id_prob[:-1].max(dim=0)
-    score = (confidence * id_score).flatten()
-    corner_id = corner_id.flatten()
-    num_corners = id_logits.shape[0] - 1
-    # Best cell per ID: visit cells above the threshold by falling score, keep each ID's first.
-    above = torch.nonzero(score >= threshold).flatten()
-    order = above[torch.argsort(score[above], descending=True)].tolist()
-    best: dict[int, int] = {}  # ID -> its best cell
-    for cell in order:
-        best.setdefault(int(corner_id[cell]), cell)
-        if len(best) == num_corners:
-            break
-    if not best:
-        return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
-    cols = point_logits.shape[2]
-    cells = np.array(list(best.values()))
-    pos = position.flatten()[torch.from_numpy(cells)].numpy()
-    pixels = np.stack([(cells % cols) * CELL + pos % CELL, (cells // cols) * CELL + pos // CELL], axis=1)
-    return np.array(list(best), np.int64), pixels.astype(np.float32), score[cells].numpy().astype(np.float32)
+    # A score is at most its cell's confidence, so cells below the threshold in confidence never win.
+    return best_per_id(cell_candidates(point_logits, id_logits, threshold), threshold)
