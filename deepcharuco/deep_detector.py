@@ -94,8 +94,26 @@ class Detector:
         padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
         tensor = torch.from_numpy(padded).to(self.device, torch.float32).div_(255.0)[None, None]
         point_logits, id_logits = self.charuconet(tensor)
+        ids, pixels, scores = self.decode(point_logits[0].cpu(), id_logits[0].cpu(), (width, height))
+        if len(ids) == 0:
+            return Detection.empty()
+        if self.refine == "refinenet":
+            corners = self._refinenet(gray, pixels)
+        elif self.refine == "subpix":
+            criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
+            corners = cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).copy(), (3, 3), (-1, -1), criteria).reshape(-1, 2)
+        else:
+            corners = pixels
+        return Detection(ids=ids, corners=corners, scores=scores)
+
+    def decode(self, point_logits: torch.Tensor, id_logits: torch.Tensor, image_size: tuple[int, int]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One image's ChArUcoNet logits (65, Hc, Wc), (N+1, Hc, Wc) -> integer corner pixels before refinement:
+        (ids (M,), pixels (M, 2) float32, scores (M,)), decoded at ``self.threshold`` with ``self.geometry``.
+        ``image_size``: (width, height) of the image before padding."""
+        width, height = image_size
         # A score is at most its cell's confidence: cells less confident than the threshold never count.
-        candidates = cell_candidates(point_logits[0].cpu(), id_logits[0].cpu(), self.threshold)
+        candidates = cell_candidates(point_logits, id_logits, self.threshold)
         inside = (candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height)
         candidates = CellCandidates(candidates.pixels[inside], candidates.confidence[inside], candidates.id_prob[inside])
         ids, pixels, scores = best_per_id(candidates, self.threshold)
@@ -110,17 +128,8 @@ class Detector:
             if view is not None:
                 ids, pixels, scores = assign_ids(view, self._board_xy, candidates, (width, height))
         if self.geometry != "none" and view is None and len(ids) >= MIN_CONSENSUS:
-            return Detection.empty()  # enough corners to check, and they fit no view of the board
-        if len(ids) == 0:
-            return Detection.empty()
-        if self.refine == "refinenet":
-            corners = self._refinenet(gray, pixels)
-        elif self.refine == "subpix":
-            criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
-            corners = cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).copy(), (3, 3), (-1, -1), criteria).reshape(-1, 2)
-        else:
-            corners = pixels
-        return Detection(ids=ids, corners=corners, scores=scores)
+            return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)  # fit no view
+        return ids, pixels, scores
 
     def _refinenet(self, gray: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """Batched RefineNet over 24x24 patches whose pixel 12 is each candidate pixel."""

@@ -50,6 +50,7 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         has = lambda name: name in experiment["overall"]  # noqa: E731
         header = ["sequence", "frames"]
         header += ["deep acc %"] if has("deep") else []
+        header += ["paper decoding acc %"] if has("deep_paper") else []
         header += ["cv acc %"]
         header += ["deep eps_re (no RefineNet)"] if has("deep") else []
         header += ["cv eps_re", "wrong poses deep / cv" if has("deep") else "wrong poses cv"]
@@ -59,6 +60,8 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
             cells = [row["sequence"], str(row["frames"])]
             if has("deep"):
                 cells.append(_number(row["deep"]["pose_accuracy"], percent=True))
+            if has("deep_paper"):
+                cells.append(_number(row["deep_paper"]["pose_accuracy"], percent=True))
             cells.append(_number(row["opencv"]["pose_accuracy"], percent=True))
             if has("deep"):
                 norefine = row.get("deep_norefine", {}).get("mean_eps_re")

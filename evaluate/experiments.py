@@ -5,6 +5,7 @@ Detectors are named; the report's names are
     deep            ChArUcoNet + RefineNet           opencv           OpenCV detector + cornerSubPix
     deep_subpix     ChArUcoNet + cornerSubPix        opencv_norefine  OpenCV detector alone
     deep_norefine   ChArUcoNet, cell pixels
+    deep_paper      ChArUcoNet + RefineNet, the paper's decoding (no board-geometry check)
 
 Each experiment returns a JSON-ready dict (NaN/inf as null) and keeps what the figures and
 the gallery need under keys starting with "_" (dropped from results.json).
@@ -23,6 +24,7 @@ from evaluate.protocols import (
 
 LABELS = {
     "deep": "ChArUcoNet + RefineNet", "deep_subpix": "ChArUcoNet + cornerSubPix", "deep_norefine": "ChArUcoNet + NoRefine",
+    "deep_paper": "ChArUcoNet + RefineNet, paper's decoding",
     "opencv": "OpenCV detector + cornerSubPix", "opencv_norefine": "OpenCV detector + NoRefine",
 }
 LUX_BINS = (0.0, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, float("inf"))

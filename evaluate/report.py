@@ -59,7 +59,8 @@ def ensure_rendered(folder: Path, default: Path, command: list[str], allowed: bo
 
 def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str | None, device: str,
                     notes: list[str]) -> dict:
-    """The five configurations of the paper's timing table (the three deep ones when weights exist)."""
+    """The five configurations of the paper's timing table (the three deep ones when weights exist), and the
+    deep detector without its board-geometry check (the paper's decoding), to show what the check adds."""
     detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "opencv_norefine": OpenCVDetector(board, refine="none")}
     from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
 
@@ -70,6 +71,8 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
     for name, refine in (("deep", "refinenet"), ("deep_subpix", "subpix"), ("deep_norefine", "none")):
         detectors[name] = Detector(board=board, weights=weights, refine=refine, device=device,
                                    refine_weights=refine_weights)
+    detectors["deep_paper"] = Detector(board=board, weights=weights, device=device, refine_weights=refine_weights,
+                                       geometry="none")
     return detectors
 
 
@@ -94,8 +97,8 @@ def run_report(args: argparse.Namespace) -> dict:
     first = sequences_dir if have_sequences else data_dir if have_data else Path(args.captures)
     board = BoardSpec.load(args.board) if args.board else board_of(first)
     detectors = build_detectors(board, args.weights, args.refine_weights, args.device, notes)
-    compared = {name: detectors[name] for name in ("deep", "deep_norefine", "opencv") if name in detectors}
-    headline = {name: detectors[name] for name in ("deep", "opencv") if name in detectors}
+    compared = {name: detectors[name] for name in ("deep", "deep_paper", "deep_norefine", "opencv") if name in detectors}
+    headline = {name: detectors[name] for name in ("deep", "deep_paper", "opencv") if name in detectors}
 
     results: dict = {"command": "python -m evaluate.report " + " ".join(shlex.quote(a) for a in args.argv),
                      "board": board.to_dict(), "quick": quick,

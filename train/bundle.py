@@ -6,7 +6,8 @@ keeps the weights, architectures, board, step, run settings and validation metri
 optimizer state (resuming only) is dropped. ``--note key=value`` adds free-form provenance.
 ``--threshold auto`` chooses the Detector's default score threshold on the ChArUcoNet run's own
 validation shards (never on test data): the one that maximises right corners minus wrong ones
-(a wrong ID, > 3 px off, or any corner on a frame without the board), the detections PnP gets.
+(a wrong ID, > 3 px off, or any corner on a frame without the board), the detections PnP gets,
+decoded as ``Detector()`` decodes them (board-geometry check included: ``--geometry``).
 """
 
 from __future__ import annotations
@@ -21,17 +22,21 @@ import torch
 from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
-from deepcharuco.models.cells import decode_cells
-from deepcharuco.models.checkpoint import load_charuconet, save_bundle
+from deepcharuco.board_check import GEOMETRY_MODES
+from deepcharuco.deep_detector import Detector
+from deepcharuco.models.checkpoint import save_bundle
 from train.dataset import FrameDataset, split_shards
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
 
 
-def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames: int = 300) -> tuple[float, dict]:
+def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames: int = 300,
+                     geometry: str = "repair") -> tuple[float, dict]:
     """(threshold, {threshold: right - wrong}) over the validation shards of the run that wrote ``charuconet``
-    (or of ``data``), split as the trainer split them, at most ``max_frames`` frames."""
-    model, board, checkpoint = load_charuconet(charuconet)
+    (or of ``data``), split as the trainer split them, at most ``max_frames`` frames, decoded by a `Detector`
+    with board-geometry mode ``geometry``."""
+    detector = Detector(weights=charuconet, refine="none", geometry=geometry)
+    model, board, checkpoint = detector.charuconet, detector.board, detector.checkpoint
     settings = checkpoint.get("training", {}).get("config", {})
     folder = data or settings.get("data")
     if not folder:
@@ -43,8 +48,10 @@ def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames
         frame = frames[index]
         with torch.inference_mode():
             point_logits, id_logits = model(frame["image"][None])
+        height, width = frame["image"].shape[-2:]
         for threshold in THRESHOLDS:
-            ids, pixels, scores = decode_cells(point_logits[0], id_logits[0], threshold)
+            detector.threshold = threshold
+            ids, pixels, scores = detector.decode(point_logits[0], id_logits[0], (width, height))
             if not frame["has_board"]:
                 balance[threshold] -= len(ids)
                 continue
@@ -65,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
                              "validation shards (default: none stored, the Detector uses 0.3)")
     parser.add_argument("--threshold-data", default=None,
                         help="--threshold auto: frame shards to split for validation (default: the run's --data)")
+    parser.add_argument("--geometry", choices=GEOMETRY_MODES, default="repair",
+                        help="--threshold auto: the Detector's board-geometry mode to choose it for")
     parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE", help="provenance to record (repeatable)")
     args = parser.parse_args(argv)
     note = {}
@@ -76,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         threshold = args.threshold
         if threshold == "auto":
-            threshold, balance = choose_threshold(args.charuconet, args.threshold_data)
+            threshold, balance = choose_threshold(args.charuconet, args.threshold_data, geometry=args.geometry)
             print("right - wrong corners on validation frames by threshold: "
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
         elif threshold is not None:
