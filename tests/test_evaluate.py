@@ -175,7 +175,7 @@ def test_report_end_to_end(frames, camera, tmp_path, checkpoint):
             "--synthetic-images", "4", "--timing-seconds", "0.2", "--gallery", "2", "--no-autolabel-check", "--no-render"]
     assert report.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
-    assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "opencv", "opencv_norefine"}
+    assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "deep_paper", "opencv", "opencv_norefine"}
     assert set(results["timing"]["fps"]) == set(results["detectors"]) and results["timing"]["image_size"] == [320, 240]
     table = {row["sequence"]: row for row in results["sequences"]["table"]}
     assert list(table) == ["lux-700-a", "lux-100-a", "lux-1-a", "shadow-1"]
