@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from deepcharuco.board_check import GEOMETRY_MODES
+from deepcharuco.deep_detector import Detector
 from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
-from deepcharuco.board_check import GEOMETRY_MODES
-from deepcharuco.deep_detector import Detector
 from deepcharuco.models.checkpoint import save_bundle
 from train.dataset import FrameDataset, split_shards
 
