@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from deepcharuco.detection import no_corners
 from deepcharuco.models.cells import CellCandidates
 from deepcharuco.pose import MIN_SPREAD_RATIO
 
@@ -32,11 +33,11 @@ GEOMETRY_MODES = ("repair", "filter", "none")
 # and on the sequences a 5th wrong ID still fitted a warped homography (and a twisted pose) now and then;
 # two checks did not.
 MIN_CONSENSUS = 6
-TOLERANCE_PX = 3.0
+TOLERANCE_PX = 3.0  # the protocols' own "right corner" distance
 # IDs each cell proposes to RANSAC: the second most likely ID is right often enough under blur and darkness
 # to matter; more proposals add outliers faster than inliers.
 HYPOTHESES_PER_CELL = 2
-RANSAC_ITERATIONS = 1000  # the protocols' own "right corner" distance
+RANSAC_ITERATIONS = 1000
 # A predicted corner claims a candidate no farther than this fraction of its distance to the nearest other corner.
 MAX_SPACING_FRACTION = 0.4
 
@@ -105,13 +106,12 @@ def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates
         (ids (K,), pixels (K, 2) float32, scores (K,) float32), strongest first. A corner's score is
         its cell's point confidence: its ID comes from the board's geometry, not the ID head.
     """
-    empty = np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
     predicted, w = _apply(view.homography, np.asarray(board_xy, np.float64))
     width, height = image_size
     in_view = (w > 0) & (predicted[:, 0] > -0.5) & (predicted[:, 1] > -0.5) \
         & (predicted[:, 0] < width - 0.5) & (predicted[:, 1] < height - 0.5)
     if len(candidates) == 0 or not in_view.any():
-        return empty
+        return no_corners()
     spacing = np.linalg.norm(predicted[:, None] - predicted[None], axis=2)
     np.fill_diagonal(spacing, np.inf)
     reach = np.minimum(tolerance_px, MAX_SPACING_FRACTION * spacing.min(axis=1))
@@ -123,7 +123,7 @@ def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates
                     if nearest_corner[nearest_candidate[j]] == j and distance[j, nearest_candidate[j]] <= reach[j]],
                    dtype=np.int64)
     if len(ids) == 0:
-        return empty
+        return no_corners()
     cells = nearest_candidate[ids]
     scores = candidates.confidence[cells]
     order = np.argsort(-scores, kind="stable")

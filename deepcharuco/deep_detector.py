@@ -17,7 +17,7 @@ import torch
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.board_check import GEOMETRY_MODES, MIN_CONSENSUS, assign_ids, fit_board_homography, id_hypotheses
-from deepcharuco.detection import Detection
+from deepcharuco.detection import Detection, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidates
@@ -128,7 +128,7 @@ class Detector:
             if view is not None:
                 ids, pixels, scores = assign_ids(view, self._board_xy, candidates, (width, height))
         if self.geometry != "none" and view is None and len(ids) >= MIN_CONSENSUS:
-            return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)  # fit no view
+            return no_corners()  # enough corners to check, and they fit no view
         return ids, pixels, scores
 
     def _refinenet(self, gray: np.ndarray, pixels: np.ndarray) -> np.ndarray:

@@ -7,6 +7,11 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def no_corners() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ids (0,) int64, corners (0, 2) float32, scores (0,) float32): the decoders' answer when nothing is found."""
+    return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
+
+
 @dataclass(frozen=True)
 class Detection:
     """Board corners found in one image.
@@ -38,7 +43,7 @@ class Detection:
 
     @classmethod
     def empty(cls) -> "Detection":
-        return cls(np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32))
+        return cls(*no_corners())
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])

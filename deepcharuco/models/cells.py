@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from deepcharuco.detection import no_corners
 from deepcharuco.models.charuconet import CELL
 
 
@@ -79,7 +80,7 @@ def best_per_id(candidates: CellCandidates, threshold: float) -> tuple[np.ndarra
     """The paper's decoding: each cell takes its most likely ID, score = confidence x P(ID); for each ID the
     best-scoring cell is kept if its score reaches ``threshold``. -> (ids (M,), pixels (M, 2), scores (M,))."""
     if len(candidates) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
+        return no_corners()
     corner_id = candidates.id_prob.argmax(axis=1)
     score = candidates.confidence * candidates.id_prob.max(axis=1)
     order = np.argsort(-score, kind="stable")
