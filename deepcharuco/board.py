@@ -18,6 +18,8 @@ import numpy as np
 
 from deepcharuco.errors import BoardSpecError
 
+# The fields a board file must spell out; the flags default to false.
+REQUIRED_FIELDS = ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")
 # Textures larger than this per side are almost certainly a units mistake (px/mm vs px/m).
 MAX_TEXTURE_SIDE = 16384
 
@@ -48,6 +50,14 @@ class BoardSpec:
         dictionary: OpenCV ArUco dictionary name, e.g. ``"DICT_5X5_50"``.
         legacy: OpenCV's pre-4.6 layout (``CharucoBoard.setLegacyPattern``): for an even
             number of rows the top-left square is white instead of black.
+        inverted: the print is white squares and markers on black paper (the negative of
+            OpenCV's image); detectors look for it in ``255 - gray``.
+        mirrored: the board is seen from a mirror-printed back face (its image is the
+            left-right mirror of the board's); detectors look for it in the flipped image and
+            poses use `object_points`, the mirrored corner positions.
+
+    Two specs that differ only in size (square_length and marker_length scaled together),
+    polarity or mirroring have the same `layout`: the same corners, IDs and markers.
     """
 
     squares_x: int = 5
@@ -56,6 +66,8 @@ class BoardSpec:
     marker_length: float = 0.03
     dictionary: str = "DICT_5X5_50"
     legacy: bool = False
+    inverted: bool = False
+    mirrored: bool = False
 
     def __post_init__(self) -> None:
         for name in ("squares_x", "squares_y"):
@@ -89,9 +101,11 @@ class BoardSpec:
                 f"{self.dictionary} has only {dictionary_size}; use a larger dictionary "
                 f"(e.g. {self.dictionary.rsplit('_', 1)[0]}_250) or fewer squares"
             )
-        if not isinstance(self.legacy, (bool, np.bool_)):
-            raise BoardSpecError(f"legacy must be true or false, got {self.legacy!r}")
-        object.__setattr__(self, "legacy", bool(self.legacy))
+        for name in ("legacy", "inverted", "mirrored"):
+            value = getattr(self, name)
+            if not isinstance(value, (bool, np.bool_)):
+                raise BoardSpecError(f"{name} must be true or false, got {value!r}")
+            object.__setattr__(self, name, bool(value))
 
     # ----------------------------------------------------------------- geometry
     @property
@@ -108,6 +122,17 @@ class BoardSpec:
     def size_m(self) -> tuple[float, float]:
         """(width, height) of the square grid in metres, without any margin."""
         return self.squares_x * self.square_length, self.squares_y * self.square_length
+
+    @property
+    def layout(self) -> tuple:
+        """What decides which corner is which: grid, dictionary, legacy flag and the marker/square
+        ratio (rounded to 1e-6). Size, polarity and mirroring only change how the board is seen."""
+        return (self.squares_x, self.squares_y, self.dictionary, self.legacy,
+                round(self.marker_length / self.square_length, 6))
+
+    def same_layout(self, other: "BoardSpec") -> bool:
+        """True when ``other`` is this board printed at another size, inverted or mirrored."""
+        return self.layout == other.layout
 
     def cv_dictionary(self) -> cv2.aruco.Dictionary:
         return cv2.aruco.getPredefinedDictionary(_dictionary_id(self.dictionary))
@@ -127,6 +152,16 @@ class BoardSpec:
     def corner_points(self) -> np.ndarray:
         """(C, 3) float64 board-frame positions (m) of the inner corners, row i = corner ID i."""
         return np.asarray(self.cv_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+
+    def object_points(self) -> np.ndarray:
+        """(C, 3) float64 where the inner corners physically lie as the camera sees the printed face:
+        `corner_points`, mirrored left-right (X -> width - X) for a ``mirrored`` board, so that poses
+        solved from them are proper rotations."""
+        points = self.corner_points()
+        if self.mirrored:
+            points = points.copy()
+            points[:, 0] = self.size_m[0] - points[:, 0]
+        return points
 
     def marker_corners(self) -> tuple[np.ndarray, np.ndarray]:
         """Marker IDs (M,) and their corners (M, 4, 3) in the board frame, clockwise from top-left."""
@@ -150,13 +185,21 @@ class BoardSpec:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "BoardSpec":
+    def from_dict(cls, data: dict, source: str = "a board description") -> "BoardSpec":
+        """A spec from a mapping of its fields. The grid, lengths and dictionary are required (a
+        missing one is an error, never the paper's board's value); legacy, inverted and mirrored
+        default to false. ``source`` names the file in errors."""
         if not isinstance(data, dict):
-            raise BoardSpecError(f"a board description must be a mapping, got {type(data).__name__}")
+            raise BoardSpecError(f"{source} must be a mapping of board fields, got {type(data).__name__}")
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
-            raise BoardSpecError(f"unknown board field(s) {unknown}; known fields: {sorted(known)}")
+            raise BoardSpecError(f"{source}: unknown board field(s) {unknown}; known fields: {sorted(known)}")
+        missing = [name for name in REQUIRED_FIELDS if name not in data]
+        if missing:
+            raise BoardSpecError(
+                f"{source} lacks the field(s) {missing}; a board needs {list(REQUIRED_FIELDS)} "
+                "(legacy, inverted and mirrored default to false)")
         return cls(**data)
 
     def to_json(self) -> str:
@@ -194,36 +237,76 @@ class BoardSpec:
             raise BoardSpecError(f"board file {path} does not exist")
         suffix = path.suffix.lower()
         if suffix == ".json":
-            return cls.from_json(path.read_text())
+            try:
+                data = json.loads(path.read_text())
+            except json.JSONDecodeError as exc:
+                raise BoardSpecError(f"{path} is not valid JSON: {exc}") from exc
+            return cls.from_dict(data, source=str(path))
         if suffix in (".yaml", ".yml"):
-            return cls.from_dict(_read_flat_yaml(path))
+            return cls.from_dict(_read_flat_yaml(path), source=str(path))
         raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
 
 
 def _read_flat_yaml(path: Path) -> dict:
-    """Read a flat YAML mapping of scalars with OpenCV's parser (no PyYAML dependency)."""
-    text = path.read_text()
-    if not text.lstrip().startswith("%YAML"):
-        text = "%YAML:1.0\n---\n" + text  # OpenCV insists on the directive; hand-written files lack it
+    """Read a board file: a flat YAML mapping of scalars, ``#`` comments allowed anywhere.
+
+    OpenCV's FileStorage YAML (``%YAML:1.0`` / ``---`` header, quoted strings) reads too. Its own
+    parser is not used because it keeps trailing comments in values and fails on an empty file
+    with an assertion instead of a reason.
+    """
     try:
-        storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    except (cv2.error, SystemError) as exc:
-        raise BoardSpecError(f"{path} is not valid YAML: {exc}") from exc
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError as exc:
+        raise BoardSpecError(f"{path} is not a text file ({exc}): a board file is YAML or JSON text") from exc
     data: dict = {}
-    for key in storage.root().keys():
-        node = storage.getNode(key)
-        if node.isInt():
-            data[key] = int(node.real())
-        elif node.isReal():
-            data[key] = node.real()
-        elif node.isString():
-            value = node.string()
-            lowered = value.strip().lower()
-            data[key] = {"true": True, "false": False}.get(lowered, value)
-        else:
-            raise BoardSpecError(f"{path}: field {key!r} must be a scalar")
-    storage.release()
+    for number, raw in enumerate(lines, start=1):
+        line = _strip_comment(raw).rstrip()
+        if not line.strip() or line.startswith(("%YAML", "---", "...")):
+            continue
+        where = f"{path}, line {number}"
+        if line[0].isspace() or line.lstrip().startswith("-"):
+            raise BoardSpecError(f"{where}: a board file is a flat list of 'field: value' lines; got {raw.strip()!r}")
+        key, colon, value = line.partition(":")
+        key, value = key.strip(), value.strip()
+        if not colon or not key.isidentifier():
+            raise BoardSpecError(f"{where}: expected 'field: value', got {raw.strip()!r}")
+        if not value or value[0] in "[{|>":
+            raise BoardSpecError(f"{where}: field {key!r} must be a single value (a number, name or true/false)")
+        if key in data:
+            raise BoardSpecError(f"{where}: field {key!r} is given twice")
+        data[key] = _scalar(value)
+    if not data:
+        raise BoardSpecError(f"{path} holds no board fields; write e.g. 'squares_x: 5' lines "
+                             f"for {', '.join(REQUIRED_FIELDS)}")
     return data
+
+
+def _strip_comment(line: str) -> str:
+    """``line`` without a ``#`` comment (a ``#`` inside quotes is text)."""
+    quote = ""
+    for index, char in enumerate(line):
+        if quote:
+            quote = "" if char == quote else quote
+        elif char in "'\"":
+            quote = char
+        elif char == "#" and (index == 0 or line[index - 1].isspace()):
+            return line[:index]
+    return line
+
+
+def _scalar(text: str) -> bool | int | float | str:
+    """A YAML scalar: quoted string, true/false, integer, real, or a bare string."""
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
+        return text[1:-1]
+    lowered = text.lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    for parse in (int, float):
+        try:
+            return parse(text)
+        except ValueError:
+            pass
+    return text
 
 
 def _coverage_1d(n_px: int, lo: float, hi: float) -> tuple[int, np.ndarray]:
@@ -252,7 +335,7 @@ class BoardTexture:
     """
 
     board: BoardSpec
-    image: np.ndarray  # (H, W) uint8, 255 = white paper
+    image: np.ndarray  # (H, W) uint8, 255 = white paper (black for an inverted print), as the camera sees the face
     px_per_m: float
     margin: float
 
@@ -302,6 +385,12 @@ class BoardTexture:
                 add(x0 + c * cell, y0 + r * cell, x0 + (c + 1) * cell, y0 + (r + 1) * cell, -1.0)
 
         image = np.round(255.0 * (1.0 - np.clip(ink, 0.0, 1.0))).astype(np.uint8)
+        # The printed face as the camera sees it; the margins are symmetric, so the flipped image keeps
+        # the map to board metres (which for a mirrored board is `BoardSpec.object_points`' frame).
+        if board.inverted:
+            image = 255 - image
+        if board.mirrored:
+            image = np.ascontiguousarray(image[:, ::-1])
         return cls(board=board, image=image, px_per_m=float(px_per_m), margin=float(margin))
 
     @property

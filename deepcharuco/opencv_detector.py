@@ -12,6 +12,7 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.detection import Detection
 from deepcharuco.image import to_gray_u8
 from deepcharuco.pose import Pose, estimate_pose, project_corners
+from deepcharuco.print_face import canonical_view, corners_from_canonical
 from deepcharuco.synthetic import look_at_pose, render_board_view
 
 REFINE_MODES = ("subpix", "none")
@@ -67,13 +68,14 @@ class OpenCVDetector:
 
     def detect(self, image: np.ndarray) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image."""
-        gray = to_gray_u8(image)
+        gray = canonical_view(to_gray_u8(image), self.board)  # OpenCV finds only the canonical print
         corners, ids, marker_corners, _ = self._detector.detectBoard(gray)
         if ids is None or len(ids) == 0:
             return Detection.empty()
         corners = corners.reshape(-1, 2).astype(np.float32) - charuco_detector_bias()
         if self.refine == "subpix":
             corners = self._subpix(gray, corners, np.concatenate([m.reshape(-1, 2) for m in marker_corners]))
+        corners = corners_from_canonical(corners, self.board, gray.shape[1])
         return Detection(ids=ids.ravel(), corners=corners, scores=np.ones(len(corners), np.float32))
 
     def _subpix(self, gray: np.ndarray, corners: np.ndarray, marker_points: np.ndarray) -> np.ndarray:

@@ -48,7 +48,7 @@ def project_corners(
     ids: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N, 2) float64 image positions of the board's inner corners (all, or ``ids``) under a pose."""
-    points = board.corner_points()
+    points = board.object_points()
     if ids is not None:
         points = points[np.asarray(ids, dtype=np.int64)]
     if points.shape[0] == 0:
@@ -91,7 +91,7 @@ def estimate_pose(
             f"corner IDs {detection.ids.tolist()} do not belong to a board with {board.num_corners} "
             "corners: pass the board the detection was made for"
         )
-    object_points = board.corner_points()[detection.ids]
+    object_points = board.object_points()[detection.ids]
     image_points = detection.corners.astype(np.float64)
     spread = np.linalg.svd(object_points[:, :2] - object_points[:, :2].mean(0), compute_uv=False)
     if spread[1] < MIN_SPREAD_RATIO * spread[0]:
