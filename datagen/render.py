@@ -20,8 +20,9 @@ from pathlib import Path
 import deepcharuco
 from datagen.scene import SceneConfig
 from datagen.shards import ShardReader, list_shards, temporary_prefix, update_index, write_shard
-from datagen.workers import report_progress, run_tasks
+from datagen.workers import TaskError, death_cause, report_progress, run_tasks
 from deepcharuco.board import BoardSpec
+from deepcharuco.cli import describe_os_error, output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
@@ -111,14 +112,41 @@ def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
             path.unlink(missing_ok=True)
 
 
+def run_shard_tasks(function, tasks: list[tuple], shards: list[int], out: Path, *, noun: str = "shard",
+                    **options) -> None:
+    """`run_tasks` for tasks that each write shard ``shards[i]`` into ``out``. Any way the run
+    ends early (Ctrl-C, a task that raises, a worker killed, a full disk) becomes one
+    `DeepCharucoError` saying why and how many complete shards were kept; the unfinished shards'
+    temporary files are removed (a killed worker cannot remove its own)."""
+    try:
+        run_tasks(function, tasks, **options)
+        return
+    except KeyboardInterrupt:
+        reason = "interrupted"
+    except TaskError as failure:
+        shard = shards[failure.task_index]
+        if failure.error is None:
+            reason = f"the worker rendering {noun} {shard} {death_cause(failure.exitcode)}"
+        elif isinstance(failure.error, DeepCharucoError):
+            reason = str(failure.error)
+        elif isinstance(failure.error, OSError):
+            reason = f"writing {noun} {shard} failed: {describe_os_error(failure.error)}"
+        else:  # a bug: show where
+            print(failure.traceback, file=sys.stderr, end="")
+            reason = f"rendering {noun} {shard} failed: {type(failure.error).__name__}: {failure.error}"
+    finally:
+        remove_stale_temporaries(out, shards)
+    raise DeepCharucoError(f"{reason}; {len(list_shards(out))} complete {noun}(s) kept in {out}; "
+                           f"rerun the same command with --resume to finish")
+
+
 def run(job: RenderJob, *, workers: int, shard_index: int, num_shards: int, resume: bool, recycle: int,
         quiet: bool = False) -> dict:
     """Render this job's missing shards with ``workers`` processes; returns index.json's content."""
     mine = [s for s in range(job.num_shards) if s % num_shards == shard_index]
     done = check_existing(job, mine, resume)
     todo = [s for s in mine if s not in done]
-    out = Path(job.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(job.out)
     remove_stale_temporaries(out, todo)
     total = sum(len(job.frames_of(s)) for s in todo)
     skipped = sum(len(job.frames_of(s)) for s in mine if s in done)
@@ -126,13 +154,8 @@ def run(job: RenderJob, *, workers: int, shard_index: int, num_shards: int, resu
         print(f"datagen.render: {len(todo)} shard(s), {total} frame(s) to render into {out}"
               + (f" ({skipped} frame(s) already there)" if skipped else ""), file=sys.stderr)
     if todo:
-        try:
-            run_tasks(render_shard, [(job, s) for s in todo], total=total, unit="frame", workers=workers,
-                      tasks_per_child=max(1, recycle // job.shard_size), quiet=quiet)
-        except KeyboardInterrupt:
-            complete = len(list_shards(out))
-            raise DeepCharucoError(f"interrupted: {complete} complete shard(s) kept in {out}; "
-                                   f"rerun the same command with --resume to finish") from None
+        run_shard_tasks(render_shard, [(job, s) for s in todo], todo, out, total=total, unit="frame",
+                        workers=workers, tasks_per_child=max(1, recycle // job.shard_size), quiet=quiet)
     return update_index(out)
 
 
@@ -170,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--shard-index must be in [0, --num-shards), got {args.shard_index} of {args.num_shards}")
     if problems:
         parser.error("; ".join(problems))
-    try:
+    def body() -> None:
         board = BoardSpec.load(args.board) if args.board else BoardSpec()
         threads = args.threads or max(1, (os.cpu_count() or 1) // args.workers)
         job = RenderJob(n=args.n, out=args.out, seed=args.seed, board=board, width=args.width, height=args.height,
@@ -179,13 +202,11 @@ def main(argv: list[str] | None = None) -> int:
         started = time.perf_counter()
         index = run(job, workers=args.workers, shard_index=args.shard_index, num_shards=args.num_shards,
                     resume=args.resume, recycle=args.recycle, quiet=args.quiet)
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    if not args.quiet:
-        print(f"datagen.render: {index['frames']} frame(s) in {len(index['shards'])} shard(s) in {args.out} "
-              f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)
-    return 0
+        if not args.quiet:
+            print(f"datagen.render: {index['frames']} frame(s) in {len(index['shards'])} shard(s) in {args.out} "
+                  f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

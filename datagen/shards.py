@@ -53,6 +53,26 @@ def _atomic(final: Path, index: int):
         temporary.unlink(missing_ok=True)
 
 
+@contextmanager
+def _hdf5_atomic(final: Path, index: int):
+    """Yields a new HDF5 file built in memory; when the block completes, its bytes are written
+    beside ``final`` under a temporary name and renamed to it (`_atomic`).
+
+    In memory because HDF5 crashes the process (SIGSEGV on close) when a write to disk fails,
+    as it does on a full disk; written by Python, a full disk is an ordinary OSError, the
+    temporary file is removed and the caller can say what happened."""
+    with _atomic(final, index) as temporary:
+        f = h5py.File(temporary.name, "w", driver="core", backing_store=False, track_order=True)
+        try:
+            yield f
+            f.flush()
+            image = f.id.get_file_image()
+        finally:
+            f.close()
+        with open(temporary, "wb") as out:
+            out.write(image)
+
+
 @dataclass
 class FrameLabels:
     """One rendered frame and its labels, as stored in a shard.
@@ -110,31 +130,30 @@ def write_shard(
     width, height = _check_frames(frames, board)
     final = directory / shard_name(index)
     n = len(frames)
-    with _atomic(final, index) as temporary:
-        with h5py.File(temporary, "w", track_order=True) as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["board"] = board.to_json()
-            f.attrs["generator"] = json.dumps(generator, sort_keys=True)
-            f.attrs["image_size"] = np.array([width, height], dtype=np.int64)
-            f.attrs["created"] = created or creation_time()
-            f.create_dataset("images", data=np.stack([fr.image for fr in frames]), chunks=(1, height, width),
-                             compression="gzip", compression_opts=4, shuffle=True, track_times=False)
-            for name, dtype, stack in [
-                ("corners", np.float32, [fr.corners for fr in frames]),
-                ("visible", bool, [fr.visible for fr in frames]),
-                ("K", np.float32, [fr.K for fr in frames]),
-                ("rvec", np.float32, [np.ravel(fr.rvec) for fr in frames]),
-                ("tvec", np.float32, [np.ravel(fr.tvec) for fr in frames]),
-            ]:
-                f.create_dataset(name, data=np.stack(stack).astype(dtype), track_times=False)
-            meta = f.create_group("meta", track_order=True)
-            for key in frames[0].meta:
-                values = [fr.meta[key] for fr in frames]
-                data = (np.array(values, dtype=h5py.string_dtype()) if isinstance(values[0], str)
-                        else np.asarray(values))
-                if data.shape != (n,):
-                    raise ShardError(f"meta {key!r} must be one scalar per frame")
-                meta.create_dataset(key, data=data, track_times=False)
+    with _hdf5_atomic(final, index) as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["board"] = board.to_json()
+        f.attrs["generator"] = json.dumps(generator, sort_keys=True)
+        f.attrs["image_size"] = np.array([width, height], dtype=np.int64)
+        f.attrs["created"] = created or creation_time()
+        f.create_dataset("images", data=np.stack([fr.image for fr in frames]), chunks=(1, height, width),
+                         compression="gzip", compression_opts=4, shuffle=True, track_times=False)
+        for name, dtype, stack in [
+            ("corners", np.float32, [fr.corners for fr in frames]),
+            ("visible", bool, [fr.visible for fr in frames]),
+            ("K", np.float32, [fr.K for fr in frames]),
+            ("rvec", np.float32, [np.ravel(fr.rvec) for fr in frames]),
+            ("tvec", np.float32, [np.ravel(fr.tvec) for fr in frames]),
+        ]:
+            f.create_dataset(name, data=np.stack(stack).astype(dtype), track_times=False)
+        meta = f.create_group("meta", track_order=True)
+        for key in frames[0].meta:
+            values = [fr.meta[key] for fr in frames]
+            data = (np.array(values, dtype=h5py.string_dtype()) if isinstance(values[0], str)
+                    else np.asarray(values))
+            if data.shape != (n,):
+                raise ShardError(f"meta {key!r} must be one scalar per frame")
+            meta.create_dataset(key, data=data, track_times=False)
     update_index(directory)
     return final
 
@@ -160,13 +179,38 @@ def update_index(directory: str | Path) -> dict:
     directory = Path(directory)
     shards = []
     for path in list_shards(directory):
-        with h5py.File(path, "r") as f:
-            shards.append({"file": path.name, "frames": int(f["images"].shape[0])})
+        shards.append({"file": path.name, "frames": len(ShardReader(path))})
     index = {"schema_version": SCHEMA_VERSION, "frames": sum(s["frames"] for s in shards), "shards": shards}
     temporary = directory / f".{INDEX_NAME}.tmp-{os.getpid()}"
     temporary.write_text(json.dumps(index, indent=1) + "\n")
     os.replace(temporary, directory / INDEX_NAME)
     return index
+
+
+FRAME_SHARD_FIX = ("delete it and rerun the command that made its folder with --resume (python -m datagen.render "
+                   "or evaluate.sequences: it renders exactly the missing shards)")
+PATCH_SHARD_FIX = "delete the folder and rerun python -m datagen.patches"
+
+
+def _first_line(error: Exception) -> str:
+    return (str(error).splitlines() or [type(error).__name__])[0]
+
+
+@contextmanager
+def _open(path: Path, fix: str):
+    """``h5py.File(path, "r")``, with a `ShardError` naming the file and ``fix`` when it is not a
+    readable HDF5 file (truncated by a full disk or an interrupted copy, or not HDF5 at all)."""
+    try:
+        f = h5py.File(path, "r")
+    except OSError as error:
+        raise ShardError(f"{path} is not a readable HDF5 shard, it is truncated or corrupt "
+                         f"({_first_line(error)}): {fix}") from None
+    try:
+        yield f
+    except KeyError as error:  # an HDF5 file, but not one of ours
+        raise ShardError(f"{path} does not follow the shard schema (no {error}): {fix}") from None
+    finally:
+        f.close()
 
 
 class ShardReader:
@@ -177,10 +221,13 @@ class ShardReader:
         self.path = Path(path)
         if not self.path.is_file():
             raise ShardError(f"shard {self.path} does not exist")
-        with h5py.File(self.path, "r") as f:
+        with _open(self.path, FRAME_SHARD_FIX) as f:
             version = int(f.attrs.get("schema_version", -1))
             if version != SCHEMA_VERSION:
                 raise ShardError(f"{self.path} has schema_version {version}, this code reads {SCHEMA_VERSION}: re-render it")
+            if "images" not in f:
+                raise ShardError(f"{self.path} is not a frame shard (no 'images'){' but a RefineNet patch shard' if 'patches' in f else ''}: "
+                                 f"give a folder of frame shards from python -m datagen.render")
             self.board = BoardSpec.from_json(f.attrs["board"])
             self.generator = json.loads(f.attrs["generator"])
             self.image_size = tuple(int(v) for v in f.attrs["image_size"])
@@ -201,11 +248,15 @@ class ShardReader:
             raise IndexError(f"frame {i} out of range for {self._length} frames in {self.path.name}")
         f = self._handle()
         meta = {}
-        for key in self.meta_keys:
-            value = f["meta"][key][i]
-            meta[key] = value.decode() if isinstance(value, bytes) else value.item()
-        return FrameLabels(image=f["images"][i], corners=f["corners"][i], visible=f["visible"][i],
-                           K=f["K"][i], rvec=f["rvec"][i], tvec=f["tvec"][i], meta=meta)
+        try:
+            for key in self.meta_keys:
+                value = f["meta"][key][i]
+                meta[key] = value.decode() if isinstance(value, bytes) else value.item()
+            return FrameLabels(image=f["images"][i], corners=f["corners"][i], visible=f["visible"][i],
+                               K=f["K"][i], rvec=f["rvec"][i], tvec=f["tvec"][i], meta=meta)
+        except OSError as error:  # a damaged chunk: HDF5 only finds out when it reads it
+            raise ShardError(f"frame {i} of {self.path} cannot be read ({_first_line(error)}): the shard is corrupt; "
+                             f"{FRAME_SHARD_FIX}") from None
 
     def close(self) -> None:
         if self._file is not None:
@@ -234,23 +285,22 @@ def write_patch_shard(directory: str | Path, index: int, patches: np.ndarray, of
     if "source" not in meta:
         raise ShardError("patch meta must hold 'source' (e.g. 'render' or 'synthetic')")
     final = directory / shard_name(index)
-    with _atomic(final, index) as temporary:
-        with h5py.File(temporary, "w", track_order=True) as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["generator"] = json.dumps(generator, sort_keys=True)
-            f.attrs["patch_size"] = PATCH_SIZE
-            f.attrs["created"] = created or creation_time()
-            f.create_dataset("patches", data=patches, chunks=(min(n, 1024), PATCH_SIZE, PATCH_SIZE),
-                             compression="gzip", compression_opts=4, shuffle=True, track_times=False)
-            f.create_dataset("offset", data=offsets.astype(np.float32), track_times=False)
-            group = f.create_group("meta", track_order=True)
-            for key, values in meta.items():
-                data = np.asarray(values)
-                if data.dtype.kind in "US":
-                    data = np.array([str(v) for v in values], dtype=h5py.string_dtype())
-                if data.shape != (n,):
-                    raise ShardError(f"patch meta {key!r} must be one scalar per patch")
-                group.create_dataset(key, data=data, track_times=False)
+    with _hdf5_atomic(final, index) as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["generator"] = json.dumps(generator, sort_keys=True)
+        f.attrs["patch_size"] = PATCH_SIZE
+        f.attrs["created"] = created or creation_time()
+        f.create_dataset("patches", data=patches, chunks=(min(n, 1024), PATCH_SIZE, PATCH_SIZE),
+                         compression="gzip", compression_opts=4, shuffle=True, track_times=False)
+        f.create_dataset("offset", data=offsets.astype(np.float32), track_times=False)
+        group = f.create_group("meta", track_order=True)
+        for key, values in meta.items():
+            data = np.asarray(values)
+            if data.dtype.kind in "US":
+                data = np.array([str(v) for v in values], dtype=h5py.string_dtype())
+            if data.shape != (n,):
+                raise ShardError(f"patch meta {key!r} must be one scalar per patch")
+            group.create_dataset(key, data=data, track_times=False)
     return final
 
 
@@ -259,8 +309,9 @@ def read_patch_shard(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
     path = Path(path)
     if not path.is_file():
         raise ShardError(f"patch shard {path} does not exist (make some with python -m datagen.patches)")
-    with h5py.File(path, "r") as f:
+    with _open(path, PATCH_SHARD_FIX) as f:
         if "patches" not in f:
-            raise ShardError(f"{path} is not a patch shard (no 'patches' dataset): is it a frame shard?")
+            raise ShardError(f"{path} is not a patch shard (no 'patches' dataset){' but a frame shard' if 'images' in f else ''}: "
+                             f"give a folder of patch shards from python -m datagen.patches")
         meta = {key: f["meta"][key][()] for key in f["meta"]}
         return f["patches"][()], f["offset"][()], meta

@@ -46,13 +46,14 @@ import numpy as np
 import deepcharuco
 from blender_scenes.conversions import board_pose_in_camera, rigid
 from datagen.frames import LabelledRender, expose, luminance_scale, render_labelled, scene_meta
-from datagen.render import check_existing, remove_stale_temporaries
+from datagen.render import check_existing, remove_stale_temporaries, run_shard_tasks
 from datagen.scene import (
     Light, SceneConfig, SceneSpec, Shape, aim_lamp, exposure_time_for, sample_scene, sample_surface, unit_vector,
 )
 from datagen.sensor import SensorParams
-from datagen.shards import FrameLabels, list_shards, update_index, write_shard
-from datagen.workers import report_progress, run_tasks
+from datagen.shards import FrameLabels, update_index, write_shard
+from datagen.workers import report_progress
+from deepcharuco.cli import output_folder, run_command
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 
@@ -412,8 +413,7 @@ def run(job: SequenceJob, selected: list[Sequence], *, resume: bool, workers: in
     numbers = [s.number for s in selected]
     done = check_existing(job, numbers, resume)
     todo = [s for s in selected if s.number not in done]
-    out = Path(job.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(job.out)
     remove_stale_temporaries(out, [s.number for s in todo])
     # Longest first: with several workers the shake and shadow sequences should not start last.
     todo.sort(key=lambda s: -estimated_work(s, job.frames))
@@ -423,12 +423,8 @@ def run(job: SequenceJob, selected: list[Sequence], *, resume: bool, workers: in
         print(f"evaluate.sequences: {len(todo)} sequence(s) of {job.frames} frames to render into {out}"
               + (f" ({skipped} already there)" if skipped else "")
               + f"; progress in frame renders, a shared lit render counting {STATIC_SAMPLES_FACTOR}", file=sys.stderr)
-    try:
-        run_tasks(render_sequence, [(job, s.number) for s in todo], total=total, unit="render", workers=workers,
-                  tasks_per_child=8, quiet=quiet)
-    except KeyboardInterrupt:
-        raise DeepCharucoError(f"interrupted: {len(list_shards(out))} complete sequence(s) kept in {out}; "
-                               f"rerun the same command with --resume to finish") from None
+    run_shard_tasks(render_sequence, [(job, s.number) for s in todo], [s.number for s in todo], out, noun="sequence",
+                    total=total, unit="render", workers=workers, tasks_per_child=8, quiet=quiet)
     return update_index(out)
 
 
@@ -473,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
     if problems:
         parser.error("; ".join(problems) + (f" (the first {LIT_FRAMES} frames are the well-lit start)"
                                             if args.frames <= LIT_FRAMES else ""))
-    try:
+    def body() -> None:
         selected = select(args.only)
         board = BoardSpec.load(args.board) if args.board else BoardSpec()
         threads = args.threads or max(1, (os.cpu_count() or 1) // args.workers)
@@ -481,13 +477,11 @@ def main(argv: list[str] | None = None) -> int:
                           height=args.height, samples=args.samples, device=args.device, threads=threads)
         started = time.perf_counter()
         index = run(job, selected, resume=args.resume, workers=args.workers, quiet=args.quiet)
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    if not args.quiet:
-        print(f"evaluate.sequences: {index['frames']} frame(s) in {len(index['shards'])} sequence(s) in {args.out} "
-              f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)
-    return 0
+        if not args.quiet:
+            print(f"evaluate.sequences: {index['frames']} frame(s) in {len(index['shards'])} sequence(s) in "
+                  f"{args.out} ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

@@ -144,6 +144,40 @@ def test_resume_after_a_kill_completes_without_duplicates(reference, tmp_path):
     assert mismatch.returncode == 2 and "seed" in mismatch.stderr
 
 
+def worker_pids(parent: int) -> list[int]:
+    """The render worker processes of ``parent`` (spawned children, not multiprocessing's resource tracker)."""
+    children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
+    return [int(c) for c in children
+            if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes() and b"resource_tracker" not in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the worker through /proc (Linux)")
+def test_a_killed_worker_ends_the_run_with_a_clear_error(tmp_path):
+    """kill -9 of a worker (what the out-of-memory killer does): the parent does not wait forever, says
+    what happened, keeps the complete shards, removes the dead worker's temporary file; --resume finishes."""
+    args = ["--n", 8, "--shard-size", 1, "--seed", 3, "--out", tmp_path, *SMALL]
+    process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.time() + 120
+        while not (tmp_path.exists() and list_shards(tmp_path)):
+            assert time.time() < deadline and process.poll() is None, "no shard appeared"
+            time.sleep(0.02)
+        for pid in worker_pids(process.pid):
+            os.kill(pid, signal.SIGKILL)
+        _, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 2 and "killed by SIGKILL" in err and "--resume" in err, err[-2000:]
+    assert len(err.strip().splitlines()) == 1, err  # one line, no traceback
+    kept = list_shards(tmp_path)
+    assert 1 <= len(kept) < 8 and f"{len(kept)} complete shard(s) kept" in err
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+    render(*args, "--resume")
+    assert len(list_shards(tmp_path)) == 8
+
+
 def test_cluster_split_covers_every_shard_once(tmp_path):
     """Jobs of an array job share --out and start in any order, without --resume."""
     for job in (1, 0):

@@ -1,0 +1,82 @@
+"""What every command line of the project shares: one-line errors and output paths checked up front.
+
+Bad input, a read-only or mistyped ``--out`` and a full disk are the user's to fix, not bugs: a
+command says what went wrong and what to do in one line on stderr and exits with code 2, instead
+of a traceback. Bugs (any other exception) still show their traceback.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+from deepcharuco.errors import DeepCharucoError
+
+EXIT_BAD_INPUT = 2
+# What a user can do about an OSError, by errno (the rest get the generic advice).
+_ADVICE = {
+    errno.ENOSPC: "free some space or choose another --out",
+    errno.EDQUOT: "free some space or choose another --out",
+    errno.EFBIG: "the file system refused a file this large: choose another --out",
+    errno.EACCES: "choose a writable --out or fix the permissions",
+    errno.EPERM: "choose a writable --out or fix the permissions",
+    errno.EROFS: "the file system is read-only: choose another --out",
+    errno.ENOTDIR: "a path component is a file, not a folder: choose another path",
+    errno.EISDIR: "a folder is in the way: choose another path",
+}
+
+
+def describe_os_error(error: OSError) -> str:
+    """One line naming what failed (the file, when known), why, and what to do."""
+    where = f" {error.filename}" if error.filename else ""
+    reason = error.strerror or str(error)
+    advice = _ADVICE.get(error.errno, "check the path, its permissions and the free space")
+    return f"cannot access{where}: {reason} ({advice})"
+
+
+def run_command(body: Callable[[], int | None]) -> int:
+    """``body()``'s exit code (None: 0); a `DeepCharucoError` or `OSError` becomes ``error: ...`` on
+    stderr and exit code 2."""
+    try:
+        code = body()
+    except DeepCharucoError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as error:
+        print(f"error: {describe_os_error(error)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return 0 if code is None else code
+
+
+def output_folder(path: str | Path, option: str = "--out") -> Path:
+    """Create the output folder ``path`` (and its parents) and check that files can be written in it.
+
+    Raises `DeepCharucoError` naming ``option`` when ``path`` is a file, or the folder cannot be
+    created or written to — before any work is done, so nothing half-made is left behind."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise DeepCharucoError(f"{option} {path} is a file, not a folder: give a folder path")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        descriptor, probe = tempfile.mkstemp(prefix=".write-test-", dir=path)
+        os.close(descriptor)
+        os.unlink(probe)
+    except OSError as error:
+        raise DeepCharucoError(f"{option} {path}: cannot write there ({error.strerror or error}): "
+                               f"choose a writable folder or fix its permissions") from None
+    return path
+
+
+def output_file(path: str | Path, option: str = "--out") -> Path:
+    """Check that the file ``path`` can be written (its folder is created): not a folder, and its
+    folder writable (files here are written to a temporary name and renamed, so the folder's
+    permissions are what count). Raises `DeepCharucoError` naming ``option`` otherwise."""
+    path = Path(path)
+    if path.is_dir():
+        raise DeepCharucoError(f"{option} {path} is a folder: give a file path, e.g. {path / 'detector.pt'}")
+    output_folder(path.parent, option=f"{option}'s folder")
+    return path
