@@ -38,3 +38,33 @@ def rotation_error_deg(rvec_a: np.ndarray, rvec_b: np.ndarray) -> float:
     rb, _ = cv2.Rodrigues(np.asarray(rvec_b, np.float64))
     cos = (np.trace(ra.T @ rb) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def _can_write(folder) -> bool:
+    import tempfile
+
+    try:
+        tempfile.TemporaryFile(dir=folder).close()
+        return True
+    except OSError:
+        return False
+
+
+@pytest.fixture
+def unwritable_dir(tmp_path):
+    """A folder no file can be created in: a read-only (0o555) folder, or, for root (whom permissions do
+    not stop), /proc (nothing can be created there)."""
+    from pathlib import Path
+
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        for candidate in (folder, Path("/proc")):
+            if candidate.is_dir() and not _can_write(candidate):
+                yield candidate
+                break
+        else:
+            pytest.skip("no folder here refuses writes")
+    finally:
+        folder.chmod(0o755)
