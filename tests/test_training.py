@@ -128,6 +128,33 @@ def test_bundle_keeps_both_networks_and_drops_optimizer_state(frames, patches, t
     assert swapped.returncode == 2 and "a charuconet was expected" in swapped.stderr and not (tmp_path / "bad.pt").exists()
 
 
+def test_bundle_never_writes_into_the_package_unless_forced(frames, patches, tmp_path, unwritable_dir):
+    charuconet, refinenet = tmp_path / "c", tmp_path / "r"
+    train(ChArUcoNetTask(c := config(frames, charuconet, steps=1, batch_size=2, val_every=1)), c, "charuconet")
+    train(RefineNetTask(r := config(patches, refinenet, steps=1, val_every=1)), r, "refinenet")
+
+    def bundle(*extra):
+        return subprocess.run([sys.executable, "-m", "train.bundle", "--charuconet", str(charuconet / "last.pt"),
+                               "--refinenet", str(refinenet / "last.pt"), *map(str, extra)], cwd=ROOT, capture_output=True,
+                              text=True)
+
+    shipped = ROOT / "deepcharuco" / "weights" / "detector.pt"
+    before = shipped.read_bytes() if shipped.exists() else None
+    missing = bundle()
+    assert missing.returncode == 2 and "--out" in missing.stderr
+    inside = bundle("--out", "deepcharuco/weights/detector.pt")
+    assert inside.returncode == 2 and "inside the installed deepcharuco package" in inside.stderr and "--force" in inside.stderr
+    assert (shipped.read_bytes() if shipped.exists() else None) == before
+    for out, message in ((tmp_path, "is a folder"), (unwritable_dir / "detector.pt", "cannot write there")):
+        refused = bundle("--out", out)
+        assert refused.returncode == 2 and message in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+    forced = ROOT / "deepcharuco" / "weights" / f"test-force-{os.getpid()}.pt"
+    try:
+        assert bundle("--out", forced, "--force").returncode == 0 and forced.is_file()
+    finally:
+        forced.unlink(missing_ok=True)
+
+
 def test_resume_is_exact(patches, tmp_path):
     whole = config(patches, tmp_path / "whole")
     train(RefineNetTask(whole), whole, "refinenet")
@@ -162,8 +189,10 @@ def test_refusals(patches, tmp_path):
         assert done.returncode == 2 and "WIDTHxHEIGHT in positive multiples of 8" in done.stderr, done.stderr
 
 
-def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path):
-    """SIGINT to the whole process group, as Ctrl-C sends it, DataLoader workers included: a checkpoint, exit 0."""
+@pytest.mark.parametrize("stop, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path, stop, code):
+    """SIGINT to the whole process group, as Ctrl-C sends it, DataLoader workers included (or SIGTERM, as a
+    scheduler sends it): a checkpoint, and exit code 128 + the signal, so ``train && bundle`` stops there."""
     args = [sys.executable, "-m", "train.refinenet", "--data", str(patches), "--out", str(tmp_path), "--steps", "100000",
             "--batch-size", "16", "--width", "lite", "--workers", "1", "--checkpoint-every", "100000", "--val-every", "100000",
             "--quiet"]
@@ -173,11 +202,69 @@ def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path):
     while not (tmp_path / "log.csv").exists() or len((tmp_path / "log.csv").read_text().splitlines()) < 3:
         assert time.time() < deadline and process.poll() is None
         time.sleep(0.1)
-    os.killpg(process.pid, signal.SIGINT)
+    os.killpg(process.pid, stop)
     out, err = process.communicate(timeout=60)
-    assert process.returncode == 0 and "--resume" in out, err[-2000:]
+    assert process.returncode == code and "--resume" in out, err[-2000:]
     step = torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"]
     assert 0 < step < 100000
     done = subprocess.run(args[:8] + [str(step + 10)] + args[9:] + ["--resume"], cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     assert torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"] == step + 10
+
+
+def test_resume_after_a_kill_logs_each_step_once(patches, tmp_path):
+    """kill -9 after the checkpoint at step 20 and before the next: log.csv already holds steps 25..40, which
+    --resume runs again; they must appear once."""
+    run = tmp_path / "run"
+    first = config(patches, run)
+    train(RefineNetTask(first), first, "refinenet", stop_at=20)
+    at_20 = (run / "last.pt").read_bytes()
+    again = config(patches, run, resume=True)
+    train(RefineNetTask(again), again, "refinenet")  # logs up to 40 and checkpoints there ...
+    (run / "last.pt").write_bytes(at_20)  # ... but the kill came first: the checkpoint on disk is step 20's
+    with open(run / "log.csv", "a") as log:
+        log.write("45,0.12")  # and a row the kill cut in half
+    train(RefineNetTask(again), again, "refinenet")
+    rows = (run / "log.csv").read_text().splitlines()
+    steps = [int(row.split(",")[0]) for row in rows[1:]]
+    assert rows[0].startswith("step,loss") and steps == list(range(5, 41, 5)), steps
+
+
+def test_resume_finds_a_moved_run_and_compares_paths_not_text(patches, tmp_path, monkeypatch):
+    first = config(patches, tmp_path / "run")
+    train(RefineNetTask(first), first, "refinenet", stop_at=20)
+    (tmp_path / "run").rename(tmp_path / "moved")
+    monkeypatch.chdir(tmp_path)  # the same data folder, named by a relative path with a trailing slash
+    moved = config(os.path.relpath(patches, tmp_path) + "/", "moved/", resume=True)
+    assert train(RefineNetTask(moved), moved, "refinenet", stop_at=30)["step"] == 30
+    copy = tmp_path / "data-copy"  # the data folder moved too: recognised by its shards
+    copy.mkdir()
+    for shard in patches.glob("shard-*.h5"):
+        (copy / shard.name).write_bytes(shard.read_bytes())
+    elsewhere = config(copy, tmp_path / "moved", resume=True)
+    assert train(RefineNetTask(elsewhere), elsewhere, "refinenet")["step"] == 40
+    fewer = tmp_path / "fewer"  # another folder with other shards: another data set
+    fewer.mkdir()
+    (fewer / "shard-00000.h5").write_bytes((patches / "shard-00000.h5").read_bytes())
+    other = config(fewer, tmp_path / "moved", resume=True, steps=50)
+    with pytest.raises(DeepCharucoError, match="--resume: data differ"):
+        train(RefineNetTask(other), other, "refinenet")
+
+
+@pytest.mark.parametrize("device, message", [("foo", "is not a device: use auto, cpu, cuda"),
+                                             ("cuda", "no CUDA GPU is usable here")])
+def test_bad_device_is_refused_before_the_run_folder_is_made(patches, tmp_path, device, message):
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    done = subprocess.run([sys.executable, "-m", "train.refinenet", "--data", str(patches), "--out", str(tmp_path / "run"),
+                           "--device", device, "--steps", "2"], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 2 and message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_unwritable_or_file_out_is_a_one_line_error(patches, tmp_path, unwritable_dir):
+    (tmp_path / "a-file").write_text("")
+    for out, message in ((tmp_path / "a-file", "is a file, not a folder"), (unwritable_dir / "run", "cannot write there")):
+        done = subprocess.run([sys.executable, "-m", "train.refinenet", "--data", str(patches), "--out", str(out),
+                               "--steps", "2"], cwd=ROOT, capture_output=True, text=True)
+        assert done.returncode == 2 and message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr

@@ -1,9 +1,13 @@
 """Pack trained networks into one shippable file:
-``python -m train.bundle --charuconet runs/charuconet/best.pt --refinenet runs/refinenet/best.pt --out deepcharuco/weights/detector.pt``.
+``python -m train.bundle --charuconet runs/charuconet/best.pt --refinenet runs/refinenet/best.pt --out runs/detector.pt``.
 
-The bundle is what `Detector()` loads by default (at ``deepcharuco/weights/detector.pt``). It
-keeps the weights, architectures, board, step, run settings and validation metrics; the
-optimizer state (resuming only) is dropped. ``--note key=value`` adds free-form provenance.
+Use it with ``Detector(weights="runs/detector.pt")`` or ``detect --detector deep --weights runs/detector.pt``.
+``--out`` has no default, and a path inside the installed package (the shipped
+``deepcharuco/weights/detector.pt``, which `Detector()` loads by default) is refused unless
+``--force`` is given: replacing the shipped weights is a maintainer's release step, never a
+side effect. The bundle keeps the weights, architectures, board, step, run settings and
+validation metrics; the optimizer state (resuming only) is dropped. ``--note key=value`` adds
+free-form provenance.
 ``--threshold auto`` chooses the Detector's default score threshold on the ChArUcoNet run's own
 validation shards (never on test data): the one that maximises right corners minus wrong ones
 (a wrong ID, > 3 px off, or any corner on a frame without the board), the detections PnP gets,
@@ -16,10 +20,13 @@ import argparse
 import sys
 from pathlib import Path
 
+import deepcharuco
+
 import numpy as np
 import torch
 
 from deepcharuco.board_check import GEOMETRY_MODES
+from deepcharuco.cli import output_file, run_command
 from deepcharuco.deep_detector import Detector
 from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
@@ -28,6 +35,18 @@ from deepcharuco.models.checkpoint import save_bundle
 from train.dataset import FrameDataset, split_shards
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
+PACKAGE_DIR = Path(deepcharuco.__file__).resolve().parent
+
+
+def check_out(path: str | Path, force: bool) -> Path:
+    """``--out``, checked: a writable file path, and not inside the installed package unless ``force``."""
+    path = Path(path)
+    if not force and path.resolve().is_relative_to(PACKAGE_DIR):
+        raise DeepCharucoError(f"--out {path} is inside the installed deepcharuco package ({PACKAGE_DIR}): a bundle "
+                               f"there replaces the shipped weights for every user of this installation. Write it "
+                               f"elsewhere (e.g. --out runs/detector.pt, then Detector(weights=...) or detect --weights), "
+                               f"or pass --force if replacing them is what you mean")
+    return output_file(path)
 
 
 def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames: int = 300,
@@ -66,7 +85,10 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--charuconet", required=True, help="ChArUcoNet checkpoint (python -m train.charuconet)")
     parser.add_argument("--refinenet", required=True, help="RefineNet checkpoint (python -m train.refinenet)")
-    parser.add_argument("--out", default="deepcharuco/weights/detector.pt", help="bundle to write")
+    parser.add_argument("--out", required=True,
+                        help="bundle to write, e.g. runs/detector.pt (inside the installed package only with --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="allow --out inside the installed package, e.g. replacing the shipped deepcharuco/weights/detector.pt")
     parser.add_argument("--threshold", default=None,
                         help="the Detector's default score threshold: a number, or 'auto' to choose it on the run's "
                              "validation shards (default: none stored, the Detector uses 0.3)")
@@ -82,23 +104,24 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not key:
             parser.error(f"--note {item!r}: give KEY=VALUE")
         note[key] = value
-    try:
-        threshold = args.threshold
+    threshold = args.threshold
+    if threshold not in (None, "auto"):
+        try:
+            threshold = float(threshold)
+        except ValueError:
+            parser.error(f"--threshold {threshold!r}: give a number in (0, 1) or auto")
+
+    def body() -> None:
+        nonlocal threshold
+        out = check_out(args.out, args.force)
         if threshold == "auto":
             threshold, balance = choose_threshold(args.charuconet, args.threshold_data, geometry=args.geometry)
             print("right - wrong corners on validation frames by threshold: "
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
-        elif threshold is not None:
-            try:
-                threshold = float(threshold)
-            except ValueError:
-                parser.error(f"--threshold {threshold!r}: give a number in (0, 1) or auto")
-        path = save_bundle(args.out, args.charuconet, args.refinenet, note, threshold)
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
-    return 0
+        path = save_bundle(out, args.charuconet, args.refinenet, note, threshold)
+        print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

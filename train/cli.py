@@ -3,23 +3,23 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import fields
 
-from deepcharuco.errors import DeepCharucoError
-from train.loop import TrainConfig, train
+from deepcharuco.cli import run_command
+from train.loop import TrainConfig, pick_device, train
 
 HELP = {
     "data": "folder of shards", "out": "run folder (last.pt, best.pt, log.csv)", "steps": "optimizer steps in all",
     "width": "network width: paper or lite", "val_every": "steps between validations",
     "val_batches": "validation batches per validation", "checkpoint_every": "steps between last.pt saves",
-    "workers": "DataLoader worker processes", "device": "auto, cpu, cuda, cuda:1, mps",
+    "workers": "DataLoader worker processes", "device": "auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:1, mps",
     "amp": "mixed precision on CUDA",
     "init": "start from these weights (checkpoint or bundle of the same network), with a fresh optimizer and schedule",
     "id_positive_weight": "ChArUcoNet only: weight of cells holding a corner in the ID cross-entropy (1 = the paper's plain mean)",
     "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell",
     "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames",
-    "resume": "continue the run in --out exactly where it stopped",
+    "resume": "continue the run in --out exactly where it stopped (the folder may have been moved; log.csv is cut "
+              "back to the checkpoint's step)",
 }
 
 
@@ -65,12 +65,18 @@ def parse_crop(text: str) -> tuple[int, int] | None:
 
 
 def run_trainer(kind: str, task_class, doc: str, score_name: str, defaults: dict, argv: list[str] | None = None) -> int:
-    """``python -m train.<kind>``: parse options, build the task, train; 2 with a message on bad input."""
+    """``python -m train.<kind>``: parse options, build the task, train. Exit code 0 when the run
+    reached --steps; 128 + the signal's number when SIGINT/SIGTERM stopped it after saving last.pt
+    (130 / 143, what a shell reports for a process the signal ended, so ``train && bundle`` stops);
+    2 with a one-line message on bad input."""
     config = parse_config(f"python -m train.{kind}", doc.splitlines()[0], defaults, argv)
-    try:
+
+    def body() -> int:
+        pick_device(config.device)  # a bad --device is reported before the data is read
         result = train(task_class(config), config, kind)
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"step {result['step']}: best validation {score_name} {result['best']}")
-    return 0
+        if result["signal"] is not None:
+            return 128 + result["signal"]
+        print(f"step {result['step']}: best validation {score_name} {result['best']}")
+        return 0
+
+    return run_command(body)

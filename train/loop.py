@@ -6,16 +6,22 @@
   exactly the batches an uninterrupted run would have seen, restoring model, optimizer,
   scheduler and AMP scaler state.
 - AdamW, linear warm-up then cosine decay; AMP (bfloat16/float16 autocast) on CUDA.
-- Checkpoints: ``last.pt`` every ``checkpoint_every`` steps, at the end and on SIGINT/SIGTERM;
-  ``best.pt`` on the best validation score; both are `deepcharuco.models` checkpoints with the
-  training state under ``training``.
+- Checkpoints: ``last.pt`` every ``checkpoint_every`` steps, at the end and on SIGINT/SIGTERM
+  (the command then exits with 130/143, as a shell does for a process the signal ended, so
+  ``train && bundle`` stops there); ``best.pt`` on the best validation score; both are
+  `deepcharuco.models` checkpoints with the training state under ``training``.
 - Logs: ``log.csv`` (step, loss, lr, validation metrics ...), TensorBoard if installed, tqdm.
+  ``--resume`` first cuts ``log.csv`` back to the checkpoint's step: the steps after it (logged
+  before a kill) are run again and would otherwise appear twice.
+- A run folder is found by ``--out`` and may be moved: ``--resume`` takes its settings from
+  ``last.pt`` and compares the data folder by its resolved path or, failing that, its shards.
 - Multi-GPU: run under ``torchrun``; each rank takes every world_size-th sample of a batch.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import signal
@@ -28,8 +34,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from deepcharuco.cli import output_folder
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.models.checkpoint import read_checkpoint, save_checkpoint
+
+# Options --resume may change: they do not decide the run's result (out: the folder may move; steps:
+# train longer than first planned), or are compared by what they name (data, init) in `_path_differs`.
+RESUME_MAY_CHANGE = ("resume", "quiet", "workers", "device", "steps", "out")
+COMPARED_AS_PATHS = ("data", "init")
 
 
 @dataclass
@@ -78,8 +90,26 @@ class Task(Protocol):
 
 
 def pick_device(name: str) -> torch.device:
+    """The torch device ``name`` names ("auto": CUDA, else MPS, else CPU); `DeepCharucoError` when it is
+    not a device name or this machine (or this torch build) does not have it."""
     if name != "auto":
-        return torch.device(name)
+        try:
+            device = torch.device(name)
+        except RuntimeError:
+            raise DeepCharucoError(f"--device {name!r} is not a device: use auto, cpu, cuda, cuda:N or mps") from None
+        if device.type == "cuda":
+            count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+            if count == 0:
+                raise DeepCharucoError(f"--device {name}: no CUDA GPU is usable here (this torch {torch.__version__} "
+                                       f"{'has no CUDA support' if torch.version.cuda is None else 'sees no GPU'}): "
+                                       f"use --device cpu or auto")
+            if device.index is not None and device.index >= count:
+                raise DeepCharucoError(f"--device {name}: only {count} CUDA GPU(s) here (cuda:0..cuda:{count - 1})")
+        elif device.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+            raise DeepCharucoError(f"--device {name}: MPS (Apple GPU) is not available here: use --device cpu or auto")
+        elif device.type not in ("cpu", "cuda", "mps"):
+            raise DeepCharucoError(f"--device {name}: the trainers run on cpu, cuda or mps")
+        return device
     if torch.cuda.is_available():
         return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
     if getattr(torch.backends, "mps", None) and torch.backends.mps.is_available():
@@ -110,10 +140,12 @@ def collate(samples: list[dict]) -> dict:
 
 
 class _Stop:
-    """SIGINT/SIGTERM ask for a checkpoint and a clean exit at the end of the current step."""
+    """SIGINT/SIGTERM ask for a checkpoint and a clean exit at the end of the current step; ``signal``
+    remembers which (None: not stopped by a signal)."""
 
     def __init__(self):
         self.requested = False
+        self.signal: int | None = None
         self._previous = {}
 
     def __enter__(self):
@@ -123,6 +155,7 @@ class _Stop:
 
     def _handle(self, signum, frame):
         self.requested = True
+        self.signal = signum
 
     def __exit__(self, *exc):
         for sig, handler in self._previous.items():
@@ -136,14 +169,54 @@ def _ignore_stop_signals(worker_id: int) -> None:
         signal.signal(sig, signal.SIG_IGN)
 
 
+def data_shards(folder: str | Path) -> list[list]:
+    """What a data folder holds, to recognise it after a move: [file name, size in bytes] of each shard."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return [[p.name, p.stat().st_size] for p in sorted(folder.glob("shard-*.h5"))]
+
+
+def _path_differs(name: str, saved: dict, config: TrainConfig) -> bool:
+    """Whether option ``name`` (a path) names something else than in the saved run: the same resolved
+    path is the same; so is, for --data, a folder holding the same shards (a moved data folder)."""
+    given, before = getattr(config, name), saved["config"].get(name, "")
+    if not given and not before:
+        return False
+    if not given or not before:
+        return True
+    resolved = saved.get("resolved", {}).get(name) or str(Path(before).resolve())
+    if str(Path(given).resolve()) == resolved:
+        return False
+    return not (name == "data" and saved.get("data_shards") and saved["data_shards"] == data_shards(given))
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Cut ``log.csv`` back to the rows of steps <= ``step`` (and drop a line a kill left half-written)."""
+    if not path.is_file():
+        return
+    rows = list(csv.reader(io.StringIO(path.read_text())))
+    if not rows:
+        return
+    header, kept = rows[0], [rows[0]]
+    for row in rows[1:]:
+        if len(row) == len(header) and row[0].isdigit() and int(row[0]) <= step:
+            kept.append(row)
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\r\n").writerows(kept)  # csv.DictWriter's default line ends
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(buffer.getvalue(), newline="")
+    temporary.replace(path)
+
+
 def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None) -> dict:
     """Run ``task`` to ``config.steps`` (or stop as on SIGTERM at step ``stop_at``); returns the step,
-    the best validation score, this run's losses and the last validation metrics."""
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
+    the best validation score, this run's losses, the last validation metrics and ``signal``: the
+    signal that stopped it (None otherwise)."""
+    device = pick_device(config.device)  # before the run folder is made: a bad --device leaves nothing
+    out = output_folder(config.out)
     world = int(os.environ.get("WORLD_SIZE", 1))
     rank = int(os.environ.get("RANK", 0))
-    device = pick_device(config.device)
     if world > 1 and not torch.distributed.is_initialized():
         torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
     model = task.model.to(device)
@@ -157,18 +230,23 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
             raise DeepCharucoError(f"--resume: no {last_path} to resume from (start without --resume)")
         state = torch.load(last_path, map_location="cpu", weights_only=False)
         saved = state["training"]["config"]
-        differs = [f.name for f in fields(TrainConfig) if f.name not in ("resume", "quiet", "workers", "device", "steps")
+        differs = [f.name for f in fields(TrainConfig) if f.name not in RESUME_MAY_CHANGE + COMPARED_AS_PATHS
                    and saved.get(f.name, f.default) != getattr(config, f.name)]
+        differs += [name for name in COMPARED_AS_PATHS if _path_differs(name, state["training"], config)]
         if differs:
-            raise DeepCharucoError(f"--resume: {', '.join(differs)} differ from the run in {out}; resume with its settings")
+            raise DeepCharucoError(f"--resume: {', '.join(differs)} differ from the run in {out} "
+                                   f"({'; '.join(f'{n}: {saved.get(n)!r} there' for n in differs)}); resume with its settings")
         model.load_state_dict(state["state_dict"])
         optimizer.load_state_dict(state["training"]["optimizer"])
         scaler.load_state_dict(state["training"]["scaler"])
         step, best = state["training"]["step"], state["training"]["best"]
+        if rank == 0:
+            _truncate_log(out / "log.csv", step)
     elif last_path.exists():
         raise DeepCharucoError(f"{out} already holds a run (last.pt): pass --resume to continue it or choose another --out")
     elif config.init:
         _load_init(model, config.init, kind)
+    shards_here = data_shards(config.data)
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
     torch.manual_seed(config.seed + step)
 
@@ -177,7 +255,10 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
             return
         save_checkpoint(path, model, **task.checkpoint_kwargs(), training={
             "step": step, "best": best, "config": asdict(config), "optimizer": optimizer.state_dict(),
-            "scaler": scaler.state_dict(), "metrics": metrics or {}, "kind": kind})
+            "scaler": scaler.state_dict(), "metrics": metrics or {}, "kind": kind,
+            "resolved": {name: str(Path(getattr(config, name)).resolve()) for name in COMPARED_AS_PATHS
+                         if getattr(config, name)},
+            "data_shards": shards_here})
 
     log_path = out / "log.csv"
     log_file = open(log_path, "a", newline="")
@@ -235,7 +316,7 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
     log_file.close()
     if stop.requested and rank == 0:
         print(f"stopped at step {step}: {last_path} saved; rerun with --resume to continue")
-    return {"step": step, "best": best, "losses": history, **metrics}
+    return {"step": step, "best": best, "losses": history, **metrics, "signal": stop.signal}
 
 
 class _EpochView(torch.utils.data.Dataset):
