@@ -156,10 +156,13 @@ def _inline(text: str) -> str:
     return "".join(f"<b>{p}</b>" if i % 2 else p for i, p in enumerate(parts))
 
 
-def write_html(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
-    body = [f"<h1>Deep ChArUco evaluation report</h1><p><code>{html.escape(results.get('command', ''))}</code></p>"]
-    for title, text, rows, names in sections(results):
-        body.append(f"<h2>{html.escape(title)}</h2><p>{_inline(text)}</p>")
+def html_page(title: str, command: str, page_sections: list[tuple[str, str, list[list[str]] | None, list[str]]],
+              figures: dict[str, bytes]) -> str:
+    """A self-contained HTML page (figures inlined as PNG): a title, the command that made it, then each
+    (title, text, table rows (first = header) or None, figure names) section."""
+    body = [f"<h1>{html.escape(title)}</h1><p><code>{html.escape(command)}</code></p>"]
+    for heading, text, rows, names in page_sections:
+        body.append(f"<h2>{html.escape(heading)}</h2><p>{_inline(text)}</p>")
         if rows:
             body.append("<table><tr>" + "".join(f"<th>{_inline(c)}</th>" for c in rows[0]) + "</tr>")
             body += ["<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows[1:]]
@@ -168,6 +171,10 @@ def write_html(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
             body.append('<div class="figures">' + "".join(
                 f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figures[name]).decode()}">'
                 for name in names if name in figures) + "</div>")
-    path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>Deep ChArUco report</title>"
-                    f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>")
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>")
+
+
+def write_html(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
+    path.write_text(html_page("Deep ChArUco evaluation report", results.get("command", ""), sections(results), figures))
     return path

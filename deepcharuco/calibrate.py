@@ -1,0 +1,169 @@
+"""``python -m deepcharuco.calibrate``: camera intrinsics from a video (or images, or a camera) of a ChArUco board.
+
+    python -m deepcharuco.calibrate VIDEO|FOLDER|CAMERA_INDEX --board board.yaml --out camera.yaml
+
+Frames are read one at a time (a video is never loaded whole) and the board is detected in each;
+only the corners are kept. Views are selected, calibrated with OpenCV, outliers rejected and the
+camera re-solved (`deepcharuco.calibration`). Writes an OpenCV FileStorage camera file that
+`read_camera` and OpenCV read (`write_camera`'s nodes, then ``distortion_model``, the RMS, the
+parameters' standard deviations and the views used), and an HTML report beside it. Exit code 0,
+or 2 with a one-line reason and nothing written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.calibration import MODELS, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, calibrate, sharpness
+from deepcharuco.camera import write_camera
+from deepcharuco.detect import make_detector, open_source
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.image import to_gray_u8
+
+DETECTORS = ("opencv", "deep")  # a "hybrid" detector does not exist yet
+
+
+def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, quiet: bool = False
+                  ) -> tuple[list[FrameDetection], tuple[int, int] | None]:
+    """Detect the board in every ``step``-th frame of the iterable of (name, image) ``frames``.
+
+    Returns (one `FrameDetection` per frame looked at, (width, height)); each frame is dropped as soon
+    as it is detected. Frames of another size than the first raise CalibrationError."""
+    detections: list[FrameDetection] = []
+    size = None
+    bar = tqdm(frames, total=total, unit="frame", desc="detecting", disable=quiet)
+    for index, (name, frame) in enumerate(bar):
+        if index % step:
+            continue
+        gray = to_gray_u8(frame)
+        if size is None:
+            size = (gray.shape[1], gray.shape[0])
+        elif (gray.shape[1], gray.shape[0]) != size:
+            raise CalibrationError(f"frame {name} is {gray.shape[1]}x{gray.shape[0]} but the first was {size[0]}x{size[1]}: "
+                                   f"calibrate frames of one camera at one resolution")
+        detection = detector.detect(gray)
+        detections.append(FrameDetection(index, str(name), detection.ids, detection.corners,
+                                         sharpness(gray, detection.corners)))
+        bar.set_postfix(boards=sum(len(d.ids) > 0 for d in detections), refresh=False)
+    return detections, size
+
+
+def write_calibration(path: str | Path, result: CalibrationResult, board: BoardSpec, detector: str) -> Path:
+    """The camera file: `write_camera`'s four nodes (what `read_camera` and OpenCV's samples read), then
+    the model, the RMS, the standard deviations and the views, appended as a second YAML document."""
+    path = Path(path)
+    write_camera(path, result.camera)
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_APPEND)
+    try:
+        storage.write("distortion_model", result.model)
+        storage.write("avg_reprojection_error", float(result.rms))
+        storage.write("nr_of_frames", len(result.views))
+        if result.std:
+            storage.write("std_intrinsics_names", " ".join(result.std))
+            storage.write("std_intrinsics", np.array(list(result.std.values()), np.float64).reshape(-1, 1))
+        storage.write("per_view_reprojection_errors", np.asarray(result.per_view_rms, np.float64).reshape(-1, 1))
+        storage.write("view_frames", np.array([v.index for v in result.views], np.int32).reshape(-1, 1))
+        storage.write("detector", detector)
+        storage.write("board", json.dumps(board.to_dict()))
+    finally:
+        storage.release()
+    return path
+
+
+def default_report_path(out: str | Path) -> Path:
+    out = Path(out)
+    return out.with_name(out.stem + "_report.html")
+
+
+def run(args: argparse.Namespace) -> CalibrationResult:
+    board = BoardSpec.load(args.board) if args.board else BoardSpec()
+    detector = make_detector(args.detector, board, args.refine, args.weights)
+    source = open_source(args.source, args.max_frames)
+    frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet)
+    if size is None:
+        raise CalibrationError(f"no frames could be read from {args.source}: give a video, a folder of images or a "
+                               f"camera index that delivers frames")
+    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views)
+    result = calibrate(frames, board, size, args.model, options)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_calibration(out, result, board, args.detector)
+    report = None if args.no_report else Path(args.report) if args.report else default_report_path(out)
+    if report is not None:
+        try:
+            from evaluate.calibration_report import write_report
+        except ImportError as exc:  # matplotlib is an extra
+            print(f"no report ({exc}): pip install 'deepcharuco[eval]' for it", file=sys.stderr)
+        else:
+            write_report(report, result, board, title=f"Calibration of {source.stem} ({args.detector} detector)",
+                         command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+    K, std = result.camera.K, result.std
+    deviation = (lambda name: f" +- {std[name]:.2f}" if name in std else "")  # noqa: E731
+    print(f"{len(result.views)} views of {result.frames} frames ({sum(d.corners > 0 for d in result.decisions)} with "
+          f"corners): RMS {result.rms:.3f} px, fx {K[0, 0]:.2f}{deviation('fx')}, fy {K[1, 1]:.2f}{deviation('fy')}, "
+          f"cx {K[0, 2]:.2f}{deviation('cx')}, cy {K[1, 2]:.2f}{deviation('cy')}, dist "
+          f"{np.array2string(result.camera.dist, precision=4, separator=' ')} -> {out}"
+          + (f", {report}" if report is not None else ""))
+    return result
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m deepcharuco.calibrate", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Calibrate a camera from a video, a folder of images or a live camera showing a ChArUco board: "
+                    "detect the board in every frame, select views covering the image and a range of tilts, solve "
+                    "with OpenCV, reject outliers, re-solve; write an OpenCV FileStorage camera file and an HTML report.")
+    parser.add_argument("source", help="video file, folder of images, or camera index (0, 1, ...)")
+    parser.add_argument("--board", help="board description (.yaml/.json); default: the paper's 5x5 DICT_5X5_50 board")
+    parser.add_argument("--out", default="camera.yaml", help="camera file to write (OpenCV FileStorage YAML)")
+    parser.add_argument("--detector", choices=DETECTORS, default="opencv",
+                        help="corner detector (the deep one finds boards in the dark and under blur)")
+    parser.add_argument("--model", choices=MODELS, default="pinhole",
+                        help="pinhole: k1 k2 p1 p2 k3; rational: + k4 k5 k6; fisheye: OpenCV's fisheye k1..k4")
+    parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
+                        help="corner refinement (default: subpix for opencv, refinenet for deep)")
+    parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
+    parser.add_argument("--report", default=None, help="HTML report to write (default: <out>_report.html)")
+    parser.add_argument("--no-report", action="store_true", help="write the camera file only")
+    parser.add_argument("--max-views", type=int, default=80, help="at most this many views are calibrated")
+    parser.add_argument("--min-views", type=int, default=6, help="fewer usable views is an error")
+    parser.add_argument("--min-corners", type=int, default=6, help="a view needs this many corners")
+    parser.add_argument("--step", type=int, default=1, help="look at every n-th frame only")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (a camera: required)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.argv = argv
+    args.refine = args.refine or ("refinenet" if args.detector == "deep" else "subpix")
+    problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
+                for name, low in (("max_views", 4), ("min_views", 4), ("min_corners", 4), ("step", 1))
+                if getattr(args, name) < low]
+    if args.source.isdigit() and not Path(args.source).exists() and args.max_frames is None:
+        problems.append("a live camera needs --max-frames (how many frames to capture)")
+    if args.max_views < args.min_views:
+        problems.append(f"--max-views ({args.max_views}) must be >= --min-views ({args.min_views})")
+    if problems:
+        parser.error("; ".join(problems))
+    try:
+        run(args)
+    except DeepCharucoError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

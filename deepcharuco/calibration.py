@@ -1,0 +1,457 @@
+"""Camera calibration from ChArUco detections: view selection, OpenCV's solvers, outlier rejection.
+
+The steps (each a function, `calibrate` runs them in order):
+
+1. `usable_reason`: a frame is a candidate view when it has at least ``min_corners`` corners
+   that do not lie along one line of the board (one line leaves the tilt about it unobservable);
+2. `select_views`: candidates blurred well below the others (`sharpness`, less than
+   ``blur_ratio`` x the median) are dropped, then near-duplicates (most corners shared, the
+   shared ones within ``duplicate_px``; the sharper, fuller view stays), then at most
+   ``max_views`` views are picked by farthest-point sampling over where the board is in the
+   image, how large, and how it is tilted (`view_features`), each view's distance weighted by
+   its share of the board's corners: coverage of the image and of tilt, not 40 copies of one pose;
+3. `solve`: ``cv2.calibrateCameraExtended`` on the corners (ID i at ``board.object_points()[i]``)
+   for the ``pinhole`` (k1 k2 p1 p2 k3) and ``rational`` (+ k4 k5 k6) models, with the parameters'
+   standard deviations; ``cv2.fisheye.calibrate`` for ``fisheye`` (k1..k4, no deviations);
+4. outliers: corners whose residual exceeds ``corner_outlier`` x the RMS (and 1 px) are dropped,
+   then views whose RMS exceeds ``view_outlier`` x the median view RMS (and 0.3 px), and it is
+   solved again, until nothing changes (at most `MAX_ROUNDS`).
+
+Bad input raises `CalibrationError` with one line saying what to capture instead: no board in any
+frame, fewer usable views than ``min_views``, all views at one tilt (the focal length is then not
+observable), or a solution whose focal length is uncertain by more than `MAX_RELATIVE_STD`.
+
+Pixels: OpenCV's convention (centre of the top-left pixel at (0, 0)).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.camera import Camera
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.pose import MIN_SPREAD_RATIO
+
+MODELS = ("pinhole", "rational", "fisheye")
+MAX_ROUNDS = 4
+MIN_OUTLIER_PX = 0.5  # a view within this RMS is never an outlier: cornerSubPix noise alone reaches it
+MIN_TILT_SPREAD_DEG = 10.0  # Zhang's method needs at least two board orientations this far apart
+MAX_RELATIVE_STD = 0.05  # a focal length less certain than 5 % is not a calibration
+# Names of calibrateCameraExtended's 18 intrinsic standard deviations, in its order.
+STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
+
+
+class CalibrationError(DeepCharucoError):
+    """Frames that cannot give a calibration; the message says what to capture instead."""
+
+
+@dataclass
+class FrameDetection:
+    """What calibration keeps of one frame (never the image).
+
+    Attributes:
+        index: frame number in the source; name: its name (file name or frame number).
+        ids: (N,) int64 corner IDs; corners: (N, 2) float64 pixels.
+        sharpness: `sharpness` of the frame around the board (0 without corners).
+    """
+
+    index: int
+    name: str
+    ids: np.ndarray
+    corners: np.ndarray
+    sharpness: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.ids = np.asarray(self.ids, np.int64).reshape(-1)
+        self.corners = np.asarray(self.corners, np.float64).reshape(-1, 2)
+
+
+@dataclass
+class ViewDecision:
+    """Why a frame was used or not: ``status`` "kept" | "dropped"; ``stage`` where it was decided
+    ("detection", "selection", "outlier", "solution"); ``reason`` in words; ``rms`` its error (px) in
+    the final solution when kept or dropped as an outlier."""
+
+    index: int
+    name: str
+    corners: int
+    status: str
+    stage: str
+    reason: str
+    rms: float | None = None
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "name": self.name, "corners": self.corners, "status": self.status,
+                "stage": self.stage, "reason": self.reason, "rms": self.rms}
+
+
+@dataclass
+class SelectionOptions:
+    """Knobs of view selection and outlier rejection (see the module docstring)."""
+
+    min_corners: int = 6
+    min_views: int = 6
+    max_views: int = 40
+    blur_ratio: float = 0.35
+    duplicate_px: float | None = None  # default: 1 % of the image diagonal
+    corner_outlier: float = 5.0
+    view_outlier: float = 3.0
+
+
+@dataclass
+class CalibrationResult:
+    """A solved calibration.
+
+    Attributes:
+        model: "pinhole" | "rational" | "fisheye".
+        camera: the intrinsics (K, dist (5, 8 or 4 fisheye coefficients), image size).
+        rms: RMS reprojection error (px) over every corner used.
+        std: standard deviation of each intrinsic parameter by name (`STD_NAMES`), empty for fisheye.
+        views: the kept views, in frame order, with per_view_rms (V,), rvecs/tvecs (V, 3), and
+            residuals: per view (N_v, 2) float64 detected minus reprojected pixels of its used corners.
+        decisions: one `ViewDecision` per frame of the source.
+        frames: frames read; image_size: (width, height).
+    """
+
+    model: str
+    camera: Camera
+    rms: float
+    std: dict[str, float]
+    views: list[FrameDetection]
+    per_view_rms: np.ndarray
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    residuals: list[np.ndarray]
+    decisions: list[ViewDecision]
+    frames: int
+    rounds: int = 1
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.camera.image_size
+
+    def summary(self) -> dict:
+        """JSON-ready numbers: intrinsics, deviations, RMS, view counts."""
+        K = self.camera.K
+        return {"model": self.model, "image_size": list(self.image_size), "rms_px": self.rms,
+                "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "dist": self.camera.dist.tolist(),
+                "std": self.std, "frames": self.frames, "views_kept": len(self.views),
+                "frames_with_corners": sum(d.corners > 0 for d in self.decisions), "rounds": self.rounds}
+
+
+# ----------------------------------------------------------------------------------------- per frame
+def sharpness(gray: np.ndarray, corners: np.ndarray) -> float:
+    """Contrast-independent sharpness of the board's region of a uint8 (H, W) frame: the variance of the
+    Laplacian over the variance of the pixels, in the corners' bounding box (grown by 10 %), after a
+    Gaussian of sigma 1 px that takes out pixel noise (a dark, noisy frame must not look sharp).
+    Motion and focus blur lower it; a uniform gain does not change it. 0 without corners."""
+    corners = np.asarray(corners, np.float64).reshape(-1, 2)
+    if len(corners) == 0:
+        return 0.0
+    low, high = corners.min(0), corners.max(0)
+    grow = 0.1 * (high - low) + 4.0
+    x0, y0 = np.maximum(np.floor(low - grow).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(high + grow).astype(int) + 1, (gray.shape[1], gray.shape[0]))
+    region = cv2.GaussianBlur(gray[y0:y1, x0:x1].astype(np.float32), (0, 0), 1.0)
+    if region.size < 16:
+        return 0.0
+    return float(cv2.Laplacian(region, cv2.CV_32F).var() / (region.var() + 1.0))
+
+
+def usable_reason(frame: FrameDetection, board: BoardSpec, min_corners: int) -> str | None:
+    """None when the frame can be a calibration view, else why not (in words)."""
+    if len(frame.ids) == 0:
+        return "no board found"
+    if len(frame.ids) < min_corners:
+        return f"{len(frame.ids)} corners (fewer than {min_corners})"
+    points = board.object_points()[frame.ids, :2]
+    spread = np.linalg.svd(points - points.mean(0), compute_uv=False)
+    if spread[1] < MIN_SPREAD_RATIO * spread[0]:
+        return "corners along one line of the board"
+    return None
+
+
+# ----------------------------------------------------------------------------------------- selection
+def initial_camera(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[int, int]) -> np.ndarray:
+    """(3, 3) rough K for view features: OpenCV's closed form from the views' homographies
+    (``cv2.initCameraMatrix2D``) when it is plausible, else a 60-degree camera centred in the image."""
+    width, height = image_size
+    guess = np.array([[width / (2 * math.tan(math.radians(30))), 0, (width - 1) / 2],
+                      [0, width / (2 * math.tan(math.radians(30))), (height - 1) / 2], [0, 0, 1.0]])
+    if len(frames) < 2:
+        return guess
+    try:
+        K = cv2.initCameraMatrix2D([board.object_points()[f.ids].astype(np.float32) for f in frames],
+                                   [f.corners.astype(np.float32) for f in frames], (width, height))
+    except cv2.error:
+        return guess
+    focal = K[0, 0]
+    if not np.all(np.isfinite(K)) or not 0.2 * width < focal < 20 * width or not 0.5 < K[1, 1] / focal < 2:
+        return guess
+    return K
+
+
+def view_features(frame: FrameDetection, board: BoardSpec, K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """(6,) where and how the board is seen: centroid (x / W, y / H), log of its image size over the
+    image's, and its normal's (x, y, z) in the camera frame (from a pinhole PnP with ``K``)."""
+    width, height = image_size
+    points = board.object_points()[frame.ids]
+    ok, rvec, _ = cv2.solvePnP(points, frame.corners, K, None, flags=cv2.SOLVEPNP_IPPE)
+    normal = cv2.Rodrigues(rvec)[0][:, 2] if ok else np.array([0.0, 0.0, 1.0])
+    hull = cv2.convexHull(frame.corners.astype(np.float32))
+    size = math.log(max(cv2.contourArea(hull), 1.0) / (width * height))
+    centre = frame.corners.mean(0) / (width, height)
+    return np.array([centre[0], centre[1], size, *normal])
+
+
+def tilt_spread_deg(normals: np.ndarray) -> float:
+    """Largest angle (degrees) between two of the (V, 3) unit board normals."""
+    if len(normals) < 2:
+        return 0.0
+    cosines = np.clip(normals @ normals.T, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cosines.min())))
+
+
+# Farthest-point metric: a move across the whole image counts like a 30-degree change of tilt
+# (2 x the normal's sine) and a 2.7x change of the board's image area.
+FEATURE_WEIGHTS = np.array([1.0, 1.0, 0.5, 2.0, 2.0, 2.0])
+
+
+def select_views(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[int, int],
+                 options: SelectionOptions) -> tuple[list[FrameDetection], dict[int, tuple[str, str]]]:
+    """The views to calibrate from, in frame order, and why each other frame was left out
+    ({frame index: (stage, reason)}). Raises CalibrationError when too few are usable."""
+    reasons: dict[int, tuple[str, str]] = {}
+    candidates = []
+    for frame in frames:
+        reason = usable_reason(frame, board, options.min_corners)
+        if reason:
+            reasons[frame.index] = ("detection", reason)
+        else:
+            candidates.append(frame)
+    _check_enough(frames, candidates, reasons, options)
+
+    median_sharpness = float(np.median([f.sharpness for f in candidates]))
+    sharp = []
+    for frame in candidates:
+        if frame.sharpness < options.blur_ratio * median_sharpness:
+            reasons[frame.index] = ("selection", f"blurred (sharpness {frame.sharpness:.3g}, median {median_sharpness:.3g})")
+        else:
+            sharp.append(frame)
+
+    width, height = image_size
+    duplicate_px = options.duplicate_px if options.duplicate_px is not None else 0.01 * math.hypot(width, height)
+    # Fullest and sharpest first: of near-duplicates, that one stays.
+    ranked = sorted(sharp, key=lambda f: (-len(f.ids), -f.sharpness, f.index))
+    distinct: list[FrameDetection] = []
+    for frame in ranked:
+        twin = next((kept for kept in distinct if _near_duplicate(frame, kept, duplicate_px)), None)
+        if twin is None:
+            distinct.append(frame)
+        else:
+            reasons[frame.index] = ("selection", f"near-duplicate of frame {twin.name}")
+    _check_enough(frames, distinct, reasons, options)
+
+    K0 = initial_camera(distinct, board, image_size)
+    features = np.stack([view_features(f, board, K0, image_size) for f in distinct]) * FEATURE_WEIGHTS
+    quality = np.sqrt(np.array([len(f.ids) for f in distinct]) / board.num_corners)
+    chosen = [0]  # the fullest, sharpest view
+    nearest = np.linalg.norm(features - features[0], axis=1)
+    while len(chosen) < min(options.max_views, len(distinct)):
+        score = nearest * quality
+        score[chosen] = -1.0
+        pick = int(np.argmax(score))
+        chosen.append(pick)
+        nearest = np.minimum(nearest, np.linalg.norm(features - features[pick], axis=1))
+    for i, frame in enumerate(distinct):
+        if i not in chosen:
+            closest = min(chosen, key=lambda c: np.linalg.norm(features[c] - features[i]))
+            reasons[frame.index] = ("selection", f"not needed (--max-views {options.max_views}): like frame "
+                                                 f"{distinct[closest].name}")
+    selected = sorted((distinct[i] for i in chosen), key=lambda f: f.index)
+    normals = features[chosen, 3:] / FEATURE_WEIGHTS[3:]
+    spread = tilt_spread_deg(normals)
+    if spread < MIN_TILT_SPREAD_DEG:
+        raise CalibrationError(
+            f"all {len(selected)} usable views show the board at one tilt (within {spread:.0f} degrees), so the focal "
+            f"length cannot be told from the distance: capture the board tilted 20-40 degrees towards each side and "
+            f"in every part of the image")
+    return selected, reasons
+
+
+def _near_duplicate(a: FrameDetection, b: FrameDetection, tolerance_px: float) -> bool:
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    if len(common) < 0.8 * max(len(a.ids), len(b.ids)):
+        return False
+    return float(np.linalg.norm(a.corners[ia] - b.corners[ib], axis=1).mean()) < tolerance_px
+
+
+def _check_enough(frames: list[FrameDetection], candidates: list[FrameDetection],
+                  reasons: dict[int, tuple[str, str]], options: SelectionOptions) -> None:
+    if len(candidates) >= options.min_views:
+        return
+    with_corners = [f for f in frames if len(f.ids)]
+    if not frames:
+        raise CalibrationError("no frames were read: give a video, a folder of images or a camera index that delivers frames")
+    if not with_corners:
+        raise CalibrationError(
+            f"no board found in any of {len(frames)} frames: check --board (squares, dictionary, an inverted print) "
+            f"and capture the board filling a quarter of the image or more, in focus and lit")
+    collinear = sum(reasons.get(f.index, ("", ""))[1].startswith("corners along") for f in with_corners)
+    if collinear and collinear == len(with_corners) - len(candidates):
+        hint = (f"; {collinear} frame(s) show only one row or column of corners: show more of the board")
+    else:
+        hint = ""
+    raise CalibrationError(
+        f"only {len(candidates)} usable view(s) (>= {options.min_corners} corners, not along one line, distinct, sharp) "
+        f"in {len(frames)} frames where {options.min_views} are needed{hint}: capture the board at more places and "
+        f"tilts, moving slowly, with most of it in view")
+
+
+# ----------------------------------------------------------------------------------------- solving
+@dataclass
+class _Solution:
+    K: np.ndarray
+    dist: np.ndarray
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    std: dict[str, float]
+
+
+def _flags(model: str) -> int:
+    if model == "pinhole":
+        return 0
+    if model == "rational":
+        return cv2.CALIB_RATIONAL_MODEL
+    raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+
+
+def solve(object_points: list[np.ndarray], image_points: list[np.ndarray], image_size: tuple[int, int],
+          model: str) -> _Solution:
+    """One solve of OpenCV's calibration. object_points[v]: (N_v, 3), image_points[v]: (N_v, 2)."""
+    try:
+        if model == "fisheye":
+            flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+            criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+            _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
+                [p.reshape(-1, 1, 3).astype(np.float64) for p in object_points],
+                [p.reshape(-1, 1, 2).astype(np.float64) for p in image_points], image_size, None, None,
+                flags=flags, criteria=criteria)
+            std: dict[str, float] = {}
+        else:
+            criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+            _, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
+                [p.astype(np.float32) for p in object_points], [p.astype(np.float32) for p in image_points],
+                image_size, None, None, flags=_flags(model), criteria=criteria)
+            count = 5 if model == "pinhole" else 8
+            dist = np.asarray(dist, np.float64).ravel()[:count]
+            names = STD_NAMES[:4 + count]
+            std = {name: float(v) for name, v in zip(names, np.asarray(std_intrinsics).ravel()[:len(names)])}
+    except cv2.error as exc:
+        raise CalibrationError(f"OpenCV's {model} calibration failed ({str(exc).strip().splitlines()[-1]}): capture "
+                               f"more views covering the whole image at varied tilts") from None
+    return _Solution(K=np.asarray(K, np.float64), dist=np.asarray(dist, np.float64).ravel(),
+                     rvecs=np.asarray(rvecs, np.float64).reshape(-1, 3), tvecs=np.asarray(tvecs, np.float64).reshape(-1, 3),
+                     std=std)
+
+
+def reproject(object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray,
+              model: str) -> np.ndarray:
+    """(N, 2) pixels of the (N, 3) board points under a pose and intrinsics of ``model``."""
+    if model == "fisheye":
+        points, _ = cv2.fisheye.projectPoints(object_points.reshape(-1, 1, 3), rvec.reshape(3, 1),
+                                              tvec.reshape(3, 1), K, dist)
+    else:
+        points, _ = cv2.projectPoints(object_points, rvec, tvec, K, dist)
+    return points.reshape(-1, 2)
+
+
+def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[int, int], model: str = "pinhole",
+              options: SelectionOptions | None = None) -> CalibrationResult:
+    """Select views from ``frames``, solve, reject outliers and re-solve (module docstring)."""
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    options = options or SelectionOptions()
+    views, reasons = select_views(frames, board, image_size, options)
+    # Per view: the mask of its corners still in use.
+    masks = {v.index: np.ones(len(v.ids), bool) for v in views}
+    outliers: dict[int, str] = {}
+    dropped_corners: dict[int, int] = {}
+    for rounds in range(1, MAX_ROUNDS + 1):
+        active = [v for v in views if v.index not in outliers]
+        solution = solve([board.object_points()[v.ids[masks[v.index]]] for v in active],
+                         [v.corners[masks[v.index]] for v in active], image_size, model)
+        residuals = [v.corners[masks[v.index]] - reproject(board.object_points()[v.ids[masks[v.index]]], r, t,
+                                                           solution.K, solution.dist, model)
+                     for v, r, t in zip(active, solution.rvecs, solution.tvecs)]
+        norms = [np.linalg.norm(r, axis=1) for r in residuals]
+        rms = float(np.sqrt(np.mean(np.concatenate(norms) ** 2)))
+        view_rms = np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
+        if rounds == MAX_ROUNDS or not _reject_outliers(active, norms, view_rms, rms, masks, outliers,
+                                                        dropped_corners, options):
+            break
+    _check_solution(solution, model, image_size)
+    decisions = []
+    kept_rms = dict(zip((v.index for v in active), view_rms))
+    for frame in frames:
+        if frame.index in kept_rms:
+            extra = f"; {dropped_corners[frame.index]} outlier corner(s) dropped" if frame.index in dropped_corners else ""
+            decisions.append(ViewDecision(frame.index, frame.name, len(frame.ids), "kept", "solution",
+                                          "calibration view" + extra, float(kept_rms[frame.index])))
+        elif frame.index in outliers:
+            decisions.append(ViewDecision(frame.index, frame.name, len(frame.ids), "dropped", "outlier", outliers[frame.index]))
+        else:
+            stage, reason = reasons[frame.index]
+            decisions.append(ViewDecision(frame.index, frame.name, len(frame.ids), "dropped", stage, reason))
+    used_views = [FrameDetection(v.index, v.name, v.ids[masks[v.index]], v.corners[masks[v.index]], v.sharpness)
+                  for v in active]
+    camera = Camera(K=solution.K, dist=solution.dist, image_size=image_size)
+    return CalibrationResult(model=model, camera=camera, rms=rms, std=solution.std, views=used_views,
+                             per_view_rms=view_rms, rvecs=solution.rvecs, tvecs=solution.tvecs, residuals=residuals,
+                             decisions=decisions, frames=len(frames), rounds=rounds)
+
+
+def _reject_outliers(active: list[FrameDetection], norms: list[np.ndarray], view_rms: np.ndarray, rms: float,
+                     masks: dict[int, np.ndarray], outliers: dict[int, str], dropped_corners: dict[int, int],
+                     options: SelectionOptions) -> bool:
+    """Mark outlier corners (in ``masks``) and outlier views (in ``outliers``) of one solution; True when
+    anything changed. Corners first: one wrong corner should cost itself, not its whole view."""
+    changed = False
+    corner_limit = max(options.corner_outlier * rms, 1.0)
+    for view, norm in zip(active, norms):
+        bad = norm > corner_limit
+        if bad.any() and masks[view.index].sum() - bad.sum() >= options.min_corners:
+            used = np.flatnonzero(masks[view.index])
+            masks[view.index][used[bad]] = False
+            dropped_corners[view.index] = dropped_corners.get(view.index, 0) + int(bad.sum())
+            changed = True
+    view_limit = max(options.view_outlier * float(np.median(view_rms)), MIN_OUTLIER_PX)
+    remaining = len(active)
+    for i in np.argsort(-view_rms):
+        if view_rms[i] <= view_limit or remaining <= options.min_views:
+            break
+        outliers[active[i].index] = (f"outlier: RMS {view_rms[i]:.2f} px > {view_limit:.2f} px "
+                                     f"({options.view_outlier:g} x the median view)")
+        remaining -= 1
+        changed = True
+    return changed
+
+
+def _check_solution(solution: _Solution, model: str, image_size: tuple[int, int]) -> None:
+    K = solution.K
+    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(solution.dist)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError(f"the {model} calibration diverged: capture more views covering the whole image at varied tilts")
+    for name in ("fx", "fy"):
+        deviation = solution.std.get(name)
+        value = K[0, 0] if name == "fx" else K[1, 1]
+        if deviation is not None and deviation > MAX_RELATIVE_STD * value:
+            raise CalibrationError(
+                f"{name} = {value:.1f} +- {deviation:.1f} px is too uncertain (> {100 * MAX_RELATIVE_STD:.0f} %): the views "
+                f"do not pin the focal length down; capture the board tilted 20-40 degrees in several directions, near "
+                f"the image's edges and corners too")

@@ -1,0 +1,177 @@
+"""The calibration report (``deepcharuco.calibrate`` writes it): one self-contained HTML page.
+
+RMS and per-view errors, the coverage of the image by the views' corners, their residual
+vectors, the distortion field of the solved model, every frame's fate (kept, or dropped and
+why) and the parameters with their standard deviations. Built with `evaluate.documents.html_page`
+and the figure helpers of `evaluate.figures`.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.calibration import CalibrationResult
+from evaluate.documents import html_page
+from evaluate.figures import _png, _pyplot
+
+MAX_LISTED = 200  # rows of the per-frame table; the counts by reason cover every frame
+
+
+def ideal_pixels(result: CalibrationResult, pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) where the solved camera without distortion (its K alone) would put the rays of the (N, 2)
+    distorted ``pixels``."""
+    K, dist = result.camera.K, result.camera.dist
+    points = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
+    if result.model == "fisheye":
+        rays = cv2.fisheye.undistortPoints(points, K, dist)
+    else:
+        criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+        rays = cv2.undistortPointsIter(points, K, dist, None, None, criteria)
+    rays = rays.reshape(-1, 2)
+    return np.stack([K[0, 0] * rays[:, 0] + K[0, 1] * rays[:, 1] + K[0, 2], K[1, 1] * rays[:, 1] + K[1, 2]], axis=1)
+
+
+def coverage_figure(result: CalibrationResult, bins: tuple[int, int] = (16, 12)) -> bytes:
+    """Heat map of the kept views' corners over the image: where the calibration has evidence."""
+    plt = _pyplot()
+    width, height = result.image_size
+    corners = np.concatenate([v.corners for v in result.views]) if result.views else np.zeros((0, 2))
+    counts, _, _ = np.histogram2d(corners[:, 0], corners[:, 1], bins=bins, range=[[-0.5, width - 0.5], [-0.5, height - 0.5]])
+    figure, axis = plt.subplots(figsize=(5.2, 5.2 * height / width + 0.6))
+    shown = axis.imshow(counts.T, extent=(-0.5, width - 0.5, height - 0.5, -0.5), cmap="viridis", interpolation="nearest")
+    figure.colorbar(shown, ax=axis, fraction=0.046, pad=0.04, label="corners")
+    empty = int((counts == 0).sum())
+    axis.set_title(f"Coverage: {len(corners)} corners of {len(result.views)} views\n{empty} of {counts.size} cells empty")
+    axis.set_xlabel("x (px)")
+    axis.set_ylabel("y (px)")
+    return _png(figure)
+
+
+def residual_figure(result: CalibrationResult) -> bytes:
+    """Each used corner's residual (detected minus reprojected) as an arrow from the corner, magnified."""
+    plt = _pyplot()
+    width, height = result.image_size
+    corners = np.concatenate([v.corners for v in result.views])
+    residuals = np.concatenate(result.residuals)
+    norms = np.linalg.norm(residuals, axis=1)
+    gain = 0.04 * max(width, height) / max(float(np.percentile(norms, 95)), 1e-6)  # the p95 arrow: 4 % of the image
+    figure, axis = plt.subplots(figsize=(5.2, 5.2 * height / width + 0.6))
+    axis.quiver(corners[:, 0], corners[:, 1], residuals[:, 0] * gain, residuals[:, 1] * gain, norms, angles="xy",
+                scale_units="xy", scale=1.0, cmap="plasma", width=0.003)
+    axis.set_xlim(-0.5, width - 0.5)
+    axis.set_ylim(height - 0.5, -0.5)
+    axis.set_aspect("equal")
+    axis.set_title(f"Residuals x {gain:.0f} (RMS {result.rms:.3f} px, max {norms.max():.2f} px)")
+    axis.set_xlabel("x (px)")
+    axis.set_ylabel("y (px)")
+    return _png(figure)
+
+
+def distortion_figure(result: CalibrationResult, step: int | None = None) -> bytes:
+    """The solved distortion: how far it moves each pixel from where the undistorted camera would put it
+    (contours of the magnitude in px, arrows for the direction)."""
+    plt = _pyplot()
+    width, height = result.image_size
+    step = step or max(width, height) // 24
+    xs, ys = np.meshgrid(np.arange(0, width, step, dtype=np.float64), np.arange(0, height, step, dtype=np.float64))
+    pixels = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    displacement = pixels - ideal_pixels(result, pixels)
+    magnitude = np.linalg.norm(displacement, axis=1).reshape(xs.shape)
+    figure, axis = plt.subplots(figsize=(5.2, 5.2 * height / width + 0.6))
+    levels = axis.contourf(xs, ys, magnitude, levels=12, cmap="magma_r")
+    figure.colorbar(levels, ax=axis, fraction=0.046, pad=0.04, label="displacement (px)")
+    axis.quiver(pixels[:, 0], pixels[:, 1], displacement[:, 0], displacement[:, 1], angles="xy", scale_units="xy",
+                scale=max(float(magnitude.max()) / step, 1e-6) * 1.2, width=0.002, color="white")
+    axis.set_xlim(0, xs.max())
+    axis.set_ylim(ys.max(), 0)
+    axis.set_aspect("equal")
+    axis.set_title(f"Distortion field ({result.model}): up to {magnitude.max():.1f} px")
+    return _png(figure)
+
+
+def view_error_figure(result: CalibrationResult) -> bytes:
+    """RMS of each kept view against its frame number, and the frames dropped as outliers."""
+    plt = _pyplot()
+    figure, axis = plt.subplots(figsize=(6.4, 2.8))
+    frames = [v.index for v in result.views]
+    axis.bar(frames, result.per_view_rms, width=max(1.0, (max(frames) - min(frames) + 1) / 150), color="tab:blue",
+             label="kept view")
+    outliers = [d for d in result.decisions if d.stage == "outlier"]
+    if outliers:
+        axis.scatter([d.index for d in outliers], [float(d.reason.split("RMS ")[1].split(" px")[0]) for d in outliers],
+                     color="tab:red", marker="x", label="dropped: outlier")
+    axis.axhline(result.rms, color="gray", ls=":", lw=1, label=f"overall RMS {result.rms:.3f} px")
+    axis.set_xlabel("frame")
+    axis.set_ylabel("view RMS (px)")
+    axis.legend(fontsize=8)
+    axis.grid(alpha=0.3)
+    return _png(figure)
+
+
+def parameter_rows(result: CalibrationResult) -> list[list[str]]:
+    """Table rows (header first): each intrinsic parameter, its value and standard deviation."""
+    K, dist = result.camera.K, result.camera.dist
+    names = ["fx", "fy", "cx", "cy"] + (["k1", "k2", "k3", "k4"] if result.model == "fisheye"
+                                        else ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][:len(dist)])
+    values = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist]
+    rows = [["parameter", "value", "std dev"]]
+    for name, value in zip(names, values):
+        deviation = result.std.get(name)
+        rows.append([name, f"{value:.6g}", "n/a" if deviation is None else f"{deviation:.3g}"])
+    return rows
+
+
+def _category(reason: str) -> str:
+    """A reason without its numbers, to count frames by."""
+    for prefix in ("near-duplicate", "not needed", "blurred", "outlier", "calibration view"):
+        if reason.startswith(prefix):
+            return prefix
+    if "corners (fewer" in reason:
+        return "too few corners"
+    return reason
+
+
+def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[str, str, list[list[str]] | None, list[str]]]:
+    """The page's (title, text, rows, figure names)."""
+    width, height = result.image_size
+    kept = len(result.views)
+    with_corners = sum(d.corners > 0 for d in result.decisions)
+    summary = (f"**RMS reprojection error {result.rms:.3f} px** over {sum(len(v.ids) for v in result.views)} corners of "
+               f"{kept} views, {result.model} model, {width}x{height} images. {result.frames} frames read, {with_corners} "
+               f"with board corners; solved {result.rounds} time(s) (outliers rejected in between). Board: "
+               f"{board.squares_x}x{board.squares_y} {board.dictionary}, {board.num_corners} corners.")
+    out = [("Summary", summary, None, []),
+           ("Parameters", "Values and standard deviations (OpenCV's calibrateCameraExtended; the fisheye solver gives "
+                          "none).", parameter_rows(result), ["distortion"]),
+           ("Coverage and residuals", "Where the kept views' corners fall in the image (a calibration is trustworthy "
+            "where it has corners, most of all for distortion near the edges and corners), and each corner's residual "
+            "magnified: a pattern in the arrows means the model does not fit.", None, ["coverage", "residuals"]),
+           ("Per-view errors", "RMS of each kept view; red crosses: views dropped as outliers before the last solve.",
+            None, ["view_errors"])]
+    counts = Counter((d.status, _category(d.reason)) for d in result.decisions)
+    rows = [["status", "reason", "frames"]] + [[status, reason, str(n)] for (status, reason), n in
+                                                sorted(counts.items(), key=lambda item: (item[0][0] != "kept", -item[1]))]
+    out.append(("Views kept and dropped", "Every frame read, by what became of it.", rows, []))
+    listed = [d for d in result.decisions if d.corners > 0]
+    rows = [["frame", "corners", "status", "reason", "RMS px"]]
+    rows += [[d.name, str(d.corners), d.status, d.reason, "" if d.rms is None else f"{d.rms:.3f}"]
+             for d in listed[:MAX_LISTED]]
+    more = f" (the first {MAX_LISTED} of {len(listed)})" if len(listed) > MAX_LISTED else ""
+    out.append(("Frames with corners", f"Each frame where the detector found corners{more}.", rows, []))
+    return out
+
+
+def write_report(path: str | Path, result: CalibrationResult, board: BoardSpec, *, title: str = "Calibration report",
+                 command: str = "") -> Path:
+    """Write the HTML report of ``result`` to ``path``."""
+    path = Path(path)
+    figures = {"coverage": coverage_figure(result), "residuals": residual_figure(result),
+               "distortion": distortion_figure(result), "view_errors": view_error_figure(result)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(html_page(title, command, report_sections(result, board), figures))
+    return path
