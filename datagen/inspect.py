@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from datagen.shards import ShardReader, list_shards
+from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
 NUMERIC = ("lux", "blur_px", "visible_count", "exposure_s", "gain")
@@ -118,22 +119,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale", type=int, default=1, help="mosaic tile magnification")
     parser.add_argument("--seed", type=int, default=0, help="which random frames the mosaic shows")
     args = parser.parse_args(argv)
-    try:
+
+    def body() -> None:
         paths = list_shards(args.dir)
         if not paths:
             raise DeepCharucoError(f"{args.dir} holds no complete shards (render some with python -m datagen.render)")
-        out = Path(args.out) if args.out else Path(args.dir) / "inspect"
-        out.mkdir(parents=True, exist_ok=True)
-        meta = collect_meta(paths)
+        meta = collect_meta(paths)  # reads every shard: a damaged one is named before anything is written
+        out = output_folder(args.out or Path(args.dir) / "inspect")
         print(summary(meta, len(paths)))
-        cv2.imwrite(str(out / "mosaic.png"), mosaic(paths, args.frames, np.random.default_rng(args.seed), args.columns, args.scale))
+        image = mosaic(paths, args.frames, np.random.default_rng(args.seed), args.columns, args.scale)
+        if not cv2.imwrite(str(out / "mosaic.png"), image):
+            raise DeepCharucoError(f"could not write {out / 'mosaic.png'} (disk full?): free some space or choose another --out")
         histograms(meta, out / "histograms.png")
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"wrote {out / 'mosaic.png'} and {out / 'histograms.png'}")
-    return 0
+        print(f"wrote {out / 'mosaic.png'} and {out / 'histograms.png'}")
 
+    return run_command(body)
 
 if __name__ == "__main__":
     sys.exit(main())

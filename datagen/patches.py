@@ -13,12 +13,18 @@ label is that offset. Two sources, as in the paper:
 
 Patch shard ``k`` of the renders comes from frame shard ``k`` with generator
 ``default_rng([seed, k])``; synthetic shards follow with ``default_rng([seed, 10**6 + j])``.
+
+Every input shard is opened before any work (a truncated one is named at once), and the
+patches are written into a hidden folder beside ``--out`` that replaces ``--out``'s shards only
+when all are written: a run that fails or is interrupted leaves ``--out`` as it was.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -28,6 +34,7 @@ from tqdm import tqdm
 
 import deepcharuco
 from datagen.shards import PATCH_SIZE, ShardReader, list_shards, write_patch_shard
+from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
 CENTRE_LOW, CENTRE_HIGH = 7.5, 15.5  # the central 8x8 pixels, as an interval of positions
@@ -109,6 +116,16 @@ def synthetic_patches(rng: np.random.Generator, count: int) -> tuple[np.ndarray,
     return np.stack([p for p, _ in pairs]), np.stack([o for _, o in pairs])
 
 
+def replace_shards(staging: Path, out: Path) -> None:
+    """Move the shards written in ``staging`` into ``out`` (its old shards removed first), then remove ``staging``."""
+    out.mkdir(exist_ok=True)
+    for old in list_shards(out):
+        old.unlink()
+    for new in list_shards(staging):
+        os.replace(new, out / new.name)
+    shutil.rmtree(staging)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m datagen.patches", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                                      description="Cut and synthesise 24x24 RefineNet corner patches into HDF5 shards.")
@@ -123,41 +140,56 @@ def main(argv: list[str] | None = None) -> int:
     if args.per_corner < 0 or args.synthetic < 0 or args.synthetic_shard_size < 1:
         parser.error("--per-corner and --synthetic must be >= 0, --synthetic-shard-size >= 1")
     out = Path(args.out)
-    try:
+
+    def body() -> None:
         sources = list_shards(args.renders) if args.per_corner else []
         if out.is_dir() and list_shards(out) and not args.overwrite:
             raise DeepCharucoError(f"{out} already holds patch shards; pass --overwrite to replace them or choose another --out")
-        generator = {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "datagen.patches",
-                     "args": {"renders": str(args.renders), "seed": args.seed, "per_corner": args.per_corner,
-                              "synthetic": args.synthetic}}
-        total = 0
-        for path in tqdm(sources, desc="patches from renders", unit="shard"):
-            shard = int(path.stem.split("-")[1])
-            rng = np.random.default_rng([args.seed, shard])
-            reader = ShardReader(path)
-            per_frame = []  # (patches, offsets, corner ids, frame numbers) of each frame
-            for i in range(len(reader)):
-                frame = reader[i]
-                patches, offsets, ids = cut_patches(frame.image, frame.corners, frame.visible, rng, args.per_corner)
-                per_frame.append((patches, offsets, ids, np.full(len(ids), frame.meta["frame"])))
-            reader.close()
-            patches, offsets, ids, frames = (np.concatenate(column) for column in zip(*per_frame))
-            if len(ids):
-                write_patch_shard(out, shard, patches, offsets, {"source": np.array(["render"] * len(ids)),
-                                                                 "frame": frames, "corner_id": ids}, generator)
-                total += len(ids)
-        for j in tqdm(range(-(-args.synthetic // args.synthetic_shard_size)), desc="synthetic patches", unit="shard"):
-            count = min(args.synthetic_shard_size, args.synthetic - j * args.synthetic_shard_size)
-            patches, offsets = synthetic_patches(np.random.default_rng([args.seed, SYNTHETIC_SHARD_BASE + j]), count)
-            write_patch_shard(out, SYNTHETIC_SHARD_BASE + j, patches, offsets,
-                              {"source": np.array(["synthetic"] * count), "frame": np.full(count, -1),
-                               "corner_id": np.full(count, -1)}, generator)
-            total += count
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"datagen.patches: {total} patches in {out}", file=sys.stderr)
-    return 0
+        readers = [ShardReader(path) for path in sources]  # every input readable before anything is written
+        if out.exists():
+            output_folder(out)  # a writable folder, not a file
+        output_folder(out.parent, "--out's folder")
+        staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
+        staging.mkdir()
+        try:
+            total = write_patches(readers, staging, args)
+            replace_shards(staging, out)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        print(f"datagen.patches: {total} patches in {out}", file=sys.stderr)
+
+    return run_command(body)
+
+
+def write_patches(readers: list[ShardReader], out: Path, args: argparse.Namespace) -> int:
+    """Cut the patches of ``readers``' frames and synthesise ``args.synthetic`` more, as shards in ``out``;
+    returns the number of patches."""
+    generator = {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "datagen.patches",
+                 "args": {"renders": str(args.renders), "seed": args.seed, "per_corner": args.per_corner,
+                          "synthetic": args.synthetic}}
+    total = 0
+    for reader in tqdm(readers, desc="patches from renders", unit="shard"):
+        shard = int(reader.path.stem.split("-")[1])
+        rng = np.random.default_rng([args.seed, shard])
+        per_frame = []  # (patches, offsets, corner ids, frame numbers) of each frame
+        for i in range(len(reader)):
+            frame = reader[i]
+            patches, offsets, ids = cut_patches(frame.image, frame.corners, frame.visible, rng, args.per_corner)
+            per_frame.append((patches, offsets, ids, np.full(len(ids), frame.meta["frame"])))
+        reader.close()
+        patches, offsets, ids, frames = (np.concatenate(column) for column in zip(*per_frame))
+        if len(ids):
+            write_patch_shard(out, shard, patches, offsets, {"source": np.array(["render"] * len(ids)),
+                                                             "frame": frames, "corner_id": ids}, generator)
+            total += len(ids)
+    for j in tqdm(range(-(-args.synthetic // args.synthetic_shard_size)), desc="synthetic patches", unit="shard"):
+        count = min(args.synthetic_shard_size, args.synthetic - j * args.synthetic_shard_size)
+        patches, offsets = synthetic_patches(np.random.default_rng([args.seed, SYNTHETIC_SHARD_BASE + j]), count)
+        write_patch_shard(out, SYNTHETIC_SHARD_BASE + j, patches, offsets,
+                          {"source": np.array(["synthetic"] * count), "frame": np.full(count, -1),
+                           "corner_id": np.full(count, -1)}, generator)
+        total += count
+    return total
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@ Test sets (each a folder of shards in DESIGN.md's schema):
                the synthetic blur/darkness tests (one per sequence, its first frame);
   --data       held-out random renders (python -m datagen.render --seed 1000): accuracy by lux;
   --captures   auto-labelled real videos (python -m evaluate.autolabel), optional.
-The default folders are rendered when missing (a few minutes on 2 cores, once), unless --no-render.
+The default folders are rendered when missing (a few minutes on 2 cores, once), unless --no-render
+(then a missing default folder's section is left out); a folder given explicitly must hold shards.
 """
 
 from __future__ import annotations
@@ -36,14 +37,19 @@ DEFAULT_SEQUENCES = Path("data/sequences")
 DEFAULT_DATA = Path("data/test")
 TEST_SEED = 1000  # held-out renders: training renders use other seeds (the sequences are evaluation-only scenes)
 DEFAULT_TEST_FRAMES = 120
+SYNTHETIC_IMAGES, QUICK_SYNTHETIC_IMAGES = 20, 6  # the paper's 20; --quick's fewer unless --synthetic-images says
 
 
 def ensure_rendered(folder: Path, default: Path, command: list[str], allowed: bool, quiet: bool) -> bool:
-    """Render the default test set ``default`` when it is missing; other folders must exist. Returns False
-    when ``folder`` has no shards and may not be rendered."""
+    """Render the default test set ``default`` when it is missing; other folders must exist (TestSetError).
+    Returns False when the default ``folder`` has no shards and may not be rendered."""
     if any(folder.glob("shard-*.h5")):
         return True
-    if folder != default or not allowed:
+    if folder != default:
+        raise TestSetError(f"{folder} {'holds no shard-*.h5 files' if folder.is_dir() else 'does not exist'}: give a "
+                           f"folder of test shards (python -m datagen.render --seed {TEST_SEED} --out {folder}, or "
+                           f"python -m evaluate.sequences --out {folder}), or leave the option out")
+    if not allowed:
         return False
     module = command[0]
     if not quiet:
@@ -111,8 +117,8 @@ def run_report(args: argparse.Namespace) -> dict:
     # Synthetic blur / darkness on well-lit images with different static poses.
     # The paper's images are from its evaluation videos: take them from the sequences when there are any.
     pool = sequence_frames + render_frames
-    synthetic_frames = select_well_lit(sequence_frames or render_frames, 6 if quick else args.synthetic_images,
-                                       seed=args.seed)
+    synthetic_count = args.synthetic_images or (QUICK_SYNTHETIC_IMAGES if quick else SYNTHETIC_IMAGES)
+    synthetic_frames = select_well_lit(sequence_frames or render_frames, synthetic_count, seed=args.seed)
     if quick:  # every 4th frame of each sequence, 40 renders
         sequence_frames = [f for f in sequence_frames if int(f.meta.get("sequence_frame", 0)) % 4 == 0]
         render_frames = render_frames[:40]
@@ -221,8 +227,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--captures", default=None, help="auto-labelled captures (default: none)")
     parser.add_argument("--board", default=None, help="BoardSpec file (default: the test shards' board)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
-    parser.add_argument("--quick", action="store_true", help="6 synthetic images, every 4th sequence frame, 40 renders")
-    parser.add_argument("--synthetic-images", type=int, default=20, help="images of the synthetic tests (default: 20)")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"{QUICK_SYNTHETIC_IMAGES} synthetic images (unless --synthetic-images is given), every 4th "
+                             f"sequence frame, 40 renders")
+    parser.add_argument("--synthetic-images", type=int, default=None,
+                        help=f"images of the synthetic tests (default: {SYNTHETIC_IMAGES}, --quick {QUICK_SYNTHETIC_IMAGES})")
     parser.add_argument("--timing-seconds", type=float, default=3.0, help="timed seconds per configuration (default: 3)")
     parser.add_argument("--gallery", type=int, default=8, help="hardest frames shown (default: 8)")
     parser.add_argument("--autolabel-check", action=argparse.BooleanOptionalAction, default=True,
@@ -233,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     args.argv = argv
-    if args.synthetic_images < 1 or args.gallery < 0 or args.timing_seconds <= 0:
+    if (args.synthetic_images is not None and args.synthetic_images < 1) or args.gallery < 0 or args.timing_seconds <= 0:
         parser.error("--synthetic-images must be >= 1, --gallery >= 0, --timing-seconds > 0")
     try:
         results = run_report(args)

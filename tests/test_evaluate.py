@@ -199,9 +199,35 @@ def test_report_refuses_missing_data_and_weights(tmp_path, capsys, frames, camer
     argv = ["--sequences", str(tmp_path / "none"), "--data", str(tmp_path / "none2"), "--out", str(tmp_path / "r"),
             "--quiet"]
     assert report.main(argv) == 2
-    assert "no test data" in capsys.readouterr().err
+    assert f"{tmp_path / 'none'} does not exist" in capsys.readouterr().err  # given explicitly: never skipped
     write_test_shards(tmp_path / "seq", frames, camera, {f"s{i}": [500] for i in range(4)})
-    argv = ["--sequences", str(tmp_path / "seq"), "--data", str(tmp_path / "none2"), "--out", str(tmp_path / "r"),
+    argv = ["--sequences", str(tmp_path / "seq"), "--no-render", "--out", str(tmp_path / "r"),
             "--weights", str(tmp_path / "missing.pt"), "--quiet", "--no-autolabel-check"]
     assert report.main(argv) == 2
-    assert "does not exist" in capsys.readouterr().err
+    assert "missing.pt does not exist" in capsys.readouterr().err
+
+
+def test_report_refuses_a_data_folder_that_is_missing_empty_or_damaged(tmp_path, capsys, frames, camera):
+    """An explicitly given test folder is never skipped in silence; a truncated shard is named, with the fix."""
+    write_test_shards(tmp_path / "seq", frames, camera, {f"s{i}": [500] for i in range(4)})
+    (tmp_path / "empty").mkdir()
+    write_test_shards(tmp_path / "damaged", frames, camera, {"renders": [300, 3]})
+    shard = next((tmp_path / "damaged").glob("shard-*.h5"))
+    shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 2])  # a copy cut short
+    for folder, message in (("nowhere", "nowhere does not exist"), ("empty", "empty holds no shard-*.h5 files"),
+                            ("damaged", f"{shard} is not a readable HDF5 shard, it is truncated or corrupt")):
+        argv = ["--sequences", str(tmp_path / "seq"), "--data", str(tmp_path / folder), "--out", str(tmp_path / "r"),
+                "--quiet", "--no-autolabel-check", "--no-render"]
+        assert report.main(argv) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_quick_takes_an_explicit_synthetic_images(tmp_path, capsys, frames, camera):
+    """--quick's fewer synthetic images yield to --synthetic-images, so the error's advice to lower it is right."""
+    write_test_shards(tmp_path / "seq", frames, camera, {f"s{i}": [500] for i in range(4)})
+    argv = ["--sequences", str(tmp_path / "seq"), "--out", str(tmp_path / "r"), "--quiet", "--no-autolabel-check",
+            "--no-render", "--quick"]
+    assert report.main(argv + ["--synthetic-images", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "only 4 well-lit frames" in err and "where 5 are needed" in err and "lower --synthetic-images" in err
