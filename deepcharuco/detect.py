@@ -2,6 +2,12 @@
 
 Writes, into --out: an overlay (PNG per image, MP4 for a video or camera) and per-frame
 results as CSV (written as frames arrive) and JSON (written at the end, also on Ctrl-C).
+
+In a folder, an image that cannot be read is skipped with a message and counted in the summary
+(and in the JSON's ``skipped``); the others go on. A folder's overlays are named after the
+images (``a.png`` -> ``a.png``); images that share a name but not the extension (``a.png``,
+``a.jpg``) get the extension in the overlay's name (``a_png.png``, ``a_jpg.png``), so no overlay
+overwrites another. An overlay that cannot be written (a full disk) is an error, exit code 2.
 """
 
 from __future__ import annotations
@@ -11,7 +17,8 @@ import csv
 import json
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -20,6 +27,7 @@ from tqdm import tqdm
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.camera import Camera, read_camera
+from deepcharuco.cli import output_folder, run_command
 from deepcharuco.detection import Detection
 from deepcharuco.draw import draw_detection
 from deepcharuco.errors import DeepCharucoError
@@ -37,13 +45,34 @@ class SourceError(DeepCharucoError):
 
 @dataclass
 class Source:
-    """Frames to process: ``frames`` yields (name, BGR or gray image)."""
+    """Frames to process: ``frames`` yields (name, BGR or gray image); ``skipped`` collects the
+    "name: reason" of a folder's images that could not be read (as ``frames`` meets them)."""
 
     stem: str
     kind: str  # "image" | "images" | "video" | "camera"
     frames: Iterator[tuple[str, np.ndarray]]
     fps: float
     total: int | None
+    skipped: list[str] = field(default_factory=list)
+    overlay_names: dict[str, str] = field(default_factory=dict)  # folder: image file name -> overlay file name
+
+
+def overlay_names(images: list[Path]) -> dict[str, str]:
+    """Overlay file names for a folder's images: ``<stem>.png``, or ``<stem>_<ext>.png`` where two
+    images share a stem (a.png and a.jpg), so that every image gets its own overlay."""
+    stems = Counter(p.stem for p in images)
+    return {p.name: f"{p.stem}.png" if stems[p.stem] == 1 else f"{p.stem}_{p.suffix.lstrip('.').lower()}.png"
+            for p in images}
+
+
+def _folder_frames(images: list[Path], skipped: list[str]) -> Iterator[tuple[str, np.ndarray]]:
+    """The folder's readable images; the others are reported on stderr and listed in ``skipped``."""
+    for path in images:
+        try:
+            yield path.name, _read_image(path)
+        except SourceError as error:
+            skipped.append(f"{path.name}: {error}")
+            print(f"skipping {path.name}: {error}", file=sys.stderr)
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -83,7 +112,9 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
         images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:max_frames]
         if not images:
             raise SourceError(f"{path} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
-        return Source(path.name, "images", ((p.name, _read_image(p)) for p in images), 0.0, len(images))
+        skipped: list[str] = []
+        return Source(path.name, "images", _folder_frames(images, skipped), 0.0, len(images), skipped,
+                      overlay_names(images))
     if path.suffix.lower() in IMAGE_SUFFIXES:
         return Source(path.stem, "image", iter([(path.name, _read_image(path))]), 0.0, 1)
     capture = cv2.VideoCapture(str(path))
@@ -138,8 +169,7 @@ def run(args: argparse.Namespace) -> dict:
     detector = make_detector(args.detector, board, args.refine, args.weights, args.refine_weights)
     board = detector.board
     source = open_source(args.source, args.max_frames)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
 
@@ -166,15 +196,18 @@ def run(args: argparse.Namespace) -> dict:
                     detection, pose, *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None), board,
                 )
                 if source.kind == "image":
-                    cv2.imwrite(str(out / f"{source.stem}_overlay.png"), overlay)
+                    _write_image(out / f"{source.stem}_overlay.png", overlay)
                 elif source.kind == "images":
                     overlay_dir.mkdir(exist_ok=True)
-                    cv2.imwrite(str(overlay_dir / (Path(name).stem + ".png")), overlay)
+                    _write_image(overlay_dir / source.overlay_names[name], overlay)
                 else:
                     if writer is None:
-                        writer = cv2.VideoWriter(str(out / f"{source.stem}_overlay.mp4"),
-                                                 cv2.VideoWriter_fourcc(*"mp4v"), source.fps,
+                        video = out / f"{source.stem}_overlay.mp4"
+                        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), source.fps,
                                                  (overlay.shape[1], overlay.shape[0]))
+                        if not writer.isOpened():
+                            raise DeepCharucoError(f"cannot write the overlay video {video}: choose a writable --out "
+                                                   f"with free space, or pass --no-overlay")
                     writer.write(overlay)
         except KeyboardInterrupt:
             print(f"interrupted after {len(records)} frames; writing what was done", file=sys.stderr)
@@ -187,12 +220,21 @@ def run(args: argparse.Namespace) -> dict:
                 "camera": None if camera is None else {"K": camera.K.tolist(), "dist": camera.dist.tolist(),
                                                        "image_size": list(camera.image_size)},
                 "frames": records,
+                "skipped": source.skipped,
             }
             json_path.write_text(json.dumps(summary))
     with_pose = sum(r["pose"] is not None for r in records)
+    skipped = f", {len(source.skipped)} unreadable image(s) skipped" if source.skipped else ""
     print(f"{len(records)} frames, board corners in {sum(r['num_corners'] > 0 for r in records)}, "
-          f"pose in {with_pose} -> {out}/")
+          f"pose in {with_pose}{skipped} -> {out}/")
     return summary
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """cv2.imwrite, which reports a failed write (a full disk) only by returning False: an error here."""
+    if not cv2.imwrite(str(path), image):
+        raise DeepCharucoError(f"could not write the overlay {path} (is the disk full?): free some space, choose "
+                               f"another --out, or pass --no-overlay")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -222,12 +264,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
+
+    def body() -> None:
         run(args)
-    except DeepCharucoError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH
@@ -219,17 +220,16 @@ def main(argv: list[str] | None = None) -> int:
     from deepcharuco.deep_detector import DEFAULT_WEIGHTS
 
     weights = args.weights or DEFAULT_WEIGHTS
-    try:
-        manifest = export(weights, args.out, args.refine_weights, tuple(args.format), args.tolerance)
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    for name, network in manifest["networks"].items():
-        for fmt, result in network["exports"].items():
-            print(f"{Path(args.out) / result['file']}: max |diff| vs PyTorch {result['max_abs_diff']:.1e} "
-                  f"({result['runtime_checked']}, shapes {result['checked_shapes']})")
-    print(f"{Path(args.out) / 'export.json'}: board and interfaces")
-    return 0
+
+    def body() -> None:
+        manifest = export(weights, output_folder(args.out), args.refine_weights, tuple(args.format), args.tolerance)
+        for name, network in manifest["networks"].items():
+            for fmt, result in network["exports"].items():
+                print(f"{Path(args.out) / result['file']}: max |diff| vs PyTorch {result['max_abs_diff']:.1e} "
+                      f"({result['runtime_checked']}, shapes {result['checked_shapes']})")
+        print(f"{Path(args.out) / 'export.json'}: board and interfaces")
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from tqdm import tqdm
 
 import deepcharuco
 from datagen.shards import FrameLabels, ShardReader, list_shards, write_shard
+from deepcharuco.cli import output_folder, run_command
 from deepcharuco.board import BoardSpec
 from deepcharuco.camera import read_camera
 from deepcharuco.detect import open_source
@@ -453,7 +454,8 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--index must be >= 0, got {args.index}")
     if problems:
         parser.error("; ".join(problems))
-    try:
+
+    def body() -> None:
         board = BoardSpec.load(args.board) if args.board else None
         capture, labels = autolabel_capture(args.video, args.camera, board, average=args.average,
                                             max_motion=args.max_motion, quiet=args.quiet)
@@ -462,6 +464,7 @@ def main(argv: list[str] | None = None) -> int:
         index = args.index if args.index is not None else (
             capture.shard_index if capture.shard_index is not None else _next_index(out))
         _check_out(out, index, capture)
+        output_folder(out)
         generator = {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "evaluate.autolabel",
                      "args": {"source": capture.source, "average": args.average, "max_motion": args.max_motion,
                               "camera": args.camera, "board": board.to_dict()},
@@ -472,10 +475,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{capture.name}: {labels.describe()}; wrote {path} ({len(capture.frames)} frames)")
         if capture.has_truth:
             print(f"{capture.name}: {compare_to_truth(labels, args.video).describe()}")
-    except DeepCharucoError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    return 0
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

@@ -94,3 +94,43 @@ def test_help_shows_defaults():
     result = subprocess.run([sys.executable, "-m", "deepcharuco.detect", "--help"], capture_output=True, text=True)
     assert result.returncode == 0
     assert "default: opencv" in result.stdout and "default: detect_out" in result.stdout
+
+
+def test_a_folder_with_an_unreadable_image_and_shared_stems(tmp_path, capsys, default_views):
+    """An unreadable image is skipped, said and counted; a.png and a.jpg get an overlay each."""
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), default_views[0][0])
+    cv2.imwrite(str(folder / "a.jpg"), default_views[1][0])
+    (folder / "b.png").write_bytes(b"\x89PNG cut short")
+    cv2.imwrite(str(folder / "c.png"), default_views[2][0])
+    assert main([str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "skipping b.png: cannot read image" in captured.err and "1 unreadable image(s) skipped" in captured.out
+    result = json.loads((tmp_path / "out" / "imgs.json").read_text())
+    assert [f["source"] for f in result["frames"]] == ["a.jpg", "a.png", "c.png"]
+    assert len(result["skipped"]) == 1 and result["skipped"][0].startswith("b.png: ")
+    overlays = tmp_path / "out" / "imgs_overlay"
+    assert sorted(p.name for p in overlays.iterdir()) == ["a_jpg.png", "a_png.png", "c.png"]
+    assert not np.array_equal(cv2.imread(str(overlays / "a_jpg.png")), cv2.imread(str(overlays / "a_png.png")))
+
+
+def test_a_full_disk_is_an_error_not_a_success(tmp_path):
+    """cv2.imwrite answers a failed write with False only; a file-size limit makes the overlay's write fail
+    (the CSV and JSON, a few hundred bytes, still fit)."""
+    import resource
+
+    limit = 8_000  # bytes; the overlay PNG is ~100 kB
+    done = subprocess.run([sys.executable, "-m", "deepcharuco.detect", str(EXAMPLES / "board_320x240.png"), "--out",
+                           str(tmp_path), "--quiet"], capture_output=True, text=True,
+                          preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
+    assert done.returncode == 2, done.stderr
+    assert "could not write the overlay" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_unwritable_or_file_out(tmp_path, capsys, unwritable_dir):
+    (tmp_path / "a-file").write_text("")
+    for out, message in ((tmp_path / "a-file", "is a file, not a folder"), (unwritable_dir / "out", "cannot write there")):
+        assert main([str(EXAMPLES / "board_320x240.png"), "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert message in err[-1] and not any("Traceback" in line for line in err)

@@ -96,3 +96,12 @@ def test_cli_exports_and_refuses_bad_input(checkpoints, tmp_path, capsys):
         export(folder / "refinenet.pt", tmp_path / "y")
     with pytest.raises(ExportError, match="formats"):
         export(folder / "charuconet.pt", tmp_path / "z", formats=("tflite",))
+
+
+def test_cli_refuses_an_unwritable_or_file_out_in_one_line(checkpoints, tmp_path, capsys, unwritable_dir):
+    folder, _, _ = checkpoints
+    (tmp_path / "a-file").write_text("")
+    for out, message in ((tmp_path / "a-file", "is a file, not a folder"), (unwritable_dir / "x", "cannot write there")):
+        assert main(["--weights", str(folder / "charuconet.pt"), "--out", str(out), "--format", "torchscript"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, err
