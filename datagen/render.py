@@ -144,9 +144,9 @@ def run(job: RenderJob, *, workers: int, shard_index: int, num_shards: int, resu
         quiet: bool = False) -> dict:
     """Render this job's missing shards with ``workers`` processes; returns index.json's content."""
     mine = [s for s in range(job.num_shards) if s % num_shards == shard_index]
+    out = output_folder(job.out)  # a writable folder, before anything is rendered
     done = check_existing(job, mine, resume)
     todo = [s for s in mine if s not in done]
-    out = output_folder(job.out)
     remove_stale_temporaries(out, todo)
     total = sum(len(job.frames_of(s)) for s in todo)
     skipped = sum(len(job.frames_of(s)) for s in mine if s in done)

@@ -411,9 +411,9 @@ def estimated_work(sequence: Sequence, n_frames: int) -> int:
 def run(job: SequenceJob, selected: list[Sequence], *, resume: bool, workers: int = 1, quiet: bool = False) -> dict:
     """Render the selected sequences missing from ``job.out``; returns index.json's content."""
     numbers = [s.number for s in selected]
+    out = output_folder(job.out)  # a writable folder, before anything is rendered
     done = check_existing(job, numbers, resume)
     todo = [s for s in selected if s.number not in done]
-    out = output_folder(job.out)
     remove_stale_temporaries(out, [s.number for s in todo])
     # Longest first: with several workers the shake and shadow sequences should not start last.
     todo.sort(key=lambda s: -estimated_work(s, job.frames))

@@ -93,3 +93,15 @@ def test_a_folder_of_the_other_kind_is_named(frame_folder, tmp_path, capsys):
     assert refinenet_main(["--data", str(frame_folder), "--out", str(tmp_path / "b"), "--steps", "1", "--quiet"]) == 2
     err = one_line_error(capsys)
     assert "is not a patch shard (no 'patches' dataset) but a frame shard" in err and "datagen.patches" in err
+
+
+def test_data_commands_refuse_an_unwritable_or_file_out_in_one_line(frame_folder, tmp_path, capsys, unwritable_dir):
+    from datagen.render import main as render_main
+
+    (tmp_path / "a-file").write_text("")
+    for out, message in ((tmp_path / "a-file", "is a file, not a folder"), (unwritable_dir / "x", "cannot write")):
+        for run in (lambda: render_main(["--n", "1", "--out", str(out), "--quiet"]),
+                    lambda: patches_main(["--renders", str(frame_folder), "--out", str(out), "--synthetic", "4"]),
+                    lambda: inspect_main([str(frame_folder), "--out", str(out), "--frames", "2"])):
+            assert run() == 2
+            assert message in one_line_error(capsys)
