@@ -1,4 +1,4 @@
-"""HDF5 frame shards (DESIGN.md "HDF5 shard schema"): `write_shard`, `ShardReader`, `index.json`.
+"""HDF5 frame shards (docs/conventions.md "HDF5 shard schema"): `write_shard`, `ShardReader`, `index.json`.
 
 A shard appears under its final name only when complete: it is written to a hidden
 temporary name in the same folder and renamed, which is atomic on POSIX file systems. So the
@@ -272,7 +272,7 @@ PATCH_SIZE = 24
 
 def write_patch_shard(directory: str | Path, index: int, patches: np.ndarray, offsets: np.ndarray, meta: dict,
                       generator: dict, created: str | None = None) -> Path:
-    """Write a RefineNet patch shard (DESIGN.md): ``patches`` uint8 (N, 24, 24), ``offset`` float32 (N, 2)
+    """Write a RefineNet patch shard (docs/conventions.md): ``patches`` uint8 (N, 24, 24), ``offset`` float32 (N, 2)
     = the corner's position inside the patch in pixels (OpenCV convention), ``meta/*`` 1-D per patch
     (``source`` required). Atomic like `write_shard`."""
     directory = Path(directory)

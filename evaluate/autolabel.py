@@ -3,7 +3,7 @@
 A capture films a static board with a still camera. Its truth is OpenCV's detection
 (+ cornerSubPix) on the average of its first 30 frames — averaging removes the sensor noise —
 applied to every frame, and the pose of those corners (solvePnPRansac with the camera's K).
-The result is a shard in DESIGN.md's schema that `evaluate.report --captures` evaluates.
+The result is a shard in the schema of docs/conventions.md that `evaluate.report --captures` evaluates.
 
 The recipe is only right for a static board, so it refuses (`AutolabelError`, exit code 2,
 nothing written) when the capture has fewer than 30 frames, when the board is not found in the
@@ -233,7 +233,7 @@ def autolabel(frames: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None,
 
 
 def label_capture(capture: Capture, labels: AutoLabels) -> list[FrameLabels]:
-    """The capture's frames with the auto-labels, as shard frames (DESIGN.md schema).
+    """The capture's frames with the auto-labels, as shard frames (docs/conventions.md schema).
 
     Meta: ``sequence``, ``sequence_frame``, ``has_board`` (True), ``autolabel_source`` (input
     path), ``autolabel_corners``, ``autolabel_reprojection_error``, ``autolabel_motion_px``,
@@ -430,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m evaluate.autolabel", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Label a capture of a static ChArUco board the paper's way: OpenCV + cornerSubPix on the average "
-                    "of its first frames is the truth of every frame. Writes one shard (DESIGN.md schema).")
+                    "of its first frames is the truth of every frame. Writes one shard (schema: docs/conventions.md).")
     parser.add_argument("video", metavar="VIDEO", help="video file, folder of images (sorted by name), or shard-*.h5")
     parser.add_argument("--camera", default=None,
                         help="OpenCV calibration YAML (camera_matrix, distortion_coefficients, image_width/height); "

@@ -128,7 +128,7 @@ def hardest_frames(experiment: dict, names: list[str], count: int) -> list[tuple
 
 
 def targets(results: dict) -> list[dict]:
-    """The project's targets (issue 6 / DESIGN.md) against this report's numbers."""
+    """The project's targets (issue 6; docs/conventions.md "Targets") against this report's numbers."""
     rows = []
 
     def add(what: str, value, target: str, met) -> None:

@@ -1,6 +1,6 @@
-"""The paper's evaluation protocols (DESIGN.md "Protocols"), each usable on its own with any detector.
+"""The paper's evaluation protocols (docs/conventions.md), each usable on its own with any detector.
 
-A detector is anything with DESIGN.md's interface: ``detect(gray_u8) -> Detection`` and
+A detector is anything with the runtime API's interface (docs/conventions.md): ``detect(gray_u8) -> Detection`` and
 ``estimate_pose(detection, K, dist) -> Pose | None`` (`deepcharuco.Detector`,
 `deepcharuco.OpenCVDetector`). A test frame is a `TestFrame`: an image with its true corners.
 

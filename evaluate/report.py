@@ -4,7 +4,7 @@
     python -m evaluate.report --weights runs/charuconet/best.pt --refine-weights runs/refinenet/best.pt
     python -m evaluate.report --captures data/captures --quick
 
-Test sets (each a folder of shards in DESIGN.md's schema):
+Test sets (each a folder of shards, schema in docs/conventions.md):
   --sequences  rendered twins of the paper's 26 evaluation videos (python -m evaluate.sequences);
                the per-sequence table, the pose-accuracy curve, and the 20 well-lit images of
                the synthetic blur/darkness tests (one per sequence, its first frame);
