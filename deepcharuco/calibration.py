@@ -424,19 +424,22 @@ def _reject_outliers(active: list[FrameDetection], norms: list[np.ndarray], view
     anything changed. Corners first: one wrong corner should cost itself, not its whole view."""
     changed = False
     corner_limit = max(options.corner_outlier * rms, 1.0)
-    for view, norm in zip(active, norms):
+    # A view that just lost corners is judged again after the re-solve: its pose was pulled by them.
+    remaining_rms = view_rms.copy()
+    for i, (view, norm) in enumerate(zip(active, norms)):
         bad = norm > corner_limit
         if bad.any() and masks[view.index].sum() - bad.sum() >= options.min_corners:
             used = np.flatnonzero(masks[view.index])
             masks[view.index][used[bad]] = False
             dropped_corners[view.index] = dropped_corners.get(view.index, 0) + int(bad.sum())
+            remaining_rms[i] = 0.0
             changed = True
     view_limit = max(options.view_outlier * float(np.median(view_rms)), MIN_OUTLIER_PX)
     remaining = len(active)
-    for i in np.argsort(-view_rms):
-        if view_rms[i] <= view_limit or remaining <= options.min_views:
+    for i in np.argsort(-remaining_rms):
+        if remaining_rms[i] <= view_limit or remaining <= options.min_views:
             break
-        outliers[active[i].index] = (f"outlier: RMS {view_rms[i]:.2f} px > {view_limit:.2f} px "
+        outliers[active[i].index] = (f"outlier: RMS {remaining_rms[i]:.2f} px > {view_limit:.2f} px "
                                      f"({options.view_outlier:g} x the median view)")
         remaining -= 1
         changed = True

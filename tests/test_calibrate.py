@@ -1,0 +1,174 @@
+"""deepcharuco.calibrate on exact synthetic videos through a known distorted camera (datagen.lens)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import make_view
+from datagen.lens import distort_image, distortion_maps, wide_camera
+from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera
+from deepcharuco.calibrate import detect_frames, main
+from deepcharuco.calibration import (
+    CalibrationError, FrameDetection, SelectionOptions, calibrate, sharpness, usable_reason,
+)
+from deepcharuco.synthetic import look_at_pose, render_board_view
+from evaluate.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of, true_camera
+
+BOARD = BoardSpec()
+SIZE = (320, 240)
+FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def waved():
+    """(images, K, dist): a board waved over the image of a barrel-distorted camera (k1 = -0.3)."""
+    rng = np.random.default_rng(7)
+    K, dist = true_camera(rng, -0.3, SIZE)
+    K_wide, wide_size = wide_camera(K, dist, SIZE, scale=2.0)
+    maps = distortion_maps(K, dist, SIZE, K_wide)
+    path = WavingPath.draw(rng)
+    images = []
+    for t in frame_times(FRAMES, rng):
+        rvec, tvec = pose_of(hand_waved_pose(path, t, BOARD, K, dist, SIZE))
+        wide = render_board_view(BOARD, K_wide, rvec, tvec, wide_size, supersample=2)
+        images.append(distort_image(wide, K, dist, SIZE, K_wide, maps=maps))
+    return images, K, dist
+
+
+@pytest.fixture(scope="module")
+def detections(waved):
+    frames, size = detect_frames(((str(i), image) for i, image in enumerate(waved[0])), OpenCVDetector(BOARD), quiet=True)
+    assert size == SIZE
+    return frames
+
+
+def _video(path, images):
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, SIZE)
+    for image in images:
+        writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    return path
+
+
+def test_calibration_recovers_the_true_camera(waved, detections):
+    _, K, dist = waved
+    result = calibrate(detections, BOARD, SIZE)
+    estimate = result.camera.K
+    # Within 3 of its own standard deviations (they are honest) and within 0.6 % / 2.5 px outright.
+    for (row, col), name in (((0, 0), "fx"), ((1, 1), "fy"), ((0, 2), "cx"), ((1, 2), "cy")):
+        assert abs(estimate[row, col] - K[row, col]) < 3 * result.std[name] + 0.05, name
+    assert abs(estimate[0, 0] / K[0, 0] - 1) < 0.006 and abs(estimate[1, 1] / K[1, 1] - 1) < 0.006
+    assert np.abs(estimate[:2, 2] - K[:2, 2]).max() < 2.5
+    assert abs(result.camera.dist[0] - dist[0]) < 0.03
+    assert result.rms < 0.3 and len(result.views) >= 40
+    # Every frame is accounted for, once.
+    assert sorted(d.index for d in result.decisions) == list(range(FRAMES))
+    assert sum(d.status == "kept" for d in result.decisions) == len(result.views)
+
+
+def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
+    images, K, _ = waved
+    video = _video(tmp_path / "wave.avi", images)
+    out = tmp_path / "cams" / "camera.yaml"
+    assert main([str(video), "--out", str(out), "--quiet"]) == 0
+    camera = read_camera(out)
+    assert camera.image_size == SIZE and camera.dist.shape == (5,)
+    assert abs(camera.K[0, 0] / K[0, 0] - 1) < 0.01
+    storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    assert storage.getNode("distortion_model").string() == "pinhole"
+    assert storage.getNode("std_intrinsics").mat().shape == (9, 1)
+    assert storage.getNode("avg_reprojection_error").real() < 0.5
+    storage.release()
+    report = (tmp_path / "cams" / "camera_report.html").read_text()
+    for text in ("RMS reprojection error", "Coverage", "alt=\"distortion\"", "Views kept and dropped", "std dev"):
+        assert text in report
+    assert report.count("data:image/png;base64,") == 4
+
+
+def test_fisheye_model_writes_four_coefficients(tmp_path, detections):
+    result = calibrate(detections, BOARD, SIZE, "fisheye")
+    assert result.camera.dist.shape == (4,) and result.std == {} and result.rms < 0.5
+
+
+def test_a_wrong_corner_costs_itself_and_a_wrong_view_is_dropped(detections):
+    frames = [FrameDetection(f.index, f.name, f.ids, f.corners.copy(), f.sharpness) for f in detections]
+    full = [f for f in frames if len(f.ids) >= 12]
+    full[0].corners[3] += (12.0, -9.0)  # one wrong corner
+    full[1].corners += np.random.default_rng(0).normal(0.0, 4.0, full[1].corners.shape)  # a view of garbage
+    result = calibrate(frames, BOARD, SIZE)
+    decisions = {d.index: d for d in result.decisions}
+    assert decisions[full[0].index].status == "kept", decisions[full[0].index]
+    assert "1 outlier corner(s) dropped" in decisions[full[0].index].reason
+    assert decisions[full[1].index].status == "dropped" and decisions[full[1].index].stage == "outlier"
+    assert result.rms < 0.3
+
+
+def test_near_duplicates_and_blurred_views_are_dropped(detections):
+    frames = list(detections)
+    twin = frames[10]
+    frames.append(FrameDetection(FRAMES, "twin", twin.ids, twin.corners + 0.3, twin.sharpness * 0.9))
+    frames.append(FrameDetection(FRAMES + 1, "blurred", frames[20].ids, frames[20].corners + 25.0, 1e-4))
+    result = calibrate(frames, BOARD, SIZE)
+    decisions = {d.name: d for d in result.decisions}
+    assert decisions["twin"].reason == f"near-duplicate of frame {twin.name}"
+    assert decisions["blurred"].reason.startswith("blurred")
+
+
+def test_max_views_keeps_the_most_varied(detections):
+    result = calibrate(detections, BOARD, SIZE, options=SelectionOptions(max_views=12))
+    assert len(result.views) <= 12
+    centres = np.array([v.corners.mean(0) for v in result.views])
+    # Farthest-point selection: the kept views spread over the image, not one region of it.
+    assert np.ptp(centres[:, 0]) > 0.4 * SIZE[0] and np.ptp(centres[:, 1]) > 0.3 * SIZE[1]
+    assert sum("not needed" in d.reason for d in result.decisions) > 0
+
+
+def test_sharpness_falls_with_blur_not_with_light(detections, waved):
+    image = waved[0][5]
+    corners = detections[5].corners
+    blurred = cv2.blur(image, (9, 1))
+    darker = (image * 0.3).astype(np.uint8)
+    assert sharpness(blurred, corners) < 0.6 * sharpness(image, corners)
+    assert sharpness(darker, corners) == pytest.approx(sharpness(image, corners), rel=0.2)
+
+
+def test_one_line_of_corners_is_not_a_view():
+    frame = FrameDetection(0, "row", np.arange(4), np.stack([np.arange(4) * 30.0 + 50, np.full(4, 100.0)], 1))
+    assert usable_reason(frame, BOARD, 4) == "corners along one line of the board"
+
+
+def _fail(tmp_path, capsys, images):
+    video = _video(tmp_path / "bad.avi", images)
+    out = tmp_path / "camera.yaml"
+    code = main([str(video), "--out", str(out), "--quiet"])
+    message = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and not out.exists() and not (tmp_path / "camera_report.html").exists()
+    assert len(message) == 1 and message[0].startswith("error: ")
+    return message[0]
+
+
+def test_no_board_says_so(tmp_path, capsys):
+    message = _fail(tmp_path, capsys, [np.full((240, 320), 90 + i, np.uint8) for i in range(8)])
+    assert "no board found in any of 8 frames" in message and "--board" in message
+
+
+def test_too_few_views_says_what_to_capture(tmp_path, capsys, waved):
+    message = _fail(tmp_path, capsys, waved[0][:3] + [np.full((240, 320), 90, np.uint8)] * 3)
+    assert "only 3 usable view(s)" in message and "6 are needed" in message and "capture the board" in message
+
+
+def test_one_tilt_everywhere_is_refused(tmp_path, capsys):
+    camera = Camera.from_fov(*SIZE, hfov_deg=60.0)
+    # The board fronto-parallel at eight places: the homographies differ, the focal length is not observable.
+    images = [make_view(BOARD, camera, distance=0.4, offset=(dx, dy))[0]
+              for dx in (-0.08, 0.0, 0.08) for dy in (-0.05, 0.05, 0.0)][:8]
+    message = _fail(tmp_path, capsys, images)
+    assert "one tilt" in message and "tilted" in message
+
+
+def test_mixed_frame_sizes_are_refused():
+    frames = [("a", np.zeros((240, 320), np.uint8)), ("b", np.zeros((480, 640), np.uint8))]
+    with pytest.raises(CalibrationError, match="one camera at one resolution"):
+        detect_frames(iter(frames), OpenCVDetector(BOARD), quiet=True)
+    rvec, tvec = look_at_pose(BOARD, 0.4)
+    assert rvec.shape == (3,)
