@@ -1,10 +1,16 @@
 """`Detector`: ChArUcoNet (+ RefineNet / cornerSubPix) behind the same interface as `OpenCVDetector`.
 
-    image -> ChArUcoNet -> per-cell point and ID softmax -> best cell per ID (score >= threshold)
-          -> board-geometry check (`board_check`): the confident cells' likeliest IDs must fit one
-             homography of the board's plane; every corner it predicts takes the cell found there
+    image -> canonical view (an inverted print negated, a mirrored face flipped: `print_face`)
+          -> ChArUcoNet -> per-cell point and ID softmax, then one of two decodings:
+             the weights' own board (its layout: the same board at any size, inverted or mirrored):
+                best cell per ID (score >= threshold) -> board-geometry check (`board_check`): the
+                confident cells' likeliest IDs must fit one homography of the board's plane; every
+                corner it predicts takes the cell found there;
+             any other board (geometry "markers"): the point head's corners only -> chessboard cells ->
+                the markers in them read and matched to the board's own (`placement`) -> the view they
+                agree on; every corner it predicts takes the cell found there
           -> integer corner pixels -> refine: RefineNet on 24x24 patches (batched), cornerSubPix, or none
-          -> Detection
+          -> corners mapped back from the canonical view -> Detection
 """
 
 from __future__ import annotations
@@ -24,44 +30,65 @@ from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidate
 from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
+from deepcharuco.placement import corners_from_markers, view_is_verified
 from deepcharuco.pose import Pose, estimate_pose
+from deepcharuco.print_face import canonical_view, corners_from_canonical
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 REFINE_MODES = ("refinenet", "subpix", "none")
 DEFAULT_THRESHOLD = 0.3
 PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)
+# "markers" reads the board from its markers, so it needs the point head alone and fits any board.
+DECODINGS = (*GEOMETRY_MODES, "markers")
+
+
+def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
+    """The candidates inside the (width, height) image, not in the padding the network saw."""
+    width, height = image_size
+    inside = (candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height)
+    return CellCandidates(candidates.pixels[inside], candidates.confidence[inside], candidates.id_prob[inside])
 
 
 class Detector:
     """The deep ChArUco detector.
 
     Args:
-        board: the board; must be the one the weights were trained for (default: the weights' board).
+        board: the board (default: the weights' board). A board of another layout than the weights'
+            (grid, dictionary, legacy flag, marker/square ratio) is found by its markers
+            (``geometry="markers"``) with no training; the same board at another size, inverted or
+            mirrored keeps the weights' ID head.
         weights: a ChArUcoNet checkpoint or a bundle with both networks (default: the shipped weights).
         refine: "refinenet" (the paper's best), "subpix" (OpenCV cornerSubPix) or "none" (cell pixels).
         device: "cpu", "cuda", "mps" ...
         refine_weights: RefineNet checkpoint when ``weights`` holds only ChArUcoNet.
-        threshold: the smallest score (point confidence x ID probability) a corner is reported at
-            (default: the operating point stored with the weights, chosen on validation frames; else 0.3).
+        threshold: the smallest score (point confidence x ID probability; "markers": point confidence)
+            a corner is reported at (default: the operating point stored with the weights, chosen on
+            validation frames; else 0.3).
         soft_radius: RefineNet soft-argmax window (cells of 1/8 px) around the argmax; 0 = argmax only.
-        geometry: what the board-geometry check does with the network's corners (see `board_check`):
-            "repair" (default): the confident cells' two likeliest IDs are fitted to one view of the board
+        geometry: how corners get their IDs (default: "repair" for the weights' board, "markers" otherwise):
+            "repair": the confident cells' two likeliest IDs are fitted to one view of the board
             (RANSAC homography, 6 or more agreeing); the corners that view predicts take the confident cells
             found there (wrong IDs dropped, IDs the ID head was unsure of recovered);
             "filter": keep only the corners that fit the view; "none": the paper's decoding as it is.
-            With "repair" or "filter", 6 or more corners that fit no view are all dropped (no answer
-            rather than a wrong pose); fewer than 6 cannot be checked and are returned as found, and
-            `estimate_pose` gives no pose for them.
+            With "repair" or "filter" the view must also show the board's own markers where it puts them
+            (`placement.view_is_verified`: a look-alike board gives nothing), and corners that fit no view
+            (fewer than 6, or IDs that disagree) are decoded by their markers as with "markers", or dropped:
+            no answer rather than a wrong pose. `decode` without the image keeps the older rule: 6 or more
+            corners that fit no view are dropped, fewer are returned unchecked.
+            "markers": the ID head is not used; the markers in the chessboard cells between the point
+            head's corners are read and matched to the board's own, and the view that 2 or more distinct
+            markers agree on names every corner (`deepcharuco.placement`). A board with other markers
+            (another dictionary, other IDs, mirrored) yields nothing.
     """
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
-                 soft_radius: int = 2, geometry: str = "repair"):
+                 soft_radius: int = 2, geometry: str | None = None):
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
-        if geometry not in GEOMETRY_MODES:
-            raise ValueError(f"geometry must be one of {GEOMETRY_MODES}, got {geometry!r}")
+        if geometry is not None and geometry not in DECODINGS:
+            raise ValueError(f"geometry must be one of {DECODINGS}, got {geometry!r}")
         if weights is None:
             weights = DEFAULT_WEIGHTS
             if not weights.is_file():
@@ -69,8 +96,16 @@ class Detector:
                     f"no shipped weights in this version ({weights} is missing): train them with python -m "
                     f"train.charuconet and python -m train.refinenet, then pass weights=..., refine_weights=...")
         self.device = torch.device(device)
-        self.charuconet, self.board, self.checkpoint = load_charuconet(weights, board)
+        self.charuconet, trained_for, self.checkpoint = load_charuconet(weights)
         self.charuconet.to(self.device)
+        self.board = board or trained_for
+        own_board = self.board.same_layout(trained_for)
+        if geometry is None:
+            geometry = "repair" if own_board else "markers"
+        elif geometry != "markers" and not own_board:
+            raise DeepCharucoError(
+                f"geometry={geometry!r} decodes with the ID head of {weights}, trained for {trained_for}, whose "
+                f"layout differs from {self.board}: use geometry='markers' (or leave it out) for this board")
         self.refine = refine
         self.threshold = float(threshold if threshold is not None else self.checkpoint.get("threshold", DEFAULT_THRESHOLD))
         self.soft_radius = int(soft_radius)
@@ -88,13 +123,17 @@ class Detector:
     @torch.inference_mode()
     def detect(self, image: np.ndarray) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size."""
-        gray = to_gray_u8(image)
+        gray = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
         height, width = gray.shape
         # The network sees whole 8x8 cells: pad right and bottom by replicating the border.
         padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
         tensor = torch.from_numpy(padded).to(self.device, torch.float32).div_(255.0)[None, None]
         point_logits, id_logits = self.charuconet(tensor)
-        ids, pixels, scores = self.decode(point_logits[0].cpu(), id_logits[0].cpu(), (width, height))
+        if self.geometry == "markers":
+            candidates = _inside(cell_candidates(point_logits[0].cpu(), None, self.threshold), (width, height))
+            (ids, pixels, scores), _ = corners_from_markers(gray, self.board, candidates)
+        else:
+            ids, pixels, scores = self.decode(point_logits[0].cpu(), id_logits[0].cpu(), (width, height), gray)
         if len(ids) == 0:
             return Detection.empty()
         if self.refine == "refinenet":
@@ -104,18 +143,20 @@ class Detector:
             corners = cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).copy(), (3, 3), (-1, -1), criteria).reshape(-1, 2)
         else:
             corners = pixels
-        return Detection(ids=ids, corners=corners, scores=scores)
+        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
 
-    def decode(self, point_logits: torch.Tensor, id_logits: torch.Tensor, image_size: tuple[int, int]
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def decode(self, point_logits: torch.Tensor, id_logits: torch.Tensor, image_size: tuple[int, int],
+               gray: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One image's ChArUcoNet logits (65, Hc, Wc), (N+1, Hc, Wc) -> integer corner pixels before refinement:
         (ids (M,), pixels (M, 2) float32, scores (M,)), decoded at ``self.threshold`` with ``self.geometry``.
-        ``image_size``: (width, height) of the image before padding."""
+        ``image_size``: (width, height) of the image before padding. With ``gray`` (the image in the board's
+        canonical appearance) a "repair"/"filter" view must also pass the marker check
+        (`placement.view_is_verified`): a look-alike board (other markers) gives no corners."""
+        if self.geometry == "markers":
+            raise DeepCharucoError("geometry='markers' reads the markers from the image: use detect(image)")
         width, height = image_size
         # A score is at most its cell's confidence: cells less confident than the threshold never count.
-        candidates = cell_candidates(point_logits, id_logits, self.threshold)
-        inside = (candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height)
-        candidates = CellCandidates(candidates.pixels[inside], candidates.confidence[inside], candidates.id_prob[inside])
+        candidates = _inside(cell_candidates(point_logits, id_logits, self.threshold), image_size)
         ids, pixels, scores = best_per_id(candidates, self.threshold)
         view = None
         if self.geometry == "filter":
@@ -127,7 +168,14 @@ class Detector:
             view = fit_board_homography(self._board_xy[proposed_ids], proposed_pixels)
             if view is not None:
                 ids, pixels, scores = assign_ids(view, self._board_xy, candidates, (width, height))
-        if self.geometry != "none" and view is None and len(ids) >= MIN_CONSENSUS:
+        if self.geometry == "none":
+            return ids, pixels, scores
+        if gray is not None:
+            if view is None:  # too few corners to check, or IDs that fit no view: the markers may still tell
+                return corners_from_markers(gray, self.board, candidates)[0]
+            if not view_is_verified(gray, self.board, view.homography):
+                return no_corners()  # the corners fit the board's grid, its markers are not there
+        elif view is None and len(ids) >= MIN_CONSENSUS:
             return no_corners()  # enough corners to check, and they fit no view
         return ids, pixels, scores
 

@@ -16,9 +16,14 @@ from deepcharuco.board import BoardSpec
 
 
 def canonical_view(gray: np.ndarray, board: BoardSpec) -> np.ndarray:
-    """(H, W) uint8 image -> the (H, W) uint8 image in which ``board`` looks as OpenCV draws it."""
+    """(H, W) uint8 image -> the (H, W) uint8 image in which ``board`` looks as OpenCV draws it.
+
+    An inverted print is negated about the image's brightest level (``max - gray``), so the
+    exposure of the frame is kept."""
     if board.inverted:
-        gray = 255 - gray
+        # Negate about the image's own white, not 255: a dark frame must stay dark (what the networks
+        # learnt), not turn into a nearly white one.
+        gray = int(gray.max()) - gray
     if board.mirrored:
         gray = gray[:, ::-1]
     return np.ascontiguousarray(gray)

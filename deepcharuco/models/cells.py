@@ -58,20 +58,29 @@ class CellCandidates:
         return len(self.confidence)
 
 
-def cell_candidates(point_logits: torch.Tensor, id_logits: torch.Tensor, min_confidence: float) -> CellCandidates:
-    """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``."""
+def point_candidates(point_logits: torch.Tensor, min_confidence: float) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+    """One image's point logits (65, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``:
+    (flat cell indices (M,) tensor, pixels (M, 2) float32 x, y of each cell's likeliest pixel, confidence (M,) float32)."""
     point_prob = torch.softmax(point_logits.float(), dim=0)
-    id_prob = torch.softmax(id_logits.float(), dim=0)
     confidence = (1.0 - point_prob[-1]).flatten()
     position = point_prob[:-1].argmax(dim=0).flatten()  # 0..63 inside each cell
     cells = torch.nonzero(confidence >= min_confidence).flatten()
     cols = point_logits.shape[2]
     pos, cells_np = position[cells].numpy(), cells.numpy()
     pixels = np.stack([(cells_np % cols) * CELL + pos % CELL, (cells_np // cols) * CELL + pos // CELL], axis=1)
+    return cells, pixels.astype(np.float32).reshape(-1, 2), confidence[cells].numpy().astype(np.float32)
+
+
+def cell_candidates(point_logits: torch.Tensor, id_logits: torch.Tensor | None, min_confidence: float) -> CellCandidates:
+    """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``.
+    Without ``id_logits`` (a board the ID head does not know) ``id_prob`` is (M, 0)."""
+    cells, pixels, confidence = point_candidates(point_logits, min_confidence)
+    if id_logits is None:
+        return CellCandidates(pixels=pixels, confidence=confidence, id_prob=np.zeros((len(cells), 0), np.float32))
+    id_prob = torch.softmax(id_logits.float(), dim=0)
     num_corners = id_logits.shape[0] - 1
     return CellCandidates(
-        pixels=pixels.astype(np.float32).reshape(-1, 2),
-        confidence=confidence[cells].numpy().astype(np.float32),
+        pixels=pixels, confidence=confidence,
         id_prob=id_prob[:-1].flatten(1)[:, cells].T.numpy().astype(np.float32).reshape(-1, num_corners),
     )
 

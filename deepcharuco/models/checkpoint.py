@@ -112,12 +112,21 @@ def read_checkpoint(path: str | Path, kind: str) -> dict:
 
 
 def load_charuconet(path: str | Path, board: BoardSpec | None = None) -> tuple[ChArUcoNet, BoardSpec, dict]:
-    """(network in eval mode, batch norm folded, its board, the checkpoint) from ``path``; ``board``, when given, must match."""
+    """(network in eval mode, batch norm folded, its board, the checkpoint) from ``path``.
+
+    ``board``, when given, must have the layout the ID head was trained for (`BoardSpec.same_layout`:
+    the same board printed at another size, inverted or mirrored fits); the board returned is then
+    ``board`` itself, so poses come out in its size."""
     data = read_checkpoint(path, "charuconet")
     trained_for = BoardSpec.from_dict(data["board"])
-    if board is not None and board != trained_for:
-        raise CheckpointError(f"{path} was trained for {trained_for}, not for {board}: "
-                              f"train a ChArUcoNet for this board (python -m train.charuconet --board ...)")
+    if board is not None:
+        if not board.same_layout(trained_for):
+            raise CheckpointError(
+                f"{path}'s ID head was trained for {trained_for}, whose layout (grid, dictionary, legacy, "
+                f"marker/square ratio) differs from {board}: use Detector(board=...) without these weights' "
+                "ID head (geometry='markers', any board), or train a ChArUcoNet on renders of this board "
+                "(python -m datagen.render --board B.yaml, then python -m train.charuconet)")
+        trained_for = board
     model = ChArUcoNet(ChArUcoNetConfig.from_dict(data["config"]))
     _load_state(model, data, path)
     return fold_batch_norm(model.eval()), trained_for, data

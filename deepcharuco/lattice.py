@@ -1,0 +1,71 @@
+"""Chessboard cells from corner candidates, whatever the board.
+
+A ChArUco board's inner corners are X-junctions on a square lattice. Four of them bound each
+square: corner ``a``, its neighbours ``b`` and ``c`` along the two lattice directions and ``d``
+opposite ``a``, where ``d`` lies close to ``b + c - a`` (a parallelogram; perspective bends
+this by a little over one square). `find_cells` finds such quads among the candidates of a
+corner detector that knows nothing of the board; which square of which board each quad is,
+is for the markers around it to say (`marker_reader`, `placement`).
+
+A cell's quad is ordered (a, b, d, c): unit-square corners (0, 0), (1, 0), (1, 1), (0, 1),
+with ``cross(b - a, c - a) > 0`` in image coordinates (x right, y down). A board seen from
+its printed side maps its own X (right) and Y (down) axes the same way round, so a cell's
+unit frame differs from the board's square frame by a rotation of 0-3 quarter turns only.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+NEIGHBOURS = 8  # nearest candidates a corner pairs up: its 4 lattice neighbours and 4 diagonals
+# d may miss b + c - a by this fraction of the shorter side (perspective, lens distortion, jitter).
+CLOSURE_TOLERANCE = 0.25
+MAX_SIDE_RATIO = 2.5  # sides of one cell: foreshortening stretches them, not beyond this
+MIN_SIDE_PX = 4.0  # smaller squares hold markers too small to read
+
+
+def find_cells(pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) candidate pixels -> (Q, 4) int64 candidate indices (a, b, d, c) of chessboard cells.
+
+    Each cell appears once (its four corners as a set); cells may overlap when candidates are
+    wrong: the markers they frame decide which are real.
+    """
+    points = np.asarray(pixels, np.float64).reshape(-1, 2)
+    count = len(points)
+    if count < 4:
+        return np.zeros((0, 4), np.int64)
+    k = min(NEIGHBOURS, count - 1)
+    distance = np.linalg.norm(points[:, None] - points[None], axis=2)
+    np.fill_diagonal(distance, np.inf)
+    near = np.argsort(distance, axis=1, kind="stable")[:, :k]  # (N, k)
+    first, second = np.triu_indices(k, 1)
+    a = np.repeat(np.arange(count), len(first))
+    b, c = near[:, first].ravel(), near[:, second].ravel()
+    ab, ac = points[b] - points[a], points[c] - points[a]
+    cross = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
+    b, c = np.where(cross > 0, b, c), np.where(cross > 0, c, b)  # right-handed: (b - a) x (c - a) > 0
+    ab, ac = points[b] - points[a], points[c] - points[a]
+    side_ab, side_ac = np.linalg.norm(ab, axis=1), np.linalg.norm(ac, axis=1)
+    shorter = np.minimum(side_ab, side_ac)
+    sine = np.abs(ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]) / np.maximum(side_ab * side_ac, 1e-9)
+    plausible = (shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter) & (sine > 0.3)
+    a, b, c, shorter = a[plausible], b[plausible], c[plausible], shorter[plausible]
+    expected = points[b] + points[c] - points[a]
+    gap = np.linalg.norm(expected[:, None] - points[None], axis=2)  # (P, N)
+    d = gap.argmin(axis=1)
+    closes = gap[np.arange(len(d)), d] <= CLOSURE_TOLERANCE * shorter
+    quads = np.stack([a, b, d, c], axis=1)[closes]
+    quads = quads[(quads[:, 2] != quads[:, 0]) & (quads[:, 2] != quads[:, 1]) & (quads[:, 2] != quads[:, 3])]
+    if len(quads) == 0:
+        return np.zeros((0, 4), np.int64)
+    _, unique = np.unique(np.sort(quads, axis=1), axis=0, return_index=True)
+    return quads[np.sort(unique)].astype(np.int64)
+
+
+def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels, (Q, 4) quads -> (Q, 3, 3) homographies from each cell's unit square to the image."""
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    points = np.asarray(pixels, np.float32)
+    return np.stack([cv2.getPerspectiveTransform(unit, points[quad]) for quad in quads]) if len(quads) \
+        else np.zeros((0, 3, 3))

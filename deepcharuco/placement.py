@@ -1,0 +1,176 @@
+"""Where the board lies: markers read in chessboard cells vote for one view of the board.
+
+    corner candidates -> cells (`lattice.find_cells`) -> each cell and its four edge neighbours
+    read as markers (`marker_reader`) -> every marker matched to the board proposes a homography
+    (its square's place on the board, the cell's frame, the quarter turn between them) -> the
+    proposal most other matched markers agree with wins, if at least ``MIN_MARKERS`` distinct
+    markers back it -> its homography, refitted on the backing squares, then on the corners it
+    claims, predicts every corner; each takes the candidate found there (`board_check.assign_ids`).
+
+Nothing here is board-specific training: any dictionary, size and layout reads the same way,
+and a board of another layout or dictionary finds none of its markers among ours. Board units
+are metres (``BoardSpec``'s frame); pixels OpenCV's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.board_check import BoardView, assign_ids
+from deepcharuco.detection import no_corners
+from deepcharuco.lattice import cell_homographies, find_cells
+from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
+from deepcharuco.models.cells import CellCandidates
+
+# Two distinct markers in agreement: one read can be a fluke (4x4 markers have 16 bits), two that also
+# agree on where the board is are not.
+MIN_MARKERS = 2
+# The final view's own check: of the board's markers it puts wholly in the image and can read, this
+# fraction must read best as the marker printed there (a look-alike board reads as chance, 1 / markers).
+MIN_MARKER_AGREEMENT = 0.5
+AGREEMENT = 0.3  # two markers agree when one's view puts the other's square within this many square sides
+# A cell's edge neighbours: the markers of a ChArUco board sit in the squares next to the black ones.
+NEIGHBOUR_OFFSETS = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], np.float64)
+
+
+@dataclass(frozen=True)
+class MarkerView:
+    """A board view backed by markers: ``view`` (homography board metres -> pixels), ``marker_ids``
+    (distinct marker IDs that back it) and ``reads`` (how many square reads matched those markers)."""
+
+    view: BoardView
+    marker_ids: np.ndarray
+    reads: int
+
+
+def _translate(dx: float, dy: float) -> np.ndarray:
+    return np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1]], np.float64)
+
+
+def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray) -> MarkerView | None:
+    """The view of ``board`` that the markers around ``pixels`` (N, 2) corner candidates agree on, or None.
+
+    ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`)."""
+    quads = find_cells(pixels)
+    if len(quads) == 0:
+        return None
+    cells = cell_homographies(pixels, quads)  # (Q, 3, 3) unit square -> image
+    # Every cell and its edge neighbours: (Q * 5) squares, each with its own unit frame.
+    shifts = np.stack([_translate(*offset) for offset in NEIGHBOUR_OFFSETS])
+    # The same square is read from up to five cells: each read is one more vote, and a square badly
+    # extrapolated from one cell is read well from another.
+    squares = np.einsum("qij,sjk->qsik", cells, shifts).reshape(-1, 3, 3)
+    markers = board_markers(board)
+    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio)
+    matches = match_markers(bits, contrast, markers)
+    if len(np.unique(matches.marker)) < MIN_MARKERS:
+        return None
+    # Each proposal: board square units -> image, via its square's frame and the quarter turn.
+    square_xy = markers.squares[matches.marker].astype(np.float64)
+    proposals = np.stack([
+        squares[read] @ QUARTER_TURNS[turn] @ _translate(-sx, -sy)
+        for read, turn, (sx, sy) in zip(matches.read, matches.turn, square_xy)
+    ])
+    # Proposal i agrees with proposal j when it puts j's square where j was read, the same way round:
+    # compare the square's centre and its first corner.
+    side = _square_sides(squares[matches.read])
+    agrees = np.ones((len(proposals), len(proposals)), bool)
+    for point in ((0.5, 0.5), (0.0, 0.0)):
+        board_points = square_xy + point
+        observed = _apply_each(proposals, board_points)  # (K, 2): where j itself puts that point
+        mapped = np.einsum("iab,jb->ija", proposals, np.c_[board_points, np.ones(len(board_points))])
+        with np.errstate(divide="ignore", invalid="ignore"):  # a far-off proposal may send a point to infinity
+            predicted = mapped[:, :, :2] / mapped[:, :, 2:]
+        agrees &= np.nan_to_num(np.linalg.norm(predicted - observed[None], axis=2), nan=np.inf) < AGREEMENT * side[None]
+    support = np.array([_support(matches.marker[row], matches.ncc[row]) for row in agrees])
+    best = int(np.argmax(support))
+    if len(np.unique(matches.marker[agrees[best]])) < MIN_MARKERS:
+        return None
+    backing = np.flatnonzero(agrees[best])
+    # Refit on the backing squares' four corners each (board square units -> image).
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    board_points = (square_xy[backing][:, None] + unit[None]).reshape(-1, 2)
+    image_points = _apply_each(np.repeat(proposals[backing], 4, axis=0), board_points)
+    homography, _ = cv2.findHomography(board_points, image_points, 0)
+    if homography is None:
+        return None
+    to_metres = np.diag([1.0 / board.square_length, 1.0 / board.square_length, 1.0])
+    view = BoardView(homography=homography @ to_metres, inliers=np.ones(len(board_points), bool))
+    return MarkerView(view=view, marker_ids=np.unique(markers.ids[matches.marker[backing]]), reads=len(backing))
+
+
+def marker_agreement(gray: np.ndarray, board: BoardSpec, homography: np.ndarray) -> tuple[int, int]:
+    """Read every marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly in
+    ``gray`` (canonical appearance). -> (markers whose read correlates best with the marker printed there,
+    in the right turn, among all the board's markers and turns; readable markers)."""
+    markers = board_markers(board)
+    scale = np.diag([board.square_length, board.square_length, 1.0])
+    squares = np.stack([homography @ scale @ _translate(sx, sy) for sx, sy in markers.squares.astype(np.float64)])
+    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio)
+    readable = np.flatnonzero(contrast > 0)
+    if len(readable) == 0:
+        return 0, 0
+    ncc = correlate(bits[readable], markers).reshape(len(readable), -1)
+    return int(np.sum(ncc.argmax(axis=1) == readable * 4)), len(readable)
+
+
+def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray) -> bool:
+    """True when at least `MIN_MARKERS` markers, and `MIN_MARKER_AGREEMENT` of the readable ones, read as
+    the board's own markers in the view ``homography`` (board metres -> pixels) of canonical ``gray``."""
+    agreeing, readable = marker_agreement(gray, board, homography)
+    return agreeing >= MIN_MARKERS and agreeing >= MIN_MARKER_AGREEMENT * readable
+
+
+def _support(marker: np.ndarray, ncc: np.ndarray) -> float:
+    """The evidence of agreeing proposals: each distinct marker counts once, by its best correlation."""
+    best: dict[int, float] = {}
+    for m, value in zip(marker.tolist(), ncc.tolist()):
+        best[m] = max(best.get(m, 0.0), value)
+    return sum(best.values())
+
+
+def _square_sides(squares: np.ndarray) -> np.ndarray:
+    """(R, 3, 3) unit-square frames -> (R,) square root of each square's area in the image (pixels)."""
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    corners = np.stack([_apply_each(squares, np.tile(point, (len(squares), 1))) for point in unit], axis=1)
+    x, y = corners[:, :, 0], corners[:, :, 1]
+    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+    return np.sqrt(area)
+
+
+def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) homographies, (K, 2) points -> (K, 2): each point through its own homography."""
+    mapped = np.einsum("kij,kj->ki", homographies, np.c_[xy, np.ones(len(xy))])
+    return mapped[:, :2] / mapped[:, 2:]
+
+
+def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates,
+                         refits: int = 2) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView | None]:
+    """The board's corners among ``candidates``, identified by the markers around them, in a view whose
+    markers read as the board's own (`view_is_verified`).
+
+    Returns ((ids (K,), pixels (K, 2) float32, scores (K,) float32) strongest first, the marker view or
+    None). The view's homography is refitted ``refits`` times on the corners it claimed (RANSAC), which
+    follows a mildly distorted lens better than the markers' squares alone."""
+    found = find_marker_view(gray, board, candidates.pixels)
+    if found is None:
+        return no_corners(), None
+    board_xy = board.corner_points()[:, :2]
+    height, width = gray.shape
+    ids, pixels, scores = assign_ids(found.view, board_xy, candidates, (width, height))
+    view = found.view
+    for _ in range(refits):
+        if len(ids) < 6:
+            break
+        homography, mask = cv2.findHomography(board_xy[ids], pixels.astype(np.float64), cv2.RANSAC, 3.0)
+        if homography is None:
+            break
+        view = BoardView(homography=homography, inliers=mask.ravel().astype(bool))
+        ids, pixels, scores = assign_ids(view, board_xy, candidates, (width, height))
+    if not view_is_verified(gray, board, view.homography):
+        return no_corners(), None
+    return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)
