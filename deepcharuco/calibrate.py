@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -83,7 +84,18 @@ def default_report_path(out: str | Path) -> Path:
     return out.with_name(out.stem + "_report.html")
 
 
+def check_writable(path: Path) -> None:
+    """Refuse, before any work, an output that names a folder or lies where nothing can be written."""
+    if path.is_dir():
+        raise DeepCharucoError(f"{path} is a folder: give the camera file's name, e.g. {path / 'camera.yaml'}")
+    existing = next(p for p in [path.parent, *path.parent.parents] if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise DeepCharucoError(f"cannot write {path}: {existing} is not a writable folder; choose another --out")
+
+
 def run(args: argparse.Namespace) -> CalibrationResult:
+    for path in [Path(args.out)] + ([] if args.no_report else [Path(args.report) if args.report else default_report_path(args.out)]):
+        check_writable(path)
     board = BoardSpec.load(args.board) if args.board else BoardSpec()
     detector = make_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source, args.max_frames)

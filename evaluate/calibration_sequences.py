@@ -19,7 +19,7 @@ farther; one sweep lasts `SWEEP_S` seconds and ``--frames`` frames sample it.
 Distortion (`datagen.lens`): each frame is rendered by Cycles through a wider pinhole camera and
 resampled into the distorted image, so a corner lies exactly where ``cv2.projectPoints`` with the
 distorted camera puts it; the render's radiance is distorted before the sensor adds its noise.
-Shards follow DESIGN.md's schema; K is the pinhole matrix and ``meta/dist_k1 .. dist_k3`` hold the
+Shards follow docs/conventions.md's schema; K is the pinhole matrix and ``meta/dist_k1 .. dist_k3`` hold the
 distortion (OpenCV's k1 k2 p1 p2 k3). The room is the scene sampler's (`datagen.scene`), without
 floor and clutter: the camera moves around the board here, which for calibration is the same as the
 board moving in front of the camera (only their relative pose counts).
@@ -52,6 +52,7 @@ GOOD_LUX = 400.0
 DARK_LUX = 1.0
 SWEEP_S = 30.0  # one pass of the waving path; frames sample it
 TILT_DEG = 40.0
+REACH = (0.32, 0.30)  # the board centre's sweep either side of the image centre, in image widths / heights
 SEED_OFFSET = 100  # camera c draws from default_rng([seed, 100 + c, ...]): never evaluate.sequences' streams
 
 
@@ -120,8 +121,8 @@ def hand_waved_pose(path: WavingPath, t: float, board: BoardSpec, K: np.ndarray,
     width, height = image_size
     phase = 2 * math.pi * t / SWEEP_S
     p = path.phases
-    target = np.array([(width - 1) / 2 + 0.32 * width * math.sin(3 * phase + p[0]),
-                       (height - 1) / 2 + 0.30 * height * math.sin(2 * phase + p[1])])
+    target = np.array([(width - 1) / 2 + REACH[0] * width * math.sin(3 * phase + p[0]),
+                       (height - 1) / 2 + REACH[1] * height * math.sin(2 * phase + p[1])])
     ray = np.append(pixels_to_rays(target[None], K, dist)[0], 1.0)
     ray /= np.linalg.norm(ray)
     tilt_x = TILT_DEG * math.sin(5 * phase + p[2])
@@ -345,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     problems = [f"--{name} must be >= {low}, got {getattr(args, name)}"
-                for name, low in (("frames", 6), ("samples", 1), ("width", 64), ("height", 48), ("workers", 1),
+                for name, low in (("frames", 2), ("samples", 1), ("width", 64), ("height", 48), ("workers", 1),
                                   ("threads", 0), ("seed", 0)) if getattr(args, name) < low]
     cameras = args.cameras if args.cameras is not None else list(range(len(K1_VALUES)))
     problems += [f"--cameras takes 0..{len(K1_VALUES) - 1}, got {c}" for c in cameras if not 0 <= c < len(K1_VALUES)]

@@ -107,6 +107,10 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         out.append(("Held-out renders", "Random frames of the training distribution rendered with a held-out seed "
                     "(shake, shadows, clutter, distractor boards, 0.2-1000 lux), by illuminance at the board: mean "
                     "corner accuracy, pose accuracy (eps_re < 3 px), confidently wrong poses.", rows, []))
+    if results.get("calibration"):
+        from evaluate.calibration_eval import calibration_sections
+
+        out += calibration_sections(results["calibration"], LABELS)
     timing = results.get("timing")
     if timing:
         rows = [["configuration", "fps here (detect + pose)", "paper (GTX 1080)"]]

@@ -29,7 +29,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.opencv_detector import OpenCVDetector
-from evaluate import documents, experiments, figures
+from evaluate import calibration_eval, documents, experiments, figures
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
 from evaluate.protocols import LEVELS
 
@@ -163,6 +163,11 @@ def run_report(args: argparse.Namespace) -> dict:
                                        "blur_px": _maybe_float(frame.meta.get("blur_px")),
                                        **{n: s.to_dict() for s, n in zip(scores, names)}})
 
+    if not args.no_calibration and calibration_eval.available(args.calibration):
+        # Rendered calibration sequences (python -m evaluate.calibration_sequences), when there are any.
+        results["calibration"] = calibration_eval.calibration_experiment(
+            {n: detectors[n] for n in ("deep", "opencv") if n in detectors}, args.calibration, board, args.quiet)
+
     results["targets"] = experiments.targets(results)
     results["seconds"] = round(time.perf_counter() - started, 1)
     notes.append(_summary(results))
@@ -225,6 +230,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequences", default=str(DEFAULT_SEQUENCES), help="rendered sequences (default: %(default)s)")
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="held-out renders (default: %(default)s)")
     parser.add_argument("--captures", default=None, help="auto-labelled captures (default: none)")
+    parser.add_argument("--calibration", default="data/calibration",
+                        help="calibration sequences (python -m evaluate.calibration_sequences), evaluated when present "
+                             "(default: %(default)s)")
+    parser.add_argument("--no-calibration", action="store_true", help="skip the calibration section")
     parser.add_argument("--board", default=None, help="BoardSpec file (default: the test shards' board)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",

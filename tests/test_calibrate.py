@@ -172,3 +172,31 @@ def test_mixed_frame_sizes_are_refused():
         detect_frames(iter(frames), OpenCVDetector(BOARD), quiet=True)
     rvec, tvec = look_at_pose(BOARD, 0.4)
     assert rvec.shape == (3,)
+
+
+def test_an_output_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys):
+    code = main(["missing.avi", "--out", str(tmp_path), "--quiet"])
+    assert code == 2 and "is a folder" in capsys.readouterr().err
+
+
+def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, waved):
+    from datagen.shards import FrameLabels, write_shard
+    from evaluate.calibration_eval import calibration_experiment, calibration_sections
+
+    images, K, dist = waved
+    meta = {"has_board": True, "sequence": "k1-0.3-good",
+            **{f"dist_{n}": float(v) for n, v in zip(("k1", "k2", "p1", "p2", "k3"), dist)}}
+    frames = [FrameLabels(image=image, corners=np.full((16, 2), np.nan, np.float32), visible=np.zeros(16, bool),
+                          K=K.astype(np.float32), rvec=np.zeros(3), tvec=np.zeros(3), meta=meta) for image in images]
+    write_shard(tmp_path, 0, frames, BOARD, {"command": "test"})
+    results = calibration_experiment({"opencv": OpenCVDetector(BOARD)}, tmp_path, BOARD, quiet=True)
+    cell = results["table"][0]["opencv"]
+    assert cell["calibrated"] and cell["views"] >= 40 and cell["frames_with_corners"] == FRAMES
+    assert abs(cell["fx_pct"]) < 0.6 and abs(cell["cx_px"]) < 2.5
+    # The image's corners lie beyond the views' corners (the board never reaches them): the solved distortion is
+    # extrapolated there, yet must hold most of the true one.
+    assert cell["true_corner_distortion_px"] > 20
+    assert max(cell["corner_distortion_error_px"], cell["mapping_error_px"]) < 0.15 * cell["true_corner_distortion_px"]
+    assert [t["sequence"] for t in results["targets"]] == ["k1-0.3-good"]
+    (title, text, rows, _), = calibration_sections(results)
+    assert "Targets met" in text and rows[1][:2] == ["k1-0.3-good", "opencv"]
