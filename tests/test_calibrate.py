@@ -200,3 +200,7 @@ def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, w
     assert [t["sequence"] for t in results["targets"]] == ["k1-0.3-good"]
     (title, text, rows, _), = calibration_sections(results)
     assert "Targets met" in text and rows[1][:2] == ["k1-0.3-good", "opencv"]
+    from evaluate.documents import sections
+
+    titles = [section[0] for section in sections({"calibration": results})]
+    assert "Camera calibration on rendered sequences" in titles  # the evaluation report shows it
