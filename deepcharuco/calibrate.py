@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> CalibrationResult:
         raise CalibrationError(f"no frames could be read from {args.source}: give a video, a folder of images or a "
                                f"camera index that delivers frames")
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views)
-    result = calibrate(frames, board, size, args.model, options)
+    result = calibrate(frames, board, size, args.model, options, fix_k3=args.fix_k3)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_calibration(out, result, board, args.detector)
@@ -140,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="corner detector (the deep one finds boards in the dark and under blur)")
     parser.add_argument("--model", choices=MODELS, default="pinhole",
                         help="pinhole: k1 k2 p1 p2 k3; rational: + k4 k5 k6; fisheye: OpenCV's fisheye k1..k4")
+    parser.add_argument("--fix-k3", action="store_true",
+                        help="keep k3 at 0 (pinhole/rational): for few views or a small board, where a free k3 bends "
+                             "the model beyond the corners seen")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep)")
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
@@ -165,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
                 if getattr(args, name) < low]
     if args.source.isdigit() and not Path(args.source).exists() and args.max_frames is None:
         problems.append("a live camera needs --max-frames (how many frames to capture)")
+    if args.fix_k3 and args.model == "fisheye":
+        problems.append("--fix-k3 is for the pinhole and rational models (fisheye has k1..k4)")
     if args.max_views < args.min_views:
         problems.append(f"--max-views ({args.max_views}) must be >= --min-views ({args.min_views})")
     if problems:

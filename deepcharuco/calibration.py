@@ -324,17 +324,18 @@ class _Solution:
     std: dict[str, float]
 
 
-def _flags(model: str) -> int:
-    if model == "pinhole":
-        return 0
-    if model == "rational":
-        return cv2.CALIB_RATIONAL_MODEL
-    raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+def _flags(model: str, fix_k3: bool) -> int:
+    if model not in ("pinhole", "rational"):
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    # k3 fixed at 0: the usual choice for webcam lenses and few views, where a free k3 fits the noise
+    # and bends the model where no corner was seen.
+    return (cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0) | (cv2.CALIB_FIX_K3 if fix_k3 else 0)
 
 
 def solve(object_points: list[np.ndarray], image_points: list[np.ndarray], image_size: tuple[int, int],
-          model: str) -> _Solution:
-    """One solve of OpenCV's calibration. object_points[v]: (N_v, 3), image_points[v]: (N_v, 2)."""
+          model: str, fix_k3: bool = False) -> _Solution:
+    """One solve of OpenCV's calibration. object_points[v]: (N_v, 3), image_points[v]: (N_v, 2).
+    ``fix_k3``: keep k3 at 0 (pinhole and rational models)."""
     try:
         if model == "fisheye":
             flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
@@ -348,11 +349,12 @@ def solve(object_points: list[np.ndarray], image_points: list[np.ndarray], image
             criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
             _, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
                 [p.astype(np.float32) for p in object_points], [p.astype(np.float32) for p in image_points],
-                image_size, None, None, flags=_flags(model), criteria=criteria)
+                image_size, None, None, flags=_flags(model, fix_k3), criteria=criteria)
             count = 5 if model == "pinhole" else 8
             dist = np.asarray(dist, np.float64).ravel()[:count]
             names = STD_NAMES[:4 + count]
-            std = {name: float(v) for name, v in zip(names, np.asarray(std_intrinsics).ravel()[:len(names)])}
+            std = {name: float(v) for name, v in zip(names, np.asarray(std_intrinsics).ravel()[:len(names)])
+                   if not (fix_k3 and name == "k3")}
     except cv2.error as exc:
         raise CalibrationError(f"OpenCV's {model} calibration failed ({str(exc).strip().splitlines()[-1]}): capture "
                                f"more views covering the whole image at varied tilts") from None
@@ -373,8 +375,11 @@ def reproject(object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: 
 
 
 def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[int, int], model: str = "pinhole",
-              options: SelectionOptions | None = None) -> CalibrationResult:
-    """Select views from ``frames``, solve, reject outliers and re-solve (module docstring)."""
+              options: SelectionOptions | None = None, *, fix_k3: bool = False) -> CalibrationResult:
+    """Select views from ``frames``, solve, reject outliers and re-solve (module docstring). ``fix_k3``:
+    keep k3 at 0 (not for fisheye)."""
+    if fix_k3 and model == "fisheye":
+        raise ValueError("fix_k3 applies to the pinhole and rational models, not fisheye")
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     options = options or SelectionOptions()
@@ -386,7 +391,7 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     for rounds in range(1, MAX_ROUNDS + 1):
         active = [v for v in views if v.index not in outliers]
         solution = solve([board.object_points()[v.ids[masks[v.index]]] for v in active],
-                         [v.corners[masks[v.index]] for v in active], image_size, model)
+                         [v.corners[masks[v.index]] for v in active], image_size, model, fix_k3)
         residuals = [v.corners[masks[v.index]] - reproject(board.object_points()[v.ids[masks[v.index]]], r, t,
                                                            solution.K, solution.dist, model)
                      for v, r, t in zip(active, solution.rvecs, solution.tvecs)]
@@ -414,7 +419,8 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     camera = Camera(K=solution.K, dist=solution.dist, image_size=image_size)
     return CalibrationResult(model=model, camera=camera, rms=rms, std=solution.std, views=used_views,
                              per_view_rms=view_rms, rvecs=solution.rvecs, tvecs=solution.tvecs, residuals=residuals,
-                             decisions=decisions, frames=len(frames), rounds=rounds)
+                             decisions=decisions, frames=len(frames), rounds=rounds,
+                             notes=["k3 fixed at 0"] if fix_k3 else [])
 
 
 def _reject_outliers(active: list[FrameDetection], norms: list[np.ndarray], view_rms: np.ndarray, rms: float,

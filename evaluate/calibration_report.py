@@ -144,7 +144,8 @@ def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[s
     summary = (f"**RMS reprojection error {result.rms:.3f} px** over {sum(len(v.ids) for v in result.views)} corners of "
                f"{kept} views, {result.model} model, {width}x{height} images. {result.frames} frames read, {with_corners} "
                f"with board corners; solved {result.rounds} time(s) (outliers rejected in between). Board: "
-               f"{board.squares_x}x{board.squares_y} {board.dictionary}, {board.num_corners} corners.")
+               f"{board.squares_x}x{board.squares_y} {board.dictionary}, {board.num_corners} corners."
+               + "".join(f" {note[0].upper()}{note[1:]}." for note in result.notes))
     out = [("Summary", summary, None, []),
            ("Parameters", "Values and standard deviations (OpenCV's calibrateCameraExtended; the fisheye solver gives "
                           "none).", parameter_rows(result), ["distortion"]),

@@ -204,3 +204,9 @@ def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, w
 
     titles = [section[0] for section in sections({"calibration": results})]
     assert "Camera calibration on rendered sequences" in titles  # the evaluation report shows it
+
+
+def test_fix_k3_keeps_k3_at_zero(detections):
+    result = calibrate(detections, BOARD, SIZE, fix_k3=True)
+    assert result.camera.dist[4] == 0.0 and "k3" not in result.std and "k1" in result.std
+    assert result.notes == ["k3 fixed at 0"]
