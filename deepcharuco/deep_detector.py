@@ -30,7 +30,7 @@ from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidate
 from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
-from deepcharuco.placement import corners_from_markers, view_is_verified
+from deepcharuco.placement import corners_from_markers, marker_view_verified
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, corners_from_canonical
 
@@ -39,6 +39,9 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 REFINE_MODES = ("refinenet", "subpix", "none")
 DEFAULT_THRESHOLD = 0.3
 PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)
+# Longest side the network searches at: squares of ~12-64 px are what it finds best (trained at
+# 320x240); a 1280x720 frame is searched at 640x360 and its corners refined at full resolution.
+WORKING_SIZE = 640
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
 
@@ -66,6 +69,9 @@ class Detector:
             a corner is reported at (default: the operating point stored with the weights, chosen on
             validation frames; else 0.3).
         soft_radius: RefineNet soft-argmax window (cells of 1/8 px) around the argmax; 0 = argmax only.
+        working_size: longest image side the network searches at first (default 640); larger images are
+            reduced to it, then to twice it ... up to full resolution until the board is found, and their
+            corners refined again at full resolution. None: native resolution only.
         geometry: how corners get their IDs (default: "repair" for the weights' board, "markers" otherwise):
             "repair": the confident cells' two likeliest IDs are fitted to one view of the board
             (RANSAC homography, 6 or more agreeing); the corners that view predicts take the confident cells
@@ -84,7 +90,7 @@ class Detector:
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
-                 soft_radius: int = 2, geometry: str | None = None):
+                 soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE):
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
         if geometry is not None and geometry not in DECODINGS:
@@ -110,6 +116,9 @@ class Detector:
         self.threshold = float(threshold if threshold is not None else self.checkpoint.get("threshold", DEFAULT_THRESHOLD))
         self.soft_radius = int(soft_radius)
         self.geometry = geometry
+        if working_size is not None and working_size < 2 * CELL:
+            raise ValueError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
+        self.working_size = working_size
         self._board_xy = self.board.corner_points()[:, :2]
         self.refinenet = None
         if refine == "refinenet":
@@ -122,8 +131,42 @@ class Detector:
 
     @torch.inference_mode()
     def detect(self, image: np.ndarray) -> Detection:
-        """Find the board's corners in a uint8 grayscale (or BGR) image of any size."""
-        gray = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
+        """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
+
+        Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
+        that, up to full resolution, until a verified board is found; each corner is refined again in the
+        full-resolution image. Large boards are found where the network sees them best, and a large image
+        costs little when the board is found at the first level."""
+        full = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
+        height, width = full.shape
+        for gray in self._search_levels(full):
+            ids, pixels, scores = self._find(gray, full)
+            if len(ids):
+                break
+        else:
+            return Detection.empty()
+        corners = self._refine(gray, pixels)
+        if gray is not full:
+            ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
+            corners = (corners + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
+            corners = self._refine(full, corners, window_scale=float(ratio.max()))
+        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
+
+    def _search_levels(self, full: np.ndarray):
+        """The images the board is searched in, coarse first: ``working_size``, then twice that, ... up to
+        ``full`` itself (a board whose squares are too small for the coarse level is found at a finer one)."""
+        height, width = full.shape
+        size = self.working_size
+        while size is not None and size < max(height, width):
+            scale = size / max(height, width)
+            yield cv2.resize(full, (max(1, round(width * scale)), max(1, round(height * scale))),
+                             interpolation=cv2.INTER_AREA)
+            size *= 2
+        yield full
+
+    def _find(self, gray: np.ndarray, full: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``;
+        markers are read in ``full``, the same image at full resolution."""
         height, width = gray.shape
         # The network sees whole 8x8 cells: pad right and bottom by replicating the border.
         padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
@@ -131,27 +174,30 @@ class Detector:
         point_logits, id_logits = self.charuconet(tensor)
         if self.geometry == "markers":
             candidates = _inside(cell_candidates(point_logits[0].cpu(), None, self.threshold), (width, height))
-            (ids, pixels, scores), _ = corners_from_markers(gray, self.board, candidates)
-        else:
-            ids, pixels, scores = self.decode(point_logits[0].cpu(), id_logits[0].cpu(), (width, height), gray)
-        if len(ids) == 0:
-            return Detection.empty()
+            return corners_from_markers(gray, self.board, candidates, read_gray=full)[0]
+        return self.decode(point_logits[0].cpu(), id_logits[0].cpu(), (width, height), gray, full)
+
+    def _refine(self, gray: np.ndarray, pixels: np.ndarray, window_scale: float = 1.0) -> np.ndarray:
+        """(N, 2) corner pixels -> (N, 2) float32 refined in ``gray`` by ``self.refine``; ``window_scale``
+        widens cornerSubPix's window when the pixels come from a reduced image."""
         if self.refine == "refinenet":
-            corners = self._refinenet(gray, pixels)
-        elif self.refine == "subpix":
+            return self._refinenet(gray, pixels)
+        if self.refine == "subpix":
+            window = max(3, round(3 * window_scale))
             criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
-            corners = cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).copy(), (3, 3), (-1, -1), criteria).reshape(-1, 2)
-        else:
-            corners = pixels
-        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
+            return cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).astype(np.float32), (window, window), (-1, -1),
+                                    criteria).reshape(-1, 2)
+        return pixels.astype(np.float32)
 
     def decode(self, point_logits: torch.Tensor, id_logits: torch.Tensor, image_size: tuple[int, int],
-               gray: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               gray: np.ndarray | None = None, read_gray: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One image's ChArUcoNet logits (65, Hc, Wc), (N+1, Hc, Wc) -> integer corner pixels before refinement:
         (ids (M,), pixels (M, 2) float32, scores (M,)), decoded at ``self.threshold`` with ``self.geometry``.
         ``image_size``: (width, height) of the image before padding. With ``gray`` (the image in the board's
         canonical appearance) a "repair"/"filter" view must also pass the marker check
-        (`placement.view_is_verified`): a look-alike board (other markers) gives no corners."""
+        (`placement.view_is_verified`): a look-alike board (other markers) gives no corners; ``read_gray``
+        is the same image at full resolution, to read the markers in."""
         if self.geometry == "markers":
             raise DeepCharucoError("geometry='markers' reads the markers from the image: use detect(image)")
         width, height = image_size
@@ -172,8 +218,8 @@ class Detector:
             return ids, pixels, scores
         if gray is not None:
             if view is None:  # too few corners to check, or IDs that fit no view: the markers may still tell
-                return corners_from_markers(gray, self.board, candidates)[0]
-            if not view_is_verified(gray, self.board, view.homography):
+                return corners_from_markers(gray, self.board, candidates, read_gray=read_gray)[0]
+            if not marker_view_verified(gray, self.board, view.homography, read_gray):
                 return no_corners()  # the corners fit the board's grid, its markers are not there
         elif view is None and len(ids) >= MIN_CONSENSUS:
             return no_corners()  # enough corners to check, and they fit no view

@@ -171,7 +171,7 @@ def _normalised(values: np.ndarray) -> np.ndarray:
 def correlate(bits: np.ndarray, markers: BoardMarkers) -> np.ndarray:
     """(R, n, n) inner bit means -> (R, M, 4) NCC with each board marker in each quarter turn."""
     expected = _normalised(markers.bits.reshape(len(markers.ids) * 4, -1).astype(np.float64))
-    read = _normalised(bits.reshape(len(bits), -1).astype(np.float64))
+    read = _normalised(bits.reshape(len(bits), markers.size * markers.size).astype(np.float64))
     return (read @ expected.T).reshape(len(bits), len(markers.ids), 4)
 
 
@@ -192,9 +192,11 @@ def match_markers(bits: np.ndarray, contrast: np.ndarray, markers: BoardMarkers,
     """(R, n, n) bit means and (R,) contrasts -> each readable read's ``per_read`` best (marker, turn) pairs
     with NCC >= `MIN_NCC`, best first within a read."""
     readable = np.flatnonzero(contrast > 0)
-    ncc = correlate(bits[readable], markers).reshape(len(readable), -1)  # (R', M*4)
+    ncc = correlate(bits[readable], markers).reshape(len(readable), len(markers.ids) * 4)
     per_read = min(per_read, ncc.shape[1])
-    best = np.argsort(-ncc, axis=1, kind="stable")[:, :per_read]
+    best = np.argpartition(-ncc, per_read - 1, axis=1)[:, :per_read] if per_read < ncc.shape[1] \
+        else np.tile(np.arange(ncc.shape[1]), (len(ncc), 1))
+    best = np.take_along_axis(best, np.argsort(-np.take_along_axis(ncc, best, axis=1), axis=1, kind="stable"), axis=1)
     rows = np.repeat(np.arange(len(readable)), per_read)
     flat = best.ravel()
     score = ncc[rows, flat] if len(rows) else np.zeros(0)

@@ -32,6 +32,7 @@ MIN_MARKERS = 2
 # The final view's own check: of the board's markers it puts wholly in the image and can read, this
 # fraction must read best as the marker printed there (a look-alike board reads as chance, 1 / markers).
 MIN_MARKER_AGREEMENT = 0.5
+HYPOTHESES = 256  # proposals tried as the board's view, best correlated first
 AGREEMENT = 0.3  # two markers agree when one's view puts the other's square within this many square sides
 # A cell's edge neighbours: the markers of a ChArUco board sit in the squares next to the black ones.
 NEIGHBOUR_OFFSETS = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], np.float64)
@@ -51,10 +52,13 @@ def _translate(dx: float, dy: float) -> np.ndarray:
     return np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1]], np.float64)
 
 
-def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray) -> MarkerView | None:
+def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
+                     read_gray: np.ndarray | None = None) -> MarkerView | None:
     """The view of ``board`` that the markers around ``pixels`` (N, 2) corner candidates agree on, or None.
 
-    ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`)."""
+    ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
+    ``pixels`` were found in; ``read_gray``: the same image at a higher resolution to read the markers in
+    (default ``gray``). The view returned maps to ``gray``'s pixels."""
     quads = find_cells(pixels)
     if len(quads) == 0:
         return None
@@ -65,7 +69,8 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray) -> 
     # extrapolated from one cell is read well from another.
     squares = np.einsum("qij,sjk->qsik", cells, shifts).reshape(-1, 3, 3)
     markers = board_markers(board)
-    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio)
+    read_gray, to_read = _reading_image(gray, read_gray)
+    bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio)
     matches = match_markers(bits, contrast, markers)
     if len(np.unique(matches.marker)) < MIN_MARKERS:
         return None
@@ -76,16 +81,19 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray) -> 
         for read, turn, (sx, sy) in zip(matches.read, matches.turn, square_xy)
     ])
     # Proposal i agrees with proposal j when it puts j's square where j was read, the same way round:
-    # compare the square's centre and its first corner.
+    # compare the square's centre and its first corner. Only the best-correlated proposals are tried
+    # as the view (the right view has many proposals, so some among the best): O(HYPOTHESES x K).
+    hypotheses = np.argsort(-matches.ncc, kind="stable")[:HYPOTHESES]
     side = _square_sides(squares[matches.read])
-    agrees = np.ones((len(proposals), len(proposals)), bool)
+    agrees = np.ones((len(hypotheses), len(proposals)), bool)
     for point in ((0.5, 0.5), (0.0, 0.0)):
-        board_points = square_xy + point
-        observed = _apply_each(proposals, board_points)  # (K, 2): where j itself puts that point
-        mapped = np.einsum("iab,jb->ija", proposals, np.c_[board_points, np.ones(len(board_points))])
+        board_points = np.c_[square_xy + point, np.ones(len(square_xy))]
+        observed = _apply_each(proposals, board_points[:, :2])  # (K, 2): where j itself puts that point
+        mapped = proposals[hypotheses] @ board_points.T  # (H, 3, K)
         with np.errstate(divide="ignore", invalid="ignore"):  # a far-off proposal may send a point to infinity
-            predicted = mapped[:, :, :2] / mapped[:, :, 2:]
-        agrees &= np.nan_to_num(np.linalg.norm(predicted - observed[None], axis=2), nan=np.inf) < AGREEMENT * side[None]
+            predicted = mapped[:, :2] / mapped[:, 2:]
+        gap = np.hypot(predicted[:, 0] - observed[None, :, 0], predicted[:, 1] - observed[None, :, 1])
+        agrees &= np.nan_to_num(gap, nan=np.inf) < AGREEMENT * side[None]
     support = np.array([_support(matches.marker[row], matches.ncc[row]) for row in agrees])
     best = int(np.argmax(support))
     if len(np.unique(matches.marker[agrees[best]])) < MIN_MARKERS:
@@ -103,6 +111,14 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray) -> 
     return MarkerView(view=view, marker_ids=np.unique(markers.ids[matches.marker[backing]]), reads=len(backing))
 
 
+def _reading_image(gray: np.ndarray, read_gray: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(the image to read markers in, 3x3 map from ``gray``'s pixels to its pixels; centres to centres)."""
+    if read_gray is None or read_gray.shape == gray.shape:
+        return gray, np.eye(3)
+    rx, ry = read_gray.shape[1] / gray.shape[1], read_gray.shape[0] / gray.shape[0]
+    return read_gray, np.array([[rx, 0, 0.5 * rx - 0.5], [0, ry, 0.5 * ry - 0.5], [0, 0, 1]])
+
+
 def marker_agreement(gray: np.ndarray, board: BoardSpec, homography: np.ndarray) -> tuple[int, int]:
     """Read every marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly in
     ``gray`` (canonical appearance). -> (markers whose read correlates best with the marker printed there,
@@ -114,7 +130,7 @@ def marker_agreement(gray: np.ndarray, board: BoardSpec, homography: np.ndarray)
     readable = np.flatnonzero(contrast > 0)
     if len(readable) == 0:
         return 0, 0
-    ncc = correlate(bits[readable], markers).reshape(len(readable), -1)
+    ncc = correlate(bits[readable], markers).reshape(len(readable), len(markers.ids) * 4)
     return int(np.sum(ncc.argmax(axis=1) == readable * 4)), len(readable)
 
 
@@ -123,6 +139,14 @@ def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray)
     the board's own markers in the view ``homography`` (board metres -> pixels) of canonical ``gray``."""
     agreeing, readable = marker_agreement(gray, board, homography)
     return agreeing >= MIN_MARKERS and agreeing >= MIN_MARKER_AGREEMENT * readable
+
+
+def marker_view_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
+                         read_gray: np.ndarray | None = None) -> bool:
+    """`view_is_verified` for a view found in ``gray`` (board metres -> ``gray``'s pixels), read in
+    ``read_gray``, the same image at full resolution (default ``gray``)."""
+    read_gray, to_read = _reading_image(gray, read_gray)
+    return view_is_verified(read_gray, board, to_read @ homography)
 
 
 def _support(marker: np.ndarray, ncc: np.ndarray) -> float:
@@ -148,15 +172,19 @@ def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return mapped[:, :2] / mapped[:, 2:]
 
 
-def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates,
-                         refits: int = 2) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView | None]:
+def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates, refits: int = 2,
+                         read_gray: np.ndarray | None = None
+                         ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView | None]:
     """The board's corners among ``candidates``, identified by the markers around them, in a view whose
     markers read as the board's own (`view_is_verified`).
+
+    ``gray``: the canonical image the candidates were found in; ``read_gray``: the same image at full
+    resolution, where the markers are read (default ``gray``).
 
     Returns ((ids (K,), pixels (K, 2) float32, scores (K,) float32) strongest first, the marker view or
     None). The view's homography is refitted ``refits`` times on the corners it claimed (RANSAC), which
     follows a mildly distorted lens better than the markers' squares alone."""
-    found = find_marker_view(gray, board, candidates.pixels)
+    found = find_marker_view(gray, board, candidates.pixels, read_gray)
     if found is None:
         return no_corners(), None
     board_xy = board.corner_points()[:, :2]
@@ -171,6 +199,6 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
             break
         view = BoardView(homography=homography, inliers=mask.ravel().astype(bool))
         ids, pixels, scores = assign_ids(view, board_xy, candidates, (width, height))
-    if not view_is_verified(gray, board, view.homography):
+    if not marker_view_verified(gray, board, view.homography, read_gray):
         return no_corners(), None
     return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)

@@ -87,6 +87,52 @@ def test_bad_board_files(tmp_path):
         BoardSpec.load(tmp_path / "d.txt")
 
 
+def test_board_files_as_people_write_them(tmp_path):
+    path = tmp_path / "board.yaml"
+    path.write_text("# my calibration board\nsquares_x: 4   # columns\nsquares_y: 5\nsquare_length: 0.054\n"
+                    "marker_length: 0.0405\ndictionary: \"DICT_4X4_1000\"\ninverted: true  # white on black\n"
+                    "mirrored: false\n")
+    assert BoardSpec.load(path) == BoardSpec(4, 5, 0.054, 0.0405, "DICT_4X4_1000", inverted=True)
+    inverted = BoardSpec(4, 5, 0.054, 0.0405, "DICT_4X4_1000", inverted=True, mirrored=True)
+    assert BoardSpec.load(inverted.save(tmp_path / "round.yaml")) == inverted
+
+
+@pytest.mark.parametrize("text, message", [
+    ("", "holds no board fields"),
+    ("# nothing but a comment\n", "holds no board fields"),
+    ("- 5\n- 5\n", "flat list of 'field: value' lines"),
+    ("squares_x: [5, 7]\n", "'squares_x' must be a single value"),
+    ("board:\n  squares_x: 5\n", "'board' must be a single value"),
+    ("squares_x: 5\nsquares_x: 6\n", "'squares_x' is given twice"),
+    ("squares_x: 7\nsquares_y: 5\nsquare_length: 0.04\nmarker_length: 0.03\n", r"lacks the field\(s\) \['dictionary'\]"),
+    ("squares_x: 7\nsquares_y: 5\nsquare_length: 0.04\nmarker_length: 0.03\ndictionary: DICT_6X6_250\n"
+     "inverted: maybe\n", "inverted must be true or false"),
+])
+def test_bad_yaml_board_files_name_the_problem(tmp_path, text, message):
+    path = tmp_path / "board.yaml"
+    path.write_text(text)
+    with pytest.raises(BoardSpecError, match=message):
+        BoardSpec.load(path)
+
+
+def test_layout_ignores_size_polarity_and_mirroring():
+    board = BoardSpec()
+    assert board.same_layout(BoardSpec(square_length=0.02, marker_length=0.015, inverted=True, mirrored=True))
+    assert not board.same_layout(BoardSpec(marker_length=0.025))  # another marker/square ratio
+    assert not board.same_layout(BoardSpec(dictionary="DICT_5X5_100"))
+    assert not board.same_layout(BoardSpec(squares_x=6))
+
+
+def test_inverted_and_mirrored_textures_and_object_points():
+    board = BoardSpec()
+    plain = board.render_texture(1000.0, margin=0.01).image
+    assert np.array_equal(BoardSpec(inverted=True).render_texture(1000.0, margin=0.01).image, 255 - plain)
+    assert np.array_equal(BoardSpec(mirrored=True).render_texture(1000.0, margin=0.01).image, plain[:, ::-1])
+    mirrored = BoardSpec(mirrored=True).object_points()
+    assert np.allclose(mirrored[:, 0], board.size_m[0] - board.corner_points()[:, 0])
+    assert np.allclose(mirrored[:, 1:], board.corner_points()[:, 1:])
+
+
 @pytest.mark.parametrize(
     "board",
     [

@@ -1,0 +1,187 @@
+"""Boards the networks never saw: cells from corners, markers read and matched, the view they agree on,
+inverted and mirrored prints, look-alike boards refused, large images searched coarse to fine."""
+
+import cv2
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, project_corners
+from deepcharuco.lattice import find_cells
+from deepcharuco.marker_reader import board_markers, correlate, read_squares
+from deepcharuco.placement import marker_agreement
+from deepcharuco.synthetic import look_at_pose, render_board_view, texture_homography
+
+# Boards of other layouts than the shipped weights' 5x5 DICT_5X5_50 (none of them seen in training).
+UNSEEN = [
+    BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250"),
+    BoardSpec(squares_x=11, squares_y=8, square_length=0.03, marker_length=0.022, dictionary="DICT_5X5_1000"),
+    BoardSpec(squares_x=4, squares_y=5, square_length=0.054, marker_length=0.0405, dictionary="DICT_4X4_1000",
+              inverted=True),
+    BoardSpec(squares_x=6, squares_y=6, square_length=0.04, marker_length=0.03, dictionary="DICT_APRILTAG_36h11",
+              mirrored=True),
+    BoardSpec(squares_x=6, squares_y=4, square_length=0.04, marker_length=0.025, dictionary="DICT_7X7_50",
+              legacy=True),
+]
+POSES = [dict(tilt_x_deg=25, tilt_y_deg=-15, roll_deg=10), dict(tilt_x_deg=-20, tilt_y_deg=30, roll_deg=200)]
+
+
+@pytest.fixture(scope="module")
+def camera() -> Camera:
+    return Camera.from_fov(320, 240, hfov_deg=60.0)
+
+
+def distance_for(board: BoardSpec, camera: Camera, fill: float) -> float:
+    """The distance at which the board's longer side spans ``fill`` of the image's shorter side."""
+    return camera.K[0, 0] * max(board.size_m) / (fill * min(camera.image_size))
+
+
+def view_of(board: BoardSpec, camera: Camera, fill: float = 0.8, **pose):
+    """(image, true corners (C, 2)) of ``board`` spanning about ``fill`` of the image's shorter side."""
+    rvec, tvec = look_at_pose(board, distance_for(board, camera, fill), **pose)
+    image = render_board_view(board, camera.K, rvec, tvec, camera.image_size)
+    return image, project_corners(board, rvec, tvec, camera.K)
+
+
+def test_cells_of_a_perspective_lattice_each_once_right_handed():
+    homography = np.array([[30.0, 6.0, 40.0], [-4.0, 28.0, 30.0], [0.01, 0.02, 1.0]])
+    grid = np.stack(np.meshgrid(np.arange(6.0), np.arange(5.0)), axis=-1).reshape(-1, 2)
+    mapped = np.c_[grid, np.ones(len(grid))] @ homography.T
+    pixels = mapped[:, :2] / mapped[:, 2:]
+    outliers = np.array([[5.0, 5.0], [300.0, 10.0]])
+    cells = find_cells(np.r_[pixels, outliers])
+    real = {frozenset((r * 6 + c, r * 6 + c + 1, (r + 1) * 6 + c + 1, (r + 1) * 6 + c)) for r in range(4) for c in range(5)}
+    found = [frozenset(quad.tolist()) for quad in cells]
+    assert real <= set(found)
+    assert len(found) == len(set(found))  # each cell once
+    points = np.r_[pixels, outliers]
+    for a, b, d, c in cells:
+        ab, ac = points[b] - points[a], points[c] - points[a]
+        assert ab[0] * ac[1] - ab[1] * ac[0] > 0
+        assert np.allclose(points[b] + points[c] - points[a], points[d], atol=0.25 * min(np.hypot(*ab), np.hypot(*ac)))
+
+
+@pytest.mark.parametrize("board", UNSEEN[:3], ids=lambda b: b.dictionary)
+def test_every_marker_reads_as_itself_through_the_exact_view(board, camera):
+    image, _ = view_of(board, camera, **POSES[0])
+    rvec, tvec = look_at_pose(board, distance_for(board, camera, 0.8), **POSES[0])
+    rotation, _ = cv2.Rodrigues(rvec)
+    homography = camera.K @ np.c_[rotation[:, :2], tvec]  # board metres -> pixels
+    gray = 255 - image if board.inverted else image
+    agreeing, readable = marker_agreement(gray, board, homography)
+    assert readable == board.num_markers and agreeing == readable
+    # The same squares read a quarter turn off match the same markers one turn on.
+    markers = board_markers(board)
+    turn = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 1.0], [0.0, 0.0, 1.0]])  # square frame -> turned by 3
+    squares = np.stack([homography @ np.diag([board.square_length] * 2 + [1.0]) @ np.array(
+        [[1, 0, sx], [0, 1, sy], [0, 0, 1.0]]) @ np.linalg.inv(turn) for sx, sy in markers.squares])
+    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio)
+    ncc = correlate(bits, markers)
+    assert np.all(contrast > 0)
+    assert [np.unravel_index(row.argmax(), row.shape) for row in ncc] == [(m, 3) for m in range(len(markers.ids))]
+
+
+@pytest.mark.parametrize("board", UNSEEN, ids=lambda b: f"{b.dictionary}-{b.squares_x}x{b.squares_y}")
+def test_unseen_boards_found_with_right_ids(board, camera):
+    detector = Detector(board=board)
+    assert detector.geometry == "markers"
+    for pose in POSES:
+        image, truth = view_of(board, camera, **pose)
+        found = detector.detect(image)
+        inside = (truth[:, 0] > 2) & (truth[:, 0] < 317) & (truth[:, 1] > 2) & (truth[:, 1] < 237)
+        error = np.linalg.norm(found.corners - truth[found.ids], axis=1)
+        assert error.max() < 1.0, (board, pose, error.max())  # no wrong ID, sub-pixel once refined
+        assert len(found.ids) >= 0.85 * inside.sum()
+        pose_found = detector.estimate_pose(found, camera.K)
+        assert pose_found is not None and pose_found.reprojection_error < 1.0
+
+
+def test_unseen_board_in_the_dark_and_blurred(camera):
+    board = UNSEEN[0]
+    detector, opencv = Detector(board=board), OpenCVDetector(board)
+    image, truth = view_of(board, camera, **POSES[0])
+    dark = np.round(image * 0.6 ** 9).astype(np.uint8)  # the paper's darkness k = 9
+    blurred = cv2.filter2D(image, -1, np.ones((1, 10)) / 10)  # the paper's blur k = 10
+    for degraded in (dark, blurred):
+        assert len(opencv.detect(degraded).ids) == 0
+        found = detector.detect(degraded)
+        assert len(found.ids) >= 0.8 * board.num_corners
+        assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 3.0
+
+
+LOOK_ALIKES = [
+    BoardSpec(squares_x=7, squares_y=5, dictionary="DICT_5X5_250"),  # same grid, other dictionaries
+    BoardSpec(squares_x=7, squares_y=5, dictionary="DICT_4X4_250"),
+    BoardSpec(squares_x=7, squares_y=5, dictionary="DICT_6X6_250", mirrored=True),  # the target mirrored
+    BoardSpec(squares_x=5, squares_y=5, dictionary="DICT_6X6_250"),  # same dictionary, markers elsewhere
+]
+
+
+@pytest.mark.parametrize("look_alike", LOOK_ALIKES, ids=lambda b: f"{b.dictionary}-{b.squares_x}-m{b.mirrored}")
+def test_look_alike_boards_give_nothing(look_alike, camera):
+    detector = Detector(board=UNSEEN[0])
+    for pose in POSES:
+        image, _ = view_of(look_alike, camera, **pose)
+        assert len(detector.detect(image).ids) == 0
+
+
+def test_paper_board_detector_refuses_look_alikes_and_plain_chessboards(camera):
+    detector = Detector()  # the board-specific ID head, geometry "repair", checked against the markers
+    assert detector.geometry == "repair"
+    for look_alike in (BoardSpec(dictionary="DICT_6X6_250"), BoardSpec(dictionary="DICT_5X5_50", mirrored=True),
+                       BoardSpec(dictionary="DICT_4X4_50")):
+        for pose in POSES:
+            image, _ = view_of(look_alike, camera, fill=0.6, **pose)
+            assert len(detector.detect(image).ids) == 0
+    # A chessboard without markers: the paper board's texture with its marker squares painted white.
+    board = BoardSpec()
+    texture = board.render_texture(2000.0, margin=0.02)
+    plain = texture.image.copy()
+    _, marker_corners = board.marker_corners()
+    for corners in marker_corners:
+        (u0, v0), (u1, v1) = texture.board_to_texture(corners[[0, 2], :2]).round().astype(int)
+        plain[v0 - 2:v1 + 3, u0 - 2:u1 + 3] = 255
+    rvec, tvec = look_at_pose(board, distance_for(board, camera, 0.6), **POSES[0])
+    image = cv2.warpPerspective(plain, texture_homography(texture, camera.K, rvec, tvec), camera.image_size,
+                                flags=cv2.INTER_AREA, borderValue=90)
+    assert len(detector.detect(image).ids) == 0
+
+
+def test_paper_board_at_another_size_keeps_the_id_head_and_scales_the_pose(camera):
+    small = BoardSpec(square_length=0.02, marker_length=0.015)
+    detector = Detector(board=small)
+    assert detector.geometry == "repair" and detector.board == small
+    image, truth = view_of(small, camera, **POSES[0])
+    found = detector.detect(image)
+    assert len(found.ids) == small.num_corners
+    pose = detector.estimate_pose(found, camera.K)
+    _, true_tvec = look_at_pose(small, distance_for(small, camera, 0.8), **POSES[0])
+    assert np.linalg.norm(pose.tvec.ravel() - true_tvec) < 0.02 * np.linalg.norm(true_tvec)
+    with pytest.raises(Exception, match="geometry='markers'"):
+        Detector(board=UNSEEN[0], geometry="repair")
+
+
+@pytest.mark.parametrize("flags", [dict(inverted=True), dict(mirrored=True), dict(inverted=True, mirrored=True)])
+def test_inverted_and_mirrored_round_trip_through_both_detectors(flags, camera):
+    board = BoardSpec(squares_x=7, squares_y=5, dictionary="DICT_6X6_250", **flags)
+    plain = BoardSpec(squares_x=7, squares_y=5, dictionary="DICT_6X6_250")
+    image, truth = view_of(board, camera, **POSES[0])
+    assert len(OpenCVDetector(plain).detect(image).ids) == 0  # OpenCV alone does not see such a print
+    for detector in (OpenCVDetector(board), Detector(board=board)):
+        found = detector.detect(image)
+        assert len(found.ids) >= 20
+        assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 1.0
+        pose = detector.estimate_pose(found, camera.K)
+        assert pose is not None and pose.reprojection_error < 1.0
+
+
+def test_large_image_searched_at_working_size_refined_at_full_resolution():
+    board = UNSEEN[0]
+    camera = Camera.from_fov(1920, 1080, hfov_deg=60.0)
+    image, truth = view_of(board, camera, fill=0.9, **POSES[0])  # squares ~140 px: too large for the network
+    native = Detector(board=board, working_size=None).detect(image)
+    found = Detector(board=board).detect(image)
+    assert len(native.ids) < 0.5 * board.num_corners
+    assert len(found.ids) >= 0.9 * board.num_corners
+    assert np.median(np.linalg.norm(found.corners - truth[found.ids], axis=1)) < 0.5
+    with pytest.raises(ValueError, match="working_size"):
+        Detector(board=board, working_size=4)
