@@ -59,7 +59,7 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
         objects.add_light(i, light)
     objects.add_camera(spec)
 
-    corners_world = (spec.board_matrix[:3, :3] @ board.corner_points().T).T + spec.board_matrix[:3, 3]
+    corners_world = (spec.board_matrix[:3, :3] @ board.object_points().T).T + spec.board_matrix[:3, 3]
     if spec.board_present:
         unoccluded = visibility.unoccluded(corners_world, spec.camera_matrix[:3, 3])
     else:

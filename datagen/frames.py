@@ -108,7 +108,7 @@ def label_scene(board: BoardSpec, spec: SceneSpec, unoccluded: np.ndarray) -> tu
     unused (callers store zeros)."""
     rvec, tvec = board_pose_in_camera(spec.camera_matrix, spec.board_matrix)
     corners = project_corners(board, rvec, tvec, spec.K).astype(np.float32)
-    in_front = ((board.corner_points() @ cv2.Rodrigues(rvec)[0].T)[:, 2] + tvec[2]) > 1e-6
+    in_front = ((board.object_points() @ cv2.Rodrigues(rvec)[0].T)[:, 2] + tvec[2]) > 1e-6
     corners[~in_front] = np.nan
     inside = (in_front & (corners[:, 0] >= -0.5) & (corners[:, 0] < spec.width - 0.5)
               & (corners[:, 1] >= -0.5) & (corners[:, 1] < spec.height - 0.5))
