@@ -124,6 +124,8 @@ def run(args: argparse.Namespace) -> CalibrationResult:
           f"cx {K[0, 2]:.2f}{deviation('cx')}, cy {K[1, 2]:.2f}{deviation('cy')}, dist "
           f"{np.array2string(result.camera.dist, precision=4, separator=' ')} -> {out}"
           + (f", {report}" if report is not None else ""))
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
     return result
 
 

@@ -39,6 +39,7 @@ from deepcharuco.pose import MIN_SPREAD_RATIO
 
 MODELS = ("pinhole", "rational", "fisheye")
 MAX_ROUNDS = 4
+MIN_COVERAGE = 0.5  # below this share of the image holding corners, the result says the distortion is extrapolated
 MIN_OUTLIER_PX = 0.5  # a view within this RMS is never an outlier: cornerSubPix noise alone reaches it
 MIN_TILT_SPREAD_DEG = 10.0  # Zhang's method needs at least two board orientations this far apart
 MAX_RELATIVE_STD = 0.05  # a focal length less certain than 5 % is not a calibration
@@ -420,7 +421,7 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     return CalibrationResult(model=model, camera=camera, rms=rms, std=solution.std, views=used_views,
                              per_view_rms=view_rms, rvecs=solution.rvecs, tvecs=solution.tvecs, residuals=residuals,
                              decisions=decisions, frames=len(frames), rounds=rounds,
-                             notes=["k3 fixed at 0"] if fix_k3 else [])
+                             notes=(["k3 fixed at 0"] if fix_k3 else []) + _coverage_notes(used_views, image_size))
 
 
 def _reject_outliers(active: list[FrameDetection], norms: list[np.ndarray], view_rms: np.ndarray, rms: float,
@@ -450,6 +451,22 @@ def _reject_outliers(active: list[FrameDetection], norms: list[np.ndarray], view
         remaining -= 1
         changed = True
     return changed
+
+
+def coverage(views: list[FrameDetection], image_size: tuple[int, int], bins: tuple[int, int] = (8, 6)) -> float:
+    """Fraction of the cells of a ``bins`` grid over the image that hold at least one of the views' corners."""
+    width, height = image_size
+    corners = np.concatenate([v.corners for v in views]) if views else np.zeros((0, 2))
+    counts, _, _ = np.histogram2d(corners[:, 0], corners[:, 1], bins=bins, range=[[-0.5, width - 0.5], [-0.5, height - 0.5]])
+    return float((counts > 0).mean())
+
+
+def _coverage_notes(views: list[FrameDetection], image_size: tuple[int, int]) -> list[str]:
+    share = coverage(views, image_size)
+    if share >= MIN_COVERAGE:
+        return []
+    return [f"the corners cover only {100 * share:.0f} % of the image (8 x 6 cells): the distortion beyond them is "
+            f"extrapolated; capture the board near the image's edges and corners too"]
 
 
 def _check_solution(solution: _Solution, model: str, image_size: tuple[int, int]) -> None:

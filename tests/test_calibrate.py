@@ -210,3 +210,12 @@ def test_fix_k3_keeps_k3_at_zero(detections):
     result = calibrate(detections, BOARD, SIZE, fix_k3=True)
     assert result.camera.dist[4] == 0.0 and "k3" not in result.std and "k1" in result.std
     assert result.notes == ["k3 fixed at 0"]
+
+
+def test_poor_coverage_is_said(detections):
+    from deepcharuco.calibration import _coverage_notes, coverage
+
+    assert coverage(detections, SIZE) > 0.5 and _coverage_notes(detections, SIZE) == []
+    central = [FrameDetection(0, "c", np.arange(4), np.array([[125.0, 85], [150, 85], [125, 115], [150, 115]]))]
+    assert coverage(central, SIZE) == pytest.approx(1 / 48)
+    assert "cover only 2 % of the image" in _coverage_notes(central, SIZE)[0]
