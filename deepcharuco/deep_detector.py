@@ -39,11 +39,22 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 REFINE_MODES = ("refinenet", "subpix", "none")
 DEFAULT_THRESHOLD = 0.3
 PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)
-# Longest side the network searches at: squares of ~12-64 px are what it finds best (trained at
-# 320x240); a 1280x720 frame is searched at 640x360 and its corners refined at full resolution.
-WORKING_SIZE = 640
+# Longest side the network searches at first: it finds squares of ~12-64 px best (trained at 320x240);
+# a 1280x720 frame is searched at 320x180, then 640x360, then 1280x720, until the board's squares are at
+# least MIN_SQUARE_PX wide, and its corners are refined at full resolution.
+WORKING_SIZE = 320
+MIN_SQUARE_PX = 16
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
+
+
+def _corner_spacing(pixels: np.ndarray) -> float:
+    """Median distance from each corner to its nearest other corner (~ the square side), pixels; 0 for < 2."""
+    if len(pixels) < 2:
+        return 0.0
+    distance = np.linalg.norm(pixels[:, None].astype(np.float64) - pixels[None], axis=2)
+    np.fill_diagonal(distance, np.inf)
+    return float(np.median(distance.min(axis=1)))
 
 
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
@@ -69,9 +80,9 @@ class Detector:
             a corner is reported at (default: the operating point stored with the weights, chosen on
             validation frames; else 0.3).
         soft_radius: RefineNet soft-argmax window (cells of 1/8 px) around the argmax; 0 = argmax only.
-        working_size: longest image side the network searches at first (default 640); larger images are
-            reduced to it, then to twice it ... up to full resolution until the board is found, and their
-            corners refined again at full resolution. None: native resolution only.
+        working_size: longest image side the network searches at first (default 320); larger images are
+            reduced to it, then to twice it ... up to full resolution until the board is found with squares
+            of at least 16 px, and their corners refined again at full resolution. None: native resolution only.
         geometry: how corners get their IDs (default: "repair" for the weights' board, "markers" otherwise):
             "repair": the confident cells' two likeliest IDs are fitted to one view of the board
             (RANSAC homography, 6 or more agreeing); the corners that view predicts take the confident cells
@@ -134,17 +145,22 @@ class Detector:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
-        that, up to full resolution, until a verified board is found; each corner is refined again in the
-        full-resolution image. Large boards are found where the network sees them best, and a large image
-        costs little when the board is found at the first level."""
+        that, up to full resolution, until a verified board is found whose squares are at least
+        `MIN_SQUARE_PX` wide there (else the finest level that found one); each corner is refined again in
+        the full-resolution image. Large boards are found where the network sees them best, and a large
+        image costs little when the board is found at a coarse level."""
         full = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
         height, width = full.shape
+        found = None
         for gray in self._search_levels(full):
             ids, pixels, scores = self._find(gray, full)
             if len(ids):
-                break
-        else:
+                found = (gray, ids, pixels, scores)
+                if _corner_spacing(pixels) >= MIN_SQUARE_PX:
+                    break  # squares large enough here: a finer level would cost more and find no more
+        if found is None:
             return Detection.empty()
+        gray, ids, pixels, scores = found
         corners = self._refine(gray, pixels)
         if gray is not full:
             ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)

@@ -50,6 +50,7 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         has = lambda name: name in experiment["overall"]  # noqa: E731
         header = ["sequence", "frames"]
         header += ["deep acc %"] if has("deep") else []
+        header += ["by markers acc %"] if has("deep_markers") else []
         header += ["paper decoding acc %"] if has("deep_paper") else []
         header += ["cv acc %"]
         header += ["deep eps_re (no RefineNet)"] if has("deep") else []
@@ -60,6 +61,8 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
             cells = [row["sequence"], str(row["frames"])]
             if has("deep"):
                 cells.append(_number(row["deep"]["pose_accuracy"], percent=True))
+            if has("deep_markers"):
+                cells.append(_number(row["deep_markers"]["pose_accuracy"], percent=True))
             if has("deep_paper"):
                 cells.append(_number(row["deep_paper"]["pose_accuracy"], percent=True))
             cells.append(_number(row["opencv"]["pose_accuracy"], percent=True))
@@ -107,6 +110,10 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         out.append(("Held-out renders", "Random frames of the training distribution rendered with a held-out seed "
                     "(shake, shadows, clutter, distractor boards, 0.2-1000 lux), by illuminance at the board: mean "
                     "corner accuracy, pose accuracy (eps_re < 3 px), confidently wrong poses.", rows, []))
+    if results.get("unseen_boards"):
+        from evaluate.unseen_boards import sections as unseen_sections
+
+        out += unseen_sections(results["unseen_boards"], LABELS)
     if results.get("calibration"):
         from evaluate.calibration_eval import calibration_sections
 

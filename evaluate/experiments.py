@@ -6,6 +6,7 @@ Detectors are named; the report's names are
     deep_subpix     ChArUcoNet + cornerSubPix        opencv_norefine  OpenCV detector alone
     deep_norefine   ChArUcoNet, cell pixels
     deep_paper      ChArUcoNet + RefineNet, the paper's decoding (no board-geometry check)
+    deep_markers    ChArUcoNet's point head + the board's markers (what any other board gets) + RefineNet
 
 Each experiment returns a JSON-ready dict (NaN/inf as null) and keeps what the figures and
 the gallery need under keys starting with "_" (dropped from results.json).
@@ -25,6 +26,7 @@ from evaluate.protocols import (
 LABELS = {
     "deep": "ChArUcoNet + RefineNet", "deep_subpix": "ChArUcoNet + cornerSubPix", "deep_norefine": "ChArUcoNet + NoRefine",
     "deep_paper": "ChArUcoNet + RefineNet, paper's decoding",
+    "deep_markers": "ChArUcoNet points + markers (any board) + RefineNet",
     "opencv": "OpenCV detector + cornerSubPix", "opencv_norefine": "OpenCV detector + NoRefine",
 }
 LUX_BINS = (0.0, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, float("inf"))
@@ -159,6 +161,17 @@ def targets(results: dict) -> list[dict]:
         add("mean eps_re in good light (>= 100 lux sequences), px", deep_eps,
             f"<= OpenCV + cornerSubPix ({cv_eps:.3f})" if cv_eps is not None else "<= OpenCV",
             deep_eps is not None and cv_eps is not None and deep_eps <= cv_eps)
+    if "deep_markers" in synthetic.get("blur", {}) and "deep" in synthetic.get("blur", {}):
+        for effect, k in (("blur", 10), ("darkness", 9), ("darkness", 0)):
+            if k in synthetic["levels"]:
+                i = synthetic["levels"].index(k)
+                family, own = synthetic[effect]["deep_markers"]["accuracy"][i], synthetic[effect]["deep"]["accuracy"][i]
+                add(f"paper's board, {effect} k={k}: by markers (any board) vs the board's own ID head", family,
+                    f">= {own:.3f} (own ID head)", family >= own)
+    from evaluate.unseen_boards import targets as unseen_targets
+
+    for what, value, goal, met in unseen_targets(results.get("unseen_boards", {})):
+        add(what, value, goal, met)
     fps = results.get("timing", {}).get("fps", {})
     if "deep" in fps:
         add("speed, ChArUcoNet + RefineNet + PnP at 320x240, fps", fps["deep"],

@@ -12,7 +12,7 @@ from evaluate.experiments import LABELS
 from evaluate.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
 
 STYLE = {"deep": ("tab:blue", "-o"), "deep_subpix": ("tab:cyan", "--^"), "deep_norefine": ("tab:purple", ":s"),
-         "deep_paper": ("tab:green", "-.d"),
+         "deep_paper": ("tab:green", "-.d"), "deep_markers": ("tab:olive", "--v"),
          "opencv": ("tab:red", "-o"), "opencv_norefine": ("tab:orange", "--s")}
 TRUTH_COLOUR = (60, 60, 255)  # BGR red
 

@@ -29,7 +29,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.opencv_detector import OpenCVDetector
-from evaluate import calibration_eval, documents, experiments, figures
+from evaluate import calibration_eval, documents, experiments, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
 from evaluate.protocols import LEVELS
 
@@ -79,6 +79,9 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
                                    refine_weights=refine_weights)
     detectors["deep_paper"] = Detector(board=board, weights=weights, device=device, refine_weights=refine_weights,
                                        geometry="none")
+    # What a board the ID head never saw gets: the point head and the board's markers alone.
+    detectors["deep_markers"] = Detector(board=board, weights=weights, device=device, refine_weights=refine_weights,
+                                         geometry="markers")
     return detectors
 
 
@@ -103,8 +106,9 @@ def run_report(args: argparse.Namespace) -> dict:
     first = sequences_dir if have_sequences else data_dir if have_data else Path(args.captures)
     board = BoardSpec.load(args.board) if args.board else board_of(first)
     detectors = build_detectors(board, args.weights, args.refine_weights, args.device, notes)
-    compared = {name: detectors[name] for name in ("deep", "deep_paper", "deep_norefine", "opencv") if name in detectors}
-    headline = {name: detectors[name] for name in ("deep", "deep_paper", "opencv") if name in detectors}
+    compared = {name: detectors[name] for name in ("deep", "deep_markers", "deep_paper", "deep_norefine", "opencv")
+                if name in detectors}
+    headline = {name: detectors[name] for name in ("deep", "deep_markers", "deep_paper", "opencv") if name in detectors}
 
     results: dict = {"command": "python -m evaluate.report " + " ".join(shlex.quote(a) for a in args.argv),
                      "board": board.to_dict(), "quick": quick,
@@ -167,6 +171,15 @@ def run_report(args: argparse.Namespace) -> dict:
         # Rendered calibration sequences (python -m evaluate.calibration_sequences), when there are any.
         results["calibration"] = calibration_eval.calibration_experiment(
             {n: detectors[n] for n in ("deep", "opencv") if n in detectors}, args.calibration, board, args.quiet)
+
+    if not args.no_unseen_boards and unseen_boards.available(Path(args.unseen_boards)):
+        # Boards the weights never saw (python -m evaluate.unseen_boards renders them), when rendered.
+        results["unseen_boards"] = unseen_boards.unseen_boards_experiment(
+            Path(args.unseen_boards), args.weights, args.refine_weights, args.device,
+            synthetic_images=synthetic_count, every=4 if quick else 1, seed=args.seed, quiet=args.quiet)
+    elif not args.no_unseen_boards:
+        notes.append(f"No boards-never-seen section: {args.unseen_boards} holds no rendered sets "
+                     "(python -m evaluate.unseen_boards renders them, ~10 min a board).")
 
     results["targets"] = experiments.targets(results)
     results["seconds"] = round(time.perf_counter() - started, 1)
@@ -234,6 +247,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="calibration sequences (python -m evaluate.calibration_sequences), evaluated when present "
                              "(default: %(default)s)")
     parser.add_argument("--no-calibration", action="store_true", help="skip the calibration section")
+    parser.add_argument("--unseen-boards", default=str(unseen_boards.DEFAULT_ROOT),
+                        help="sequences of boards never seen in training (python -m evaluate.unseen_boards), evaluated "
+                             "when present (default: %(default)s)")
+    parser.add_argument("--no-unseen-boards", action="store_true", help="skip the boards-never-seen section")
     parser.add_argument("--board", default=None, help="BoardSpec file (default: the test shards' board)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",
