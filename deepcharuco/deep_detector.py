@@ -30,6 +30,7 @@ from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidate
 from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
+from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import corners_from_markers, marker_view_verified
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, corners_from_canonical
@@ -44,6 +45,8 @@ PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the centra
 # least MIN_SQUARE_PX wide, and its corners are refined at full resolution.
 WORKING_SIZE = 320
 MIN_SQUARE_PX = 16
+# "hybrid": OpenCV first, kept when the board's geometry verifies it; the networks only where it fails.
+MODES = ("deep", "hybrid")
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
 
@@ -83,6 +86,9 @@ class Detector:
         working_size: longest image side the network searches at first (default 320); larger images are
             reduced to it, then to twice it ... up to full resolution until the board is found with squares
             of at least 16 px, and their corners refined again at full resolution. None: native resolution only.
+        mode: "deep" (default) or "hybrid": OpenCV's detector (+ cornerSubPix) runs first and its corners
+            are returned when at least 6 of them, and nine in ten, fit one view of the board; the networks
+            run only when they do not (near OpenCV's speed in good light, the networks' recall in bad light).
         geometry: how corners get their IDs (default: "repair" for the weights' board, "markers" otherwise):
             "repair": the confident cells' two likeliest IDs are fitted to one view of the board
             (RANSAC homography, 6 or more agreeing); the corners that view predicts take the confident cells
@@ -101,9 +107,12 @@ class Detector:
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
-                 soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE):
+                 soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
+                 mode: str = "deep"):
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if geometry is not None and geometry not in DECODINGS:
             raise ValueError(f"geometry must be one of {DECODINGS}, got {geometry!r}")
         if weights is None:
@@ -130,6 +139,8 @@ class Detector:
         if working_size is not None and working_size < 2 * CELL:
             raise ValueError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
         self.working_size = working_size
+        self.mode = mode
+        self._opencv = OpenCVDetector(self.board, refine="subpix") if mode == "hybrid" else None
         self._board_xy = self.board.corner_points()[:, :2]
         self.refinenet = None
         if refine == "refinenet":
@@ -138,7 +149,7 @@ class Detector:
 
     def __repr__(self) -> str:
         return (f"Detector(board={self.board!r}, refine={self.refine!r}, geometry={self.geometry!r}, "
-                f"device={str(self.device)!r})")
+                f"mode={self.mode!r}, device={str(self.device)!r})")
 
     @torch.inference_mode()
     def detect(self, image: np.ndarray) -> Detection:
@@ -149,6 +160,10 @@ class Detector:
         `MIN_SQUARE_PX` wide there (else the finest level that found one); each corner is refined again in
         the full-resolution image. Large boards are found where the network sees them best, and a large
         image costs little when the board is found at a coarse level."""
+        if self._opencv is not None:
+            found = self._opencv.detect(image)
+            if self._verified(found):
+                return found
         full = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
         height, width = full.shape
         found = None
@@ -167,6 +182,14 @@ class Detector:
             corners = (corners + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
             corners = self._refine(full, corners, window_scale=float(ratio.max()))
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
+
+    def _verified(self, detection: Detection) -> bool:
+        """Hybrid mode: OpenCV's corners stand when at least `MIN_CONSENSUS` of them, and all but a tenth,
+        fit one view of the board (`board_check.fit_board_homography`, 3 px)."""
+        if len(detection.ids) < MIN_CONSENSUS:
+            return False
+        view = fit_board_homography(self.board.object_points()[detection.ids, :2], detection.corners)
+        return view is not None and view.inliers.sum() >= 0.9 * len(detection.ids)
 
     def _search_levels(self, full: np.ndarray):
         """The images the board is searched in, coarse first: ``working_size``, then twice that, ... up to

@@ -185,3 +185,19 @@ def test_large_image_searched_at_working_size_refined_at_full_resolution():
     assert np.median(np.linalg.norm(found.corners - truth[found.ids], axis=1)) < 0.5
     with pytest.raises(ValueError, match="working_size"):
         Detector(board=board, working_size=4)
+
+
+def test_hybrid_keeps_verified_opencv_corners_and_falls_back_to_the_networks(camera):
+    board = UNSEEN[0]
+    hybrid, opencv = Detector(board=board, mode="hybrid"), OpenCVDetector(board)
+    image, truth = view_of(board, camera, **POSES[0])
+    lit = hybrid.detect(image)
+    reference = opencv.detect(image)
+    assert np.array_equal(lit.ids, reference.ids) and np.allclose(lit.corners, reference.corners)
+    dark = np.round(image * 0.6 ** 9).astype(np.uint8)
+    assert len(opencv.detect(dark).ids) == 0
+    found = hybrid.detect(dark)
+    assert len(found.ids) >= 0.8 * board.num_corners and np.all(found.scores < 1.0)  # the networks' scores
+    assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 3.0
+    with pytest.raises(ValueError, match="mode"):
+        Detector(board=board, mode="fast")

@@ -122,7 +122,9 @@ def test_opencv_curves_have_the_papers_shape(frames):
 def test_timing_ranks_pipelines_by_their_cost(frames):
     fps = time_pipelines({"fast": OracleDetector(frames), "slow": OracleDetector(frames, delay=0.004)}, frames[:2],
                          rounds=2, min_seconds=0.1)
-    assert set(fps) == {"fast", "slow"} and fps["slow"] < 250 < fps["fast"]
+    # A 4 ms delay caps "slow" below 250 fps on any machine; "fast" only has to beat it (a loaded CI machine
+    # may run the oracle itself below 250 fps).
+    assert set(fps) == {"fast", "slow"} and fps["slow"] < 250 and fps["fast"] > fps["slow"]
 
 
 def write_test_shards(folder, frames, camera, sequences):
