@@ -118,6 +118,10 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         from evaluate.calibration_eval import calibration_sections
 
         out += calibration_sections(results["calibration"], LABELS)
+    if results.get("real_captures"):
+        from evaluate.captures import capture_sections
+
+        out += capture_sections(results["real_captures"])
     timing = results.get("timing")
     if timing:
         rows = [["configuration", "fps here (detect + pose)", "paper (GTX 1080)"]]
@@ -136,6 +140,15 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
     return out
 
 
+def _format(data: bytes) -> str:
+    """"jpeg" for JPEG bytes (the real-captures gallery: photos stay small), else "png"."""
+    return "jpeg" if data[:3] == b"\xff\xd8\xff" else "png"
+
+
+def _file_name(name: str, data: bytes) -> str:
+    return f"{name}.{'jpg' if _format(data) == 'jpeg' else 'png'}"
+
+
 def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
     lines = ["# Deep ChArUco evaluation report", "", f"`{results.get('command', '')}`", ""]
     for title, text, rows, names in sections(results):
@@ -146,10 +159,10 @@ def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path
             lines += ["| " + " | ".join(r) + " |" for r in rows[1:]]
             lines.append("")
         for name in names:
-            lines += [f"![{name}](figures/{name}.png)", ""]
+            lines += [f"![{name}](figures/{_file_name(name, figures.get(name, b''))})", ""]
     (path.parent / "figures").mkdir(exist_ok=True)
     for name, data in figures.items():
-        (path.parent / "figures" / f"{name}.png").write_bytes(data)
+        (path.parent / "figures" / _file_name(name, data)).write_bytes(data)
     path.write_text("\n".join(lines))
     return path
 
@@ -180,7 +193,7 @@ def html_page(title: str, command: str, page_sections: list[tuple[str, str, list
             body.append("</table>")
         if names:
             body.append('<div class="figures">' + "".join(
-                f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figures[name]).decode()}">'
+                f'<img alt="{name}" src="data:image/{_format(figures[name])};base64,{base64.b64encode(figures[name]).decode()}">'
                 for name in names if name in figures) + "</div>")
     return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
             f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>")

@@ -2,14 +2,16 @@
 
     python -m evaluate.report                       # shipped weights; renders the default test sets once
     python -m evaluate.report --weights runs/charuconet/best.pt --refine-weights runs/refinenet/best.pt
-    python -m evaluate.report --captures data/captures --quick
+    python -m evaluate.report --captures ../shared/realdata/*     # real photos and videos (evaluate.captures)
 
 Test sets (each a folder of shards, schema in docs/conventions.md):
   --sequences  rendered twins of the paper's 26 evaluation videos (python -m evaluate.sequences);
                the per-sequence table, the pose-accuracy curve, and the 20 well-lit images of
                the synthetic blur/darkness tests (one per sequence, its first frame);
   --data       held-out random renders (python -m datagen.render --seed 1000): accuracy by lux;
-  --captures   auto-labelled real videos (python -m evaluate.autolabel), optional.
+  --captures   capture folders (photos and/or videos of a board, board.yaml: evaluate/captures/reader.py), the
+               "Real captures" section; default: the shipped sample (evaluate/captures_sample); a folder of
+               auto-labelled shards (python -m evaluate.autolabel) gets the paper's per-video table.
 The default folders are rendered when missing (a few minutes on 2 cores, once), unless --no-render
 (then a missing default folder's section is left out); a folder given explicitly must hold shards.
 """
@@ -29,6 +31,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.opencv_detector import OpenCVDetector
+from evaluate import captures as real_captures
 from evaluate import calibration_eval, documents, experiments, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
 from evaluate.protocols import LEVELS
@@ -87,6 +90,7 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
 
 def run_report(args: argparse.Namespace) -> dict:
     started = time.perf_counter()
+    args.captures, capture_sets = real_captures.report_folders(args.captures, args.no_captures)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     quick = args.quick
@@ -181,6 +185,11 @@ def run_report(args: argparse.Namespace) -> dict:
         notes.append(f"No boards-never-seen section: {args.unseen_boards} holds no rendered sets "
                      "(python -m evaluate.unseen_boards renders them, ~10 min a board).")
 
+    if capture_sets:  # real photos and videos (evaluate.captures): the shipped sample unless --captures names others
+        results["real_captures"], real_pictures = real_captures.evaluate_captures(
+            capture_sets, args.weights, args.refine_weights, args.device, quiet=args.quiet)
+        pictures.update(real_pictures)
+
     results["targets"] = experiments.targets(results)
     results["seconds"] = round(time.perf_counter() - started, 1)
     notes.append(_summary(results))
@@ -242,7 +251,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--refine-weights", default=None, help="RefineNet checkpoint when --weights is not a bundle")
     parser.add_argument("--sequences", default=str(DEFAULT_SEQUENCES), help="rendered sequences (default: %(default)s)")
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="held-out renders (default: %(default)s)")
-    parser.add_argument("--captures", default=None, help="auto-labelled captures (default: none)")
+    parser.add_argument("--captures", nargs="+", default=None, metavar="DIR",
+                        help="capture folders: photos/videos + board.yaml (default: the shipped sample), or one "
+                             "folder of auto-labelled shards")
+    parser.add_argument("--no-captures", action="store_true", help="skip the real-captures section")
     parser.add_argument("--calibration", default="data/calibration",
                         help="calibration sequences (python -m evaluate.calibration_sequences), evaluated when present "
                              "(default: %(default)s)")

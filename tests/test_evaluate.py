@@ -175,7 +175,8 @@ def test_report_end_to_end(frames, camera, tmp_path, checkpoint):
     argv = ["--sequences", str(tmp_path / "seq"), "--data", str(tmp_path / "data"), "--out", str(out), "--quiet",
             "--weights", str(checkpoint / "charuconet.pt"), "--refine-weights", str(checkpoint / "refinenet.pt"),
             "--synthetic-images", "4", "--timing-seconds", "0.2", "--gallery", "2", "--no-autolabel-check", "--no-render",
-            "--no-calibration"]  # a data/calibration in the checkout must not slow this down (test_calibrate covers it)
+            "--no-calibration",  # a data/calibration in the checkout must not slow this down (test_calibrate covers it)
+            "--no-captures"]  # nor the shipped real-capture sample (test_captures covers it)
     assert report.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
     assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "deep_paper", "opencv", "opencv_norefine"}

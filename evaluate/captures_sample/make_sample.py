@@ -1,0 +1,48 @@
+"""How this sample was made from the published captures (``python -m evaluate.captures_sample.make_sample
+REALDATA``, where REALDATA holds the folders described in each set's SOURCE.txt; not needed to use it).
+
+caliscope_cam1: frames of caliscope's cam_1.mp4 decoded by OpenCV, converted to grey and saved as JPEG
+(quality 90), with camera_cam_1.yaml as camera.yaml and the by-eye verdicts of those frames; opencv_tutorial:
+the photos as published (choriginal.jpg is left out: it is calib_img_01.jpg byte for byte).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+
+from evaluate.captures.reader import video_frames
+
+HERE = Path(__file__).resolve().parent
+# Frames of cam_1 (6 fps): the board lying clipped at the image edge (40), found by OpenCV (64, 86, 104),
+# hand-held in glare where OpenCV finds nothing though the board is visible by eye (66, 70, 74, 82),
+# and found in part (80, 84).
+CAM1_FRAMES = (40, 64, 66, 70, 74, 80, 82, 84, 86, 104)
+TUTORIAL_PHOTOS = ("calib_img_00.jpg", "calib_img_01.jpg", "calib_img_02.jpg", "calib_img_03.jpg",
+                   "chocclusion_original.jpg")
+
+
+def main(realdata: Path) -> None:
+    source, out = realdata / "caliscope_calibration", HERE / "caliscope_cam1"
+    out.mkdir(exist_ok=True)
+    shutil.copyfile(source / "board.yaml", out / "board.yaml")
+    shutil.copyfile(source / "camera_cam_1.yaml", out / "camera.yaml")
+    for index, image in video_frames(source / "cam_1.mp4", 1, max(CAM1_FRAMES) + 1):
+        if index in CAM1_FRAMES:
+            cv2.imwrite(str(out / f"cam_1_f{index:05d}.jpg"), image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    wanted = {f"cam1_f{i:05d}.png": f"cam_1_f{i:05d}.jpg" for i in CAM1_FRAMES}
+    lines = (source / "frames_review.csv").read_text().splitlines()
+    kept = [line for line in lines if line.startswith("#") or line.startswith("frame,")]
+    kept += [wanted[line.split(",")[0]] + line[line.index(","):] for line in lines if line.split(",")[0] in wanted]
+    (out / "frames_review.csv").write_text("\n".join(kept) + "\n")
+    source, out = realdata / "opencv_tutorial", HERE / "opencv_tutorial"
+    out.mkdir(exist_ok=True)
+    for name in TUTORIAL_PHOTOS + ("board.yaml", "camera.yaml"):
+        shutil.copyfile(source / name, out / name)
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1] if len(sys.argv) > 1 else "../shared/realdata"))
