@@ -29,7 +29,17 @@ from deepcharuco.detect import make_detector, open_source
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 
-DETECTORS = ("opencv", "deep")  # a "hybrid" detector does not exist yet
+DETECTORS = ("opencv", "deep", "hybrid")
+
+
+def make_calibration_detector(name: str, board: BoardSpec, refine: str, weights: str | None = None):
+    """The detector called ``name``: "opencv", "deep", or "hybrid" (OpenCV's corners when they fit one view of
+    the board, the networks' otherwise: `Detector(mode="hybrid")`)."""
+    if name != "hybrid":
+        return make_detector(name, board, refine, weights)
+    from deepcharuco.deep_detector import Detector
+
+    return Detector(board=board, weights=weights, refine=refine, mode="hybrid")
 
 
 def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, quiet: bool = False
@@ -97,7 +107,7 @@ def run(args: argparse.Namespace) -> CalibrationResult:
     for path in [Path(args.out)] + ([] if args.no_report else [Path(args.report) if args.report else default_report_path(args.out)]):
         check_writable(path)
     board = BoardSpec.load(args.board) if args.board else BoardSpec()
-    detector = make_detector(args.detector, board, args.refine, args.weights)
+    detector = make_calibration_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source, args.max_frames)
     frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet)
     if size is None:
@@ -139,14 +149,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--board", help="board description (.yaml/.json); default: the paper's 5x5 DICT_5X5_50 board")
     parser.add_argument("--out", default="camera.yaml", help="camera file to write (OpenCV FileStorage YAML)")
     parser.add_argument("--detector", choices=DETECTORS, default="opencv",
-                        help="corner detector (the deep one finds boards in the dark and under blur)")
+                        help="corner detector: the deep one finds boards in the dark and under blur; hybrid takes "
+                             "OpenCV's corners where they fit the board and the deep ones elsewhere")
     parser.add_argument("--model", choices=MODELS, default="pinhole",
                         help="pinhole: k1 k2 p1 p2 k3; rational: + k4 k5 k6; fisheye: OpenCV's fisheye k1..k4")
     parser.add_argument("--fix-k3", action="store_true",
                         help="keep k3 at 0 (pinhole/rational): for few views or a small board, where a free k3 bends "
                              "the model beyond the corners seen")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
-                        help="corner refinement (default: subpix for opencv, refinenet for deep)")
+                        help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid)")
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
     parser.add_argument("--report", default=None, help="HTML report to write (default: <out>_report.html)")
     parser.add_argument("--no-report", action="store_true", help="write the camera file only")
@@ -164,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = argv
-    args.refine = args.refine or ("refinenet" if args.detector == "deep" else "subpix")
+    args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")
     problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
                 for name, low in (("max_views", 4), ("min_views", 4), ("min_corners", 4), ("step", 1))
                 if getattr(args, name) < low]

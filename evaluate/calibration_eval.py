@@ -167,19 +167,20 @@ def calibration_sections(calibration: dict, labels: dict | None = None) -> list[
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m evaluate.calibration_eval", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default="data/calibration", help="calibration sequence shards (default: %(default)s)")
-    parser.add_argument("--detectors", nargs="+", default=["opencv", "deep"], choices=["opencv", "deep"])
+    parser.add_argument("--detectors", nargs="+", default=["opencv", "deep"], choices=["opencv", "deep", "hybrid"])
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     args = parser.parse_args(argv)
     if not available(args.data):
         print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
               f"{args.data}", file=sys.stderr)
         return 2
-    from deepcharuco.detect import make_detector
+    from deepcharuco.calibrate import make_calibration_detector
 
     reader = ShardReader(list_shards(args.data)[0])
     board = reader.board
     reader.close()
-    detectors = {name: make_detector(name, board, "refinenet" if name == "deep" else "subpix") for name in args.detectors}
+    detectors = {name: make_calibration_detector(name, board, "subpix" if name == "opencv" else "refinenet")
+                 for name in args.detectors}
     results = calibration_experiment(detectors, args.data, board)
     for title, text, rows, _ in calibration_sections(results):
         print(f"{title}\n{text}")

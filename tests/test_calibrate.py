@@ -219,3 +219,10 @@ def test_poor_coverage_is_said(detections):
     central = [FrameDetection(0, "c", np.arange(4), np.array([[125.0, 85], [150, 85], [125, 115], [150, 115]]))]
     assert coverage(central, SIZE) == pytest.approx(1 / 48)
     assert "cover only 2 % of the image" in _coverage_notes(central, SIZE)[0]
+
+
+def test_hybrid_detector_is_offered(waved):
+    from deepcharuco.calibrate import make_calibration_detector
+
+    detector = make_calibration_detector("hybrid", BOARD, "refinenet")
+    assert detector.mode == "hybrid" and len(detector.detect(waved[0][0])) >= 8
