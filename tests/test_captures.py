@@ -168,6 +168,7 @@ def test_metrics_on_a_synthetic_capture_folder(capture_folder):
     assert all(len(d) >= 6 for d in found)
     cv, oracle, drop, swap = (result["detectors"][n] for n in ("opencv", "oracle", "drop", "swap"))
     assert (cv["frames"], cv["found"], cv["verified"], cv["reference_frames"]) == (5, 3, 3, 3)
+    assert cv["corners"] == sum(len(d) for d in found) and oracle["corners"] == sum(len(c) for c in truth.values())
     assert cv["accuracy_vs_opencv"] == 1.0 and cv["wrong_ids"] == 0 and cv["mean_eps_re"] is None  # no camera
     # The true corners: every frame with a board found and verified, one that OpenCV misses, all within 3 px.
     assert (oracle["found"], oracle["verified"], oracle["only_this"], oracle["only_opencv"]) == (4, 4, 1, 0)
@@ -243,7 +244,7 @@ def test_the_report_section_and_the_shipped_sample(capture_folder, tmp_path, cap
     assert "Real captures" in page and page.count("data:image/jpeg;base64,") == 1
     (tmp_path / "r").mkdir()
     documents.write_markdown(tmp_path / "r" / "report.md", {"real_captures": results, "notes": []}, pictures)
-    assert "| desk | OpenCV + cornerSubPix | 2 | 1 | 1 |" in (tmp_path / "r" / "report.md").read_text()
+    assert f"| desk | OpenCV + cornerSubPix | 2 | {entry['detectors']['opencv']['corners']} | 1 | 1 |" in (tmp_path / "r" / "report.md").read_text()
     assert list((tmp_path / "r" / "figures").glob("*.jpg"))
     # The shipped sample: what `make demo` shows without ../shared; every set opens, with its licence notice.
     assert report_folders(None) == (None, sample_folders()) and len(sample_folders()) >= 2

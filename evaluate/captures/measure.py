@@ -23,6 +23,7 @@ import inspect
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -200,7 +201,8 @@ def summarize(measures: list[FrameMeasure], name: str) -> dict:
     found = np.array([m.found[name] >= MIN_FOUND for m in measures])
     found_cv = np.array([m.found[REFERENCE] >= MIN_FOUND for m in measures])
     summary = {
-        "frames": frames, "found": int(found.sum()), "verified": int(sum(m.verified[name] for m in measures)),
+        "frames": frames, "corners": int(sum(m.found[name] for m in measures)), "found": int(found.sum()),
+        "verified": int(sum(m.verified[name] for m in measures)),
         "mean_eps_re": float(np.mean(eps)) if eps else None,
         "reference_frames": len(reference),
         "accuracy_vs_opencv": float(np.mean([m.agree[name] / m.reference for m in reference])) if reference else None,
@@ -243,8 +245,6 @@ def reduced(image: np.ndarray, detections: dict[str, Detection], width: int = GA
             ) -> tuple[np.ndarray, dict[str, Detection]]:
     """The image scaled to ``width`` px (area-averaged; never enlarged) and the detections with it (OpenCV
     pixel centres at both sizes)."""
-    import cv2
-
     scale = min(1.0, width / image.shape[1])
     if scale == 1.0:
         return image, detections

@@ -106,14 +106,15 @@ def capture_sections(real: dict) -> list[tuple[str, str, list[list[str]] | None,
     """(title, text, table rows, figure names) of the report's "Real captures" sections (documents.sections)."""
     truth = any(s["truth"] != "none" for s in real["sets"])
     review = any(s["review"] for s in real["sets"])
-    header = ["set", "detector", "frames", "found (>= 4)", "verified", "eps_re px", "OpenCV >= 6",
+    header = ["set", "detector", "frames", "corners", "found (>= 4)", "verified", "eps_re px", "OpenCV >= 6",
               "acc vs OpenCV", "px vs OpenCV", "wrong IDs", "only this / only OpenCV", "ms/frame"]
     header += ["OpenCV missed, board seen by eye: found", "no board: found"] if review else []
     header += ["truth: corner acc / pose acc / wrong poses"] if truth else []
     rows = [header]
     for s in real["sets"]:
         for name, d in s["detectors"].items():
-            cells = [s["set"], real["detectors"].get(name, name), str(d["frames"]), str(d["found"]), str(d["verified"]),
+            cells = [s["set"], real["detectors"].get(name, name), str(d["frames"]), str(d["corners"]), str(d["found"]),
+                     str(d["verified"]),
                      _value(d["mean_eps_re"]), str(d["reference_frames"]),
                      "-" if name == REFERENCE else _value(d["accuracy_vs_opencv"]),
                      "-" if name == REFERENCE else _value(d["median_px_vs_opencv"]),
@@ -131,8 +132,8 @@ def capture_sections(real: dict) -> list[tuple[str, str, list[list[str]] | None,
                              f"{_value(t.get('pose_accuracy'), percent=True)} / {t.get('confidently_wrong', '-')}")
             rows.append(cells)
     step = f"every {real['step']}th frame of each video" if real["step"] > 1 else "every frame of each video"
-    text = (f"Photos and videos of printed boards from real cameras, {step}, every photo. found: frames with >= 4 "
-            "corners; verified: >= 6 corners that fit one view of the board (RANSAC homography, 3 px) or, with a "
+    text = (f"Photos and videos of printed boards from real cameras, {step}, every photo. corners: all the corners "
+            "found; found: frames with >= 4 corners; verified: >= 6 corners that fit one view of the board (RANSAC homography, 3 px) or, with a "
             "camera file, a PnP pose (6+ inliers, lens distortion included) with eps_re < 3 px, whose mean is shown; "
             "acc vs OpenCV: the paper's accuracy with OpenCV's corners as the truth (same ID within 3 px), over "
             "the frames where OpenCV finds >= 6 corners, and the median distance of those corners; wrong IDs: "
