@@ -80,3 +80,32 @@ def output_file(path: str | Path, option: str = "--out") -> Path:
         raise DeepCharucoError(f"{option} {path} is a folder: give a file path, e.g. {path / 'detector.pt'}")
     output_folder(path.parent, option=f"{option}'s folder")
     return path
+
+
+def pick_device(name: str) -> "torch.device":
+    """The torch device ``name`` names ("auto": CUDA, else MPS, else CPU); `DeepCharucoError` when it is
+    not a device name or this machine (or this torch build) does not have it."""
+    import torch  # here, so that commands without a network do not load torch
+    if name != "auto":
+        try:
+            device = torch.device(name)
+        except RuntimeError:
+            raise DeepCharucoError(f"--device {name!r} is not a device: use auto, cpu, cuda, cuda:N or mps") from None
+        if device.type == "cuda":
+            count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+            if count == 0:
+                raise DeepCharucoError(f"--device {name}: no CUDA GPU is usable here (this torch {torch.__version__} "
+                                       f"{'has no CUDA support' if torch.version.cuda is None else 'sees no GPU'}): "
+                                       f"use --device cpu or auto")
+            if device.index is not None and device.index >= count:
+                raise DeepCharucoError(f"--device {name}: only {count} CUDA GPU(s) here (cuda:0..cuda:{count - 1})")
+        elif device.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+            raise DeepCharucoError(f"--device {name}: MPS (Apple GPU) is not available here: use --device cpu or auto")
+        elif device.type not in ("cpu", "cuda", "mps"):
+            raise DeepCharucoError(f"--device {name}: use cpu, cuda or mps")
+        return device
+    if torch.cuda.is_available():
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+    if getattr(torch.backends, "mps", None) and torch.backends.mps.is_available():
+        return torch.device("mps")
+    return torch.device("cpu")

@@ -14,6 +14,7 @@ are metres (``BoardSpec``'s frame); pixels OpenCV's.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -32,6 +33,10 @@ MIN_MARKERS = 2
 # The final view's own check: of the board's markers it puts wholly in the image and can read, this
 # fraction must read best as the marker printed there (a look-alike board reads as chance, 1 / markers).
 MIN_MARKER_AGREEMENT = 0.5
+# ... and more than chance explains. The view is the best of up to HYPOTHESES tried, on squares it picked
+# itself: 2 of 3 markers agreeing on a board of 12 happens by chance in photos (1 of 25 scikit-image photos
+# gave 4 corners); 1e-5 asks 3 of 3 there, 2 of 3 on a board of 200 markers.
+MAX_CHANCE = 1e-5
 HYPOTHESES = 256  # proposals tried as the board's view, best correlated first
 AGREEMENT = 0.3  # two markers agree when one's view puts the other's square within this many square sides
 # A cell's edge neighbours: the markers of a ChArUco board sit in the squares next to the black ones.
@@ -134,11 +139,20 @@ def marker_agreement(gray: np.ndarray, board: BoardSpec, homography: np.ndarray)
     return int(np.sum(ncc.argmax(axis=1) == readable * 4)), len(readable)
 
 
+def chance_of_agreement(agreeing: int, readable: int, markers: int) -> float:
+    """Probability that ``agreeing`` or more of ``readable`` squares that show no marker of the board would
+    each read best as the marker the view expects there, by chance: 1 in 4 x ``markers`` each (binomial tail)."""
+    p = 1.0 / (4 * markers)
+    return float(sum(math.comb(readable, k) * p ** k * (1 - p) ** (readable - k) for k in range(agreeing, readable + 1)))
+
+
 def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray) -> bool:
-    """True when at least `MIN_MARKERS` markers, and `MIN_MARKER_AGREEMENT` of the readable ones, read as
-    the board's own markers in the view ``homography`` (board metres -> pixels) of canonical ``gray``."""
+    """True when the markers in the view ``homography`` (board metres -> pixels) of canonical ``gray`` read as
+    the board's own: at least `MIN_MARKERS`, at least `MIN_MARKER_AGREEMENT` of the readable ones, and more
+    than chance could explain (`chance_of_agreement` <= `MAX_CHANCE`)."""
     agreeing, readable = marker_agreement(gray, board, homography)
-    return agreeing >= MIN_MARKERS and agreeing >= MIN_MARKER_AGREEMENT * readable
+    return (agreeing >= MIN_MARKERS and agreeing >= MIN_MARKER_AGREEMENT * readable
+            and chance_of_agreement(agreeing, readable, board.num_markers) <= MAX_CHANCE)
 
 
 def marker_view_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,

@@ -7,6 +7,8 @@ corner positions are the projected board corners to well under 0.1 px.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -32,6 +34,7 @@ def render_board_view(
     margin: float | None = None,
     background: int = 90,
     supersample: int = 4,
+    paint: Callable[[BoardTexture], np.ndarray] | None = None,
 ) -> np.ndarray:
     """A (H, W) uint8 image of the printed board under an undistorted pinhole camera.
 
@@ -42,6 +45,8 @@ def render_board_view(
         background: grey level outside the paper.
         supersample: the view is drawn at this many times the resolution and box-filtered
             down, which is what a sensor's pixel area does.
+        paint: prints another image instead of the board's texture: called with the texture, returns
+            a uint8 image of its size and map (look-alike boards: `paint_markers`).
     """
     width, height = image_size
     margin = 0.5 * board.square_length if margin is None else margin
@@ -53,10 +58,11 @@ def render_board_view(
     px_per_m = float(np.clip(supersample * K[0, 0] / nearest_depth, 200.0, 40000.0))
     px_per_m = min(px_per_m, 8000.0 / (max(board.size_m) + 2 * margin))
     texture = board.render_texture(px_per_m, margin)
+    printed = texture.image if paint is None else paint(texture)
     half = (supersample - 1) / 2.0
     to_fine = np.array([[supersample, 0, half], [0, supersample, half], [0, 0, 1.0]])
     fine = cv2.warpPerspective(
-        texture.image,
+        printed,
         to_fine @ texture_homography(texture, K, rvec, tvec),
         (width * supersample, height * supersample),
         flags=cv2.INTER_LINEAR,
@@ -84,3 +90,24 @@ def look_at_pose(
     tvec = np.array([offset[0], offset[1], distance]) - rotation @ centre
     rvec, _ = cv2.Rodrigues(rotation)
     return rvec.ravel(), tvec
+
+
+def paint_markers(texture: BoardTexture, marker_ids: np.ndarray | None) -> np.ndarray:
+    """The texture's image with every marker replaced: by the markers ``marker_ids`` (M,) of the board's
+    dictionary, in the board's marker order, or by white paper (None: a plain chessboard). The markers
+    are drawn to the nearest texture pixel (not area-exact): for look-alike boards, not for labels."""
+    board = texture.board
+    image = texture.image.copy()
+    paper, ink = (0, 255) if board.inverted else (255, 0)
+    dictionary = board.cv_dictionary()
+    _, corners = board.marker_corners()
+    if board.mirrored:
+        raise ValueError("paint_markers draws on the printed side: give the board unmirrored")
+    for index, marker in enumerate(corners):
+        (u0, v0), (u1, v1) = np.round(texture.board_to_texture(marker[[0, 2], :2])).astype(int)
+        image[v0:v1 + 1, u0:u1 + 1] = paper
+        if marker_ids is not None:
+            side = int(u1 - u0 + 1)
+            bits = cv2.aruco.generateImageMarker(dictionary, int(marker_ids[index]), side, borderBits=1)
+            image[v0:v0 + side, u0:u0 + side] = np.where(bits > 127, paper, ink)[: image.shape[0] - v0, : image.shape[1] - u0]
+    return image

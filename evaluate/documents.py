@@ -110,6 +110,10 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         out.append(("Held-out renders", "Random frames of the training distribution rendered with a held-out seed "
                     "(shake, shadows, clutter, distractor boards, 0.2-1000 lux), by illuminance at the board: mean "
                     "corner accuracy, pose accuracy (eps_re < 3 px), confidently wrong poses.", rows, []))
+    if results.get("false_positives"):
+        from evaluate.false_positives import sections as false_positive_sections
+
+        out += false_positive_sections(results["false_positives"], LABELS)
     if results.get("unseen_boards"):
         from evaluate.unseen_boards import sections as unseen_sections
 

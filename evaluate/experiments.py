@@ -168,7 +168,11 @@ def targets(results: dict) -> list[dict]:
                 family, own = synthetic[effect]["deep_markers"]["accuracy"][i], synthetic[effect]["deep"]["accuracy"][i]
                 add(f"paper's board, {effect} k={k}: by markers (any board) vs the board's own ID head", family,
                     f">= {own:.3f} (own ID head)", family >= own)
+    from evaluate.false_positives import targets as false_positive_targets
     from evaluate.unseen_boards import targets as unseen_targets
+
+    for what, value, goal, met in false_positive_targets(results.get("false_positives", {})):
+        add(what, value, goal, met)
 
     for what, value, goal, met in unseen_targets(results.get("unseen_boards", {})):
         add(what, value, goal, met)

@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from deepcharuco.board import BoardSpec
+from deepcharuco.cli import describe_os_error, output_folder, pick_device
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.opencv_detector import OpenCVDetector
 from evaluate import captures as real_captures
-from evaluate import calibration_eval, documents, experiments, figures, unseen_boards
+from evaluate import calibration_eval, documents, experiments, false_positives, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
 from evaluate.protocols import LEVELS
 
@@ -91,8 +92,8 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
 def run_report(args: argparse.Namespace) -> dict:
     started = time.perf_counter()
     args.captures, capture_sets = real_captures.report_folders(args.captures, args.no_captures)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    pick_device(args.device)  # a bad --device, a file or an unwritable --out: refused before anything is made
+    out = output_folder(args.out)
     quick = args.quick
     notes: list[str] = []
     render_allowed = not args.no_render
@@ -190,6 +191,12 @@ def run_report(args: argparse.Namespace) -> dict:
             capture_sets, args.weights, args.refine_weights, args.device, quiet=args.quiet)
         pictures.update(real_pictures)
 
+    if not args.no_false_positives:
+        # Look-alike boards and photos without a board: the deep detector must give no pose on any.
+        suspects = {n: detectors[n] for n in ("deep", "deep_markers", "deep_paper", "opencv") if n in detectors}
+        results["false_positives"] = false_positives.false_positive_experiment(
+            suspects, board, views=4 if quick else args.look_alike_views, seed=args.seed, quiet=args.quiet)
+
     results["targets"] = experiments.targets(results)
     results["seconds"] = round(time.perf_counter() - started, 1)
     notes.append(_summary(results))
@@ -263,6 +270,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="sequences of boards never seen in training (python -m evaluate.unseen_boards), evaluated "
                              "when present (default: %(default)s)")
     parser.add_argument("--no-unseen-boards", action="store_true", help="skip the boards-never-seen section")
+    parser.add_argument("--look-alike-views", type=int, default=10,
+                        help="views of each look-alike board in the false-positive section (default: %(default)s, "
+                             "--quick 4)")
+    parser.add_argument("--no-false-positives", action="store_true", help="skip the false-positive section")
     parser.add_argument("--board", default=None, help="BoardSpec file (default: the test shards' board)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",
@@ -282,10 +293,15 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     if (args.synthetic_images is not None and args.synthetic_images < 1) or args.gallery < 0 or args.timing_seconds <= 0:
         parser.error("--synthetic-images must be >= 1, --gallery >= 0, --timing-seconds > 0")
+    if args.look_alike_views < 1:
+        parser.error("--look-alike-views must be >= 1")
     try:
         results = run_report(args)
     except DeepCharucoError as error:
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:  # a full disk while writing the report
+        print(f"error: {describe_os_error(error)}", file=sys.stderr)
         return 2
     print(results["notes"][-1])
     for target in results["targets"]:
