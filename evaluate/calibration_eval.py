@@ -130,9 +130,12 @@ def targets(rows: list[dict], detectors: list[str]) -> list[dict]:
                 continue
             else:
                 opencv = row.get("opencv", {"calibrated": False})
-                met = _focal(cell) <= HARD_FOCAL_PCT and (not opencv["calibrated"] or _focal(opencv) > OPENCV_FAIL_PCT)
+                # The target speaks of sequences where OpenCV fails; elsewhere it does not apply (met: None).
+                applies = not opencv["calibrated"] or _focal(opencv) > OPENCV_FAIL_PCT
+                met = _focal(cell) <= HARD_FOCAL_PCT if applies else None
                 goal = f"within {HARD_FOCAL_PCT:g} % where OpenCV gives none or > {OPENCV_FAIL_PCT:g} % off"
-            out.append({"sequence": row["sequence"], "detector": name, "target": goal, "met": bool(met)})
+            out.append({"sequence": row["sequence"], "detector": name, "target": goal,
+                        "met": None if met is None else bool(met)})
     return out
 
 
@@ -152,15 +155,18 @@ def calibration_sections(calibration: dict, labels: dict | None = None) -> list[
                          f"{cell['fx_pct']:+.2f}", f"{cell['fy_pct']:+.2f}", f"{cell['cx_px']:+.2f}", f"{cell['cy_px']:+.2f}",
                          f"{cell['true_corner_distortion_px']:.1f} / {cell['corner_distortion_error_px']:.2f}",
                          f"{cell['mapping_error_px']:.2f}"])
-    met = [t for t in calibration["targets"] if t["met"]]
+    applicable = [t for t in calibration["targets"] if t["met"] is not None]
+    met = [t for t in applicable if t["met"]]
     text = ("Each detector calibrates (python -m deepcharuco.calibrate's pipeline, pinhole model) each rendered "
             "calibration sequence (python -m evaluate.calibration_sequences: a hand-waved board through a known "
             "distorted camera, k1 from -0.4 to +0.1; good light, 1 lux, shake). Errors against the true camera; "
             "'distortion at corners': how far the true distortion moves the image's corner pixels, and the solved "
             "model's error there (worst corner); 'mapping error': worst pixel of a grid, true ray through the solved "
-            f"camera. **Targets met: {len(met)} of {len(calibration['targets'])}**"
+            f"camera. **Targets met: {len(met)} of {len(applicable)}**"
             + (" (missed: " + "; ".join(f"{t['sequence']} {labels.get(t['detector'], t['detector'])}" for t in
-                                        calibration["targets"] if not t["met"]) + ")." if len(met) < len(calibration["targets"]) else "."))
+                                        applicable if not t["met"]) + ")" if len(met) < len(applicable) else "")
+            + f"; {len(calibration['targets']) - len(applicable)} not applicable (OpenCV calibrated within "
+              f"{OPENCV_FAIL_PCT:g} % there).")
     return [("Camera calibration on rendered sequences", text, rows, [])]
 
 

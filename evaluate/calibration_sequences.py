@@ -5,7 +5,7 @@ distortion is known. One camera per k1 in `K1_VALUES` (k2 = k1^2, which keeps th
 small tangential terms, square pixels, a principal point a few pixels off centre, 55-70 degrees
 of horizontal field of view), and three videos of it, one shard each (shard index = number):
 
-- ``k1<k1>-good``: 400 lux, the board held still at each view;
+- ``k1<k1>-good`` (e.g. ``k1-0.40-good``): 400 lux, the board held still at each view;
 - ``k1<k1>-1lux``: the same views (the same renders) at 1 lux: the sensor's gain and noise;
 - ``k1<k1>-shake``: the board moving along its path and the hand shaking (the shake of
   `evaluate.sequences`' motion videos), each frame rendered with real motion blur over its
@@ -69,7 +69,7 @@ class CalibrationSequence:
 
 
 def _all() -> tuple[CalibrationSequence, ...]:
-    return tuple(CalibrationSequence(3 * c + j, f"k1{k1:+.1f}-{condition}", c, k1, condition)
+    return tuple(CalibrationSequence(3 * c + j, f"k1{k1:+.2f}-{condition}", c, k1, condition)
                  for c, k1 in enumerate(K1_VALUES) for j, condition in enumerate(CONDITIONS))
 
 

@@ -69,7 +69,7 @@ def test_shards_hold_the_distorted_camera_and_its_labels(rendered):
     good, dark, shake = (frames_of(rendered / f"shard-0000{n}.h5") for n in (6, 7, 8))
     K, dist, size = read_truth(rendered / "shard-00006.h5")
     assert size == SIZE and dist[0] == pytest.approx(0.1) and dist[1] == pytest.approx(0.01)
-    assert [f.meta["sequence"] for f in good] == ["k1+0.1-good"] * FRAMES
+    assert [f.meta["sequence"] for f in good] == ["k1+0.10-good"] * FRAMES
     assert [f.meta["condition"] for f in dark] == ["1lux"] * FRAMES and dark[0].meta["lux"] == 1.0
     for g, d in zip(good, dark):  # the same renders: the same labels, another light
         np.testing.assert_array_equal(g.corners, d.corners)
