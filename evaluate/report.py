@@ -2,7 +2,7 @@
 
     python -m evaluate.report                       # shipped weights; renders the default test sets once
     python -m evaluate.report --weights runs/charuconet/best.pt --refine-weights runs/refinenet/best.pt
-    python -m evaluate.report --captures ../shared/realdata/*     # real photos and videos (evaluate.captures)
+    python -m evaluate.report --captures realdata/*     # capture folders of real photos and videos (evaluate.captures)
 
 Test sets (each a folder of shards, schema in docs/conventions.md):
   --sequences  rendered twins of the paper's 26 evaluation videos (python -m evaluate.sequences);

@@ -246,7 +246,7 @@ def test_the_report_section_and_the_shipped_sample(capture_folder, tmp_path, cap
     documents.write_markdown(tmp_path / "r" / "report.md", {"real_captures": results, "notes": []}, pictures)
     assert f"| desk | OpenCV + cornerSubPix | 2 | {entry['detectors']['opencv']['corners']} | 1 | 1 |" in (tmp_path / "r" / "report.md").read_text()
     assert list((tmp_path / "r" / "figures").glob("*.jpg"))
-    # The shipped sample: what `make demo` shows without ../shared; every set opens, with its licence notice.
+    # The shipped sample: what `make demo` shows with no other captures at hand; every set opens, with its licence notice.
     assert report_folders(None) == (None, sample_folders()) and len(sample_folders()) >= 2
     for sample in sample_folders():
         open_capture_set(sample)

@@ -1,8 +1,8 @@
 """Real captures in the evaluation: folders of photos and videos of printed boards, judged per detector.
 
     from evaluate.captures import open_capture_set, evaluate_captures
-    captures = open_capture_set("../shared/realdata/opencv_tutorial")    # checked: CaptureError when unusable
-    results, jpegs = evaluate_captures(["../shared/realdata/opencv_tutorial"], step=4)
+    captures = open_capture_set("evaluate/captures_sample/opencv_tutorial")   # checked: CaptureError when unusable
+    results, jpegs = evaluate_captures(["evaluate/captures_sample/opencv_tutorial"], step=4)
 
 - `reader`: the folder layout, lazy frames (videos one frame at a time), refusals with the fix;
 - `truth`: labels file, else the paper's auto-labelling of still videos, else none;

@@ -46,4 +46,6 @@ def main(realdata: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1] if len(sys.argv) > 1 else "../shared/realdata"))
+    if len(sys.argv) != 2:
+        sys.exit("usage: python -m evaluate.captures_sample.make_sample REALDATA (the folder of the published sets)")
+    main(Path(sys.argv[1]))
