@@ -17,7 +17,7 @@ from evaluate.captures import (
 from evaluate.captures import reader
 from evaluate.protocols import motion_blur
 from evaluate.captures.truth import build_truth
-from tests.conftest import VIEW_POSES
+from conftest import VIEW_POSES
 
 BOARD = BoardSpec()
 CAMERA = Camera.from_fov(320, 240, hfov_deg=60.0)
