@@ -23,6 +23,7 @@ DEFAULT_GALLERY = 3  # frames a set
 JPEG_QUALITY = 85
 LABELS = {"opencv": "OpenCV + cornerSubPix", "deep": "deep (ChArUcoNet + RefineNet)",
           "hybrid": "hybrid (OpenCV, else the networks)"}
+SHORT = {"opencv": "OpenCV", "deep": "deep", "hybrid": "hybrid"}  # in the gallery's captions
 
 
 def sample_folders() -> list[Path]:
@@ -73,7 +74,7 @@ def _panel(image: np.ndarray, detection: Detection, caption: str) -> np.ndarray:
 
 def _caption(entry: GalleryFrame, name: str, camera: bool) -> str:
     m = entry.measure
-    text = f"{LABELS.get(name, name)}: {m.found[name]}"
+    text = f"{SHORT.get(name, name)}: {m.found[name]}"
     if m.verified[name]:
         text += f", pose eps_re {m.eps_re[name]:.2f}px" if camera and m.eps_re[name] is not None else ", verified"
     if name != REFERENCE and m.reference:

@@ -84,7 +84,7 @@ def build_truth(captures: CaptureSet, average: int = AVERAGE_FRAMES) -> SetTruth
         by_medium[medium.path.name] = labels
         notes.append(f"{medium.path.name}: auto-labelled (the paper's recipe), {labels.describe()}")
     if any(m.kind == "image" for m in captures.media):
-        notes.append("photos: no truth (each shows another view; auto-labelling needs a still camera and board)")
+        notes.append("photos: each shows another view, and auto-labelling needs a still camera and board")
     return SetTruth("autolabel" if by_medium else "none", notes, captures.board, by_medium=by_medium)
 
 
