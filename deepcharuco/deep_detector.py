@@ -22,7 +22,9 @@ import numpy as np
 import torch
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.board_check import GEOMETRY_MODES, MIN_CONSENSUS, assign_ids, fit_board_homography, id_hypotheses
+from deepcharuco.board_check import (
+    GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, assign_ids, fit_board_homography, id_hypotheses,
+)
 from deepcharuco.detection import Detection, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
@@ -87,7 +89,8 @@ class Detector:
             reduced to it, then to twice it ... up to full resolution until the board is found with squares
             of at least 16 px, and their corners refined again at full resolution. None: native resolution only.
         mode: "deep" (default) or "hybrid": OpenCV's detector (+ cornerSubPix) runs first and its corners
-            are returned when at least 6 of them, and nine in ten, fit one view of the board; the networks
+            are returned when at least 6 of them, and nine in ten, fit one view of the board (to 3 px or a
+            quarter of the corner spacing); the networks
             run only when they do not (near OpenCV's speed in good light, the networks' recall in bad light).
         geometry: how corners get their IDs (default: "repair" for the weights' board, "markers" otherwise):
             "repair": the confident cells' two likeliest IDs are fitted to one view of the board
@@ -185,10 +188,13 @@ class Detector:
 
     def _verified(self, detection: Detection) -> bool:
         """Hybrid mode: OpenCV's corners stand when at least `MIN_CONSENSUS` of them, and all but a tenth,
-        fit one view of the board (`board_check.fit_board_homography`, 3 px)."""
+        fit one view of the board (`board_check.fit_board_homography`) to within 3 px or a quarter of the
+        corner spacing, whichever is larger: a wide lens bends a large board's rows away from any one
+        homography by more than 3 px, and a wrong ID lands a whole square away."""
         if len(detection.ids) < MIN_CONSENSUS:
             return False
-        view = fit_board_homography(self.board.object_points()[detection.ids, :2], detection.corners)
+        tolerance = max(TOLERANCE_PX, 0.25 * _corner_spacing(detection.corners))
+        view = fit_board_homography(self.board.object_points()[detection.ids, :2], detection.corners, tolerance)
         return view is not None and view.inliers.sum() >= 0.9 * len(detection.ids)
 
     def _search_levels(self, full: np.ndarray):
