@@ -47,10 +47,20 @@ PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the centra
 # least MIN_SQUARE_PX wide, and its corners are refined at full resolution.
 WORKING_SIZE = 320
 MIN_SQUARE_PX = 16
+# The finest level searched: an 8000x6000 photo at full resolution took 145 s and 9.5 GB in the network;
+# at 2048 px its squares need to be >= ~50 px (12 px at this level) to be found, and every corner is still
+# refined at full resolution.
+MAX_SEARCH_SIZE = 2048
 # "hybrid": OpenCV first, kept when the board's geometry verifies it; the networks only where it fails.
 MODES = ("deep", "hybrid")
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
+
+
+def _reduced(image: np.ndarray, scale: float) -> np.ndarray:
+    """``image`` scaled by ``scale`` < 1 (area-averaged, as a sensor's larger pixels would see it)."""
+    height, width = image.shape
+    return cv2.resize(image, (max(1, round(width * scale)), max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
 
 
 def _corner_spacing(pixels: np.ndarray) -> float:
@@ -86,8 +96,9 @@ class Detector:
             validation frames; else 0.3).
         soft_radius: RefineNet soft-argmax window (cells of 1/8 px) around the argmax; 0 = argmax only.
         working_size: longest image side the network searches at first (default 320); larger images are
-            reduced to it, then to twice it ... up to full resolution until the board is found with squares
-            of at least 16 px, and their corners refined again at full resolution. None: native resolution only.
+            reduced to it, then to twice it ... up to full resolution (at most 2048 px, `MAX_SEARCH_SIZE`)
+            until the board is found with squares of at least 16 px, and their corners refined again at
+            full resolution. None: native resolution only, whatever its size.
         mode: "deep" (default) or "hybrid": OpenCV's detector (+ cornerSubPix) runs first and its corners
             are returned when at least 6 of them, and nine in ten, fit one view of the board (to 3 px or a
             quarter of the corner spacing); the networks
@@ -201,13 +212,15 @@ class Detector:
         """The images the board is searched in, coarse first: ``working_size``, then twice that, ... up to
         ``full`` itself (a board whose squares are too small for the coarse level is found at a finer one)."""
         height, width = full.shape
+        longest = max(height, width)
         size = self.working_size
-        while size is not None and size < max(height, width):
-            scale = size / max(height, width)
-            yield cv2.resize(full, (max(1, round(width * scale)), max(1, round(height * scale))),
-                             interpolation=cv2.INTER_AREA)
+        while size is not None and size < longest and size < MAX_SEARCH_SIZE:
+            yield _reduced(full, size / longest)
             size *= 2
-        yield full
+        if longest <= MAX_SEARCH_SIZE or self.working_size is None:
+            yield full
+        else:  # the network never sees more than MAX_SEARCH_SIZE: memory and time stay bounded
+            yield _reduced(full, MAX_SEARCH_SIZE / longest)
 
     def _find(self, gray: np.ndarray, full: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``;

@@ -201,3 +201,14 @@ def test_hybrid_keeps_verified_opencv_corners_and_falls_back_to_the_networks(cam
     assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 3.0
     with pytest.raises(ValueError, match="mode"):
         Detector(board=board, mode="fast")
+
+
+def test_huge_images_are_never_searched_above_the_cap():
+    from deepcharuco.deep_detector import MAX_SEARCH_SIZE
+
+    detector = Detector()
+    huge = np.zeros((6000, 8000), np.uint8)  # an 8000x6000 photo: the network at full size took 9.5 GB
+    levels = [level.shape for level in detector._search_levels(huge)]
+    assert levels[0] == (240, 320) and max(max(shape) for shape in levels) == MAX_SEARCH_SIZE
+    assert [max(shape) for shape in levels] == sorted(max(shape) for shape in levels)
+    assert [level.shape for level in Detector(working_size=None)._search_levels(huge)] == [(6000, 8000)]

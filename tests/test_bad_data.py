@@ -105,3 +105,18 @@ def test_data_commands_refuse_an_unwritable_or_file_out_in_one_line(frame_folder
                     lambda: inspect_main([str(frame_folder), "--out", str(out), "--frames", "2"])):
             assert run() == 2
             assert message in one_line_error(capsys)
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--device", "foo"], "is not a device"),
+    (["--out", "FILE"], "is a file, not a folder"),
+])
+def test_report_refuses_a_bad_device_or_out_before_making_anything(tmp_path, capsys, arguments, message):
+    from evaluate.report import main as report_main
+
+    (tmp_path / "FILE").write_text("not a folder")
+    arguments = [str(tmp_path / a) if a == "FILE" else a for a in arguments]
+    out = ["--out", str(tmp_path / "report")] if "--out" not in arguments else []
+    assert report_main(arguments + out + ["--no-render", "--quiet"]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "report").exists()

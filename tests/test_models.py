@@ -1,6 +1,7 @@
 """ChArUcoNet / RefineNet: sizes, label encodings and their sub-pixel conventions, checkpoints, the Detector's plumbing."""
 
 import copy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -190,3 +191,19 @@ def test_detector_plumbing(tmp_path, default_views):
         Detector(weights=weights, refine="magic")
     with pytest.raises(CheckpointError, match="holds no refinenet|charuconet checkpoint, a refinenet"):
         Detector(weights=weights, refine="refinenet")
+
+
+def test_a_failed_save_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
+    from deepcharuco.models import checkpoint
+
+    target = tmp_path / "detector.pt"
+    target.write_bytes(b"old weights")
+
+    def full_disk(data, file):
+        Path(file).write_bytes(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(checkpoint.torch, "save", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        checkpoint._save_atomically({"x": 1}, target)
+    assert target.read_bytes() == b"old weights" and [p.name for p in tmp_path.iterdir()] == ["detector.pt"]

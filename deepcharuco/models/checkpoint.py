@@ -57,12 +57,17 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
 
 
 def _save_atomically(data: dict, path: str | Path) -> Path:
-    """``torch.save`` to a temporary name, then rename: a reader never sees half a file."""
+    """``torch.save`` to a temporary name, then rename: a reader never sees half a file, and a failed
+    write (a full disk) leaves the previous file as it was and no temporary behind."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
-    torch.save(data, temporary)
-    temporary.replace(path)
+    try:
+        torch.save(data, temporary)
+        temporary.replace(path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
     return path
 
 
