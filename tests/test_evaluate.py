@@ -176,10 +176,13 @@ def test_report_end_to_end(frames, camera, tmp_path, checkpoint):
             "--weights", str(checkpoint / "charuconet.pt"), "--refine-weights", str(checkpoint / "refinenet.pt"),
             "--synthetic-images", "4", "--timing-seconds", "0.2", "--gallery", "2", "--no-autolabel-check", "--no-render",
             "--no-calibration",  # a data/calibration in the checkout must not slow this down (test_calibrate covers it)
-            "--no-captures"]  # nor the shipped real-capture sample (test_captures covers it)
+            "--no-captures",  # nor the shipped real-capture sample (test_captures covers it)
+            "--no-unseen-boards",  # nor a data/unseen (evaluate.unseen_boards; test_any_board covers the detector)
+            "--no-false-positives"]  # test_false_positives covers it with the shipped weights
     assert report.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
-    assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "deep_paper", "opencv", "opencv_norefine"}
+    assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "deep_paper", "deep_markers", "opencv",
+                                         "opencv_norefine"}
     assert set(results["timing"]["fps"]) == set(results["detectors"]) and results["timing"]["image_size"] == [320, 240]
     table = {row["sequence"]: row for row in results["sequences"]["table"]}
     assert list(table) == ["lux-700-a", "lux-100-a", "lux-1-a", "shadow-1"]

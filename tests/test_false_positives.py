@@ -6,7 +6,7 @@ import pytest
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.placement import MAX_CHANCE, chance_of_agreement
-from evaluate.false_positives import board_free_photos, false_positive_experiment, look_alikes, targets
+from evaluate.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
 
 
 def test_look_alikes_exclude_dictionaries_that_print_the_same_board():
@@ -38,6 +38,10 @@ def test_no_pose_on_look_alikes_and_photos_and_the_targets_say_so():
     assert all(row["deep"]["with_pose"] == 0 for row in result["table"])
     assert [(what, met) for what, _, _, met in targets(result)] == [
         ("poses on look-alike boards and board-free photos", True), ("board-free photos with any corner reported", True)]
+    (title, _, table, _), = sections(result, {"deep": "deep detector"})
+    assert title.startswith("False positives") and table[0] == ["set", "frames", "deep detector: corners / pose",
+                                                                 "opencv: corners / pose"]
+    assert len(table) == 1 + len(result["table"])
     # The targets can fail: one pose anywhere is a miss.
     rows["mirrored"]["deep"]["with_pose"] = 1
     assert not targets(result)[0][3]
