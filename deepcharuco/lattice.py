@@ -36,9 +36,7 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     if count < 4:
         return np.zeros((0, 4), np.int64)
     k = min(NEIGHBOURS, count - 1)
-    distance = np.linalg.norm(points[:, None] - points[None], axis=2)
-    np.fill_diagonal(distance, np.inf)
-    near = np.argsort(distance, axis=1, kind="stable")[:, :k]  # (N, k)
+    near = _nearest(points, k)  # (N, k)
     first, second = np.triu_indices(k, 1)
     a = np.repeat(np.arange(count), len(first))
     b, c = near[:, first].ravel(), near[:, second].ravel()
@@ -52,15 +50,32 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     plausible = (shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter) & (sine > 0.3)
     a, b, c, shorter = a[plausible], b[plausible], c[plausible], shorter[plausible]
     expected = points[b] + points[c] - points[a]
-    gap = np.linalg.norm(expected[:, None] - points[None], axis=2)  # (P, N)
-    d = gap.argmin(axis=1)
-    closes = gap[np.arange(len(d)), d] <= CLOSURE_TOLERANCE * shorter
+    # d is a's diagonal neighbour: look for it among a's nearest candidates only, O(P k) not O(P N).
+    options = near[a]  # (P, k)
+    gap = np.linalg.norm(expected[:, None] - points[options], axis=2)
+    nearest = gap.argmin(axis=1)
+    d = options[np.arange(len(options)), nearest]
+    closes = gap[np.arange(len(d)), nearest] <= CLOSURE_TOLERANCE * shorter
     quads = np.stack([a, b, d, c], axis=1)[closes]
     quads = quads[(quads[:, 2] != quads[:, 0]) & (quads[:, 2] != quads[:, 1]) & (quads[:, 2] != quads[:, 3])]
     if len(quads) == 0:
         return np.zeros((0, 4), np.int64)
     _, unique = np.unique(np.sort(quads, axis=1), axis=0, return_index=True)
     return quads[np.sort(unique)].astype(np.int64)
+
+
+def _nearest(points: np.ndarray, k: int, block: int = 1024) -> np.ndarray:
+    """(N, 2) points -> (N, k) indices of each point's k nearest others, in blocks of rows (memory O(block N))."""
+    near = np.empty((len(points), k), np.int64)
+    for start in range(0, len(points), block):
+        rows = np.arange(start, min(start + block, len(points)))
+        distance = np.linalg.norm(points[rows, None] - points[None], axis=2)
+        distance[np.arange(len(rows)), rows] = np.inf
+        part = np.argpartition(distance, k - 1, axis=1)[:, :k] if k < len(points) - 1 else \
+            np.argsort(distance, axis=1)[:, :k]
+        order = np.argsort(np.take_along_axis(distance, part, axis=1), axis=1, kind="stable")
+        near[rows] = np.take_along_axis(part, order, axis=1)
+    return near
 
 
 def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:

@@ -37,6 +37,8 @@ MIN_MARKER_AGREEMENT = 0.5
 # itself: 2 of 3 markers agreeing on a board of 12 happens by chance in photos (1 of 25 scikit-image photos
 # gave 4 corners); 1e-5 asks 3 of 3 there, 2 of 3 on a board of 200 markers.
 MAX_CHANCE = 1e-5
+SEARCH_CANDIDATES = 300  # corners the view is searched among, most confident first: bounds the time on noise
+MAX_CELLS = 600  # cells read at most (300 corners frame about 300 cells)
 HYPOTHESES = 256  # proposals tried as the board's view, best correlated first
 AGREEMENT = 0.3  # two markers agree when one's view puts the other's square within this many square sides
 # A cell's edge neighbours: the markers of a ChArUco board sit in the squares next to the black ones.
@@ -62,11 +64,13 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
     """The view of ``board`` that the markers around ``pixels`` (N, 2) corner candidates agree on, or None.
 
     ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
-    ``pixels`` were found in; ``read_gray``: the same image at a higher resolution to read the markers in
+    ``pixels`` (most confident first) were found in; ``read_gray``: the same image at a higher resolution to read the markers in
     (default ``gray``). The view returned maps to ``gray``'s pixels."""
     quads = find_cells(pixels)
     if len(quads) == 0:
         return None
+    if len(quads) > MAX_CELLS:  # pixels come most confident first: keep the cells of the most confident corners
+        quads = quads[np.argsort(quads.max(axis=1), kind="stable")[:MAX_CELLS]]
     cells = cell_homographies(pixels, quads)  # (Q, 3, 3) unit square -> image
     # Every cell and its edge neighbours: (Q * 5) squares, each with its own unit frame.
     shifts = np.stack([_translate(*offset) for offset in NEIGHBOUR_OFFSETS])
@@ -198,7 +202,10 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     Returns ((ids (K,), pixels (K, 2) float32, scores (K,) float32) strongest first, the marker view or
     None). The view's homography is refitted ``refits`` times on the corners it claimed (RANSAC), which
     follows a mildly distorted lens better than the markers' squares alone."""
-    found = find_marker_view(gray, board, candidates.pixels, read_gray)
+    # The view is searched among the most confident corners only (an untrained or confused point head must
+    # not cost seconds); every candidate may then take a corner the view predicts.
+    strongest = np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]
+    found = find_marker_view(gray, board, candidates.pixels[strongest], read_gray)
     if found is None:
         return no_corners(), None
     board_xy = board.corner_points()[:, :2]
