@@ -167,8 +167,9 @@ class OneHotRefineNet(torch.nn.Module):
 
 
 def test_detector_plumbing(tmp_path, default_views):
-    """A random-weight ChArUcoNet with threshold 0 reports some IDs, each once; RefineNet offsets land at
-    candidate pixel - 12 + offset; all refine modes run."""
+    """A random-weight ChArUcoNet with threshold 0, decoded as the paper decodes (its random IDs fit no view
+    of the board, so the checked decodings rightly report nothing), reports some IDs, each once; RefineNet
+    offsets land at candidate pixel - 12 + offset; all refine modes run."""
     torch.manual_seed(0)
     board = BoardSpec()
     weights = save_checkpoint(tmp_path / "c.pt", ChArUcoNet(ChArUcoNetConfig.lite()), board=board, input_size=(320, 240))
@@ -176,13 +177,14 @@ def test_detector_plumbing(tmp_path, default_views):
     image = default_views[0][0][:237, :315]  # not a multiple of 8
     results = {}
     for mode in ("none", "subpix", "refinenet"):
-        detector = Detector(weights=weights, refine=mode, refine_weights=refine, threshold=0.0)
+        detector = Detector(weights=weights, refine=mode, refine_weights=refine, threshold=0.0, geometry="none")
         results[mode] = detector.detect(image)
         d = results[mode]
         assert 1 <= len(d) <= 16 and d.corners.dtype == np.float32
         assert np.array_equal(d.ids, results["none"].ids)
         assert np.all((d.corners >= -1) & (d.corners < [316, 238]))
-    detector = Detector(weights=weights, refine="refinenet", refine_weights=refine, threshold=0.0, soft_radius=0)
+    detector = Detector(weights=weights, refine="refinenet", refine_weights=refine, threshold=0.0, soft_radius=0,
+                        geometry="none")
     detector.refinenet = OneHotRefineNet([13.3, 10.7])
     refined = detector.detect(image)
     expected = results["none"].corners - PATCH_ORIGIN + cell_to_offset(offset_to_cell(torch.tensor([13.3, 10.7]))).numpy()
