@@ -37,6 +37,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -44,7 +45,9 @@ import numpy as np
 import deepcharuco
 from datagen.lens import monotonic_k2, pixels_to_rays
 from deepcharuco.board import BoardSpec
+from deepcharuco.cli import output_folder
 from deepcharuco.errors import DeepCharucoError
+from evaluate.sequences import SceneJob
 
 K1_VALUES = (-0.4, -0.15, 0.1)
 CONDITIONS = ("good", "1lux", "shake")
@@ -166,23 +169,10 @@ def calibration_config(width: int, height: int, samples: int) -> "SceneConfig":
 
 
 @dataclass(frozen=True)
-class CalibrationJob:
-    """What one run renders (picklable for the worker processes)."""
+class CalibrationJob(SceneJob):
+    """A run of the calibration sequences (picklable for the worker processes)."""
 
-    out: str
-    seed: int
-    frames: int
-    board: BoardSpec
-    width: int
-    height: int
-    samples: int
-    device: str
-    threads: int
-
-    def content(self) -> dict:
-        """The arguments that decide pixels and labels: a resumed run must agree on all of them."""
-        return {"command": "evaluate.calibration_sequences", "seed": self.seed, "frames": self.frames,
-                "board": self.board.to_dict(), "width": self.width, "height": self.height, "samples": self.samples}
+    command: ClassVar[str] = "evaluate.calibration_sequences"
 
 
 def _noise_rng(seed: int, camera: int, attempt: int, frame: int, condition: int) -> np.random.Generator:
@@ -312,8 +302,7 @@ def run(job: CalibrationJob, cameras: list[int], *, resume: bool, workers: int =
     numbers = [s.number for s in CALIBRATION_SEQUENCES if s.camera in cameras]
     done = check_existing(job, numbers, resume)
     todo = [c for c in cameras if not all(s.number in done for s in CALIBRATION_SEQUENCES if s.camera == c)]
-    out = Path(job.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(job.out)  # a writable folder, before anything is rendered
     remove_stale_temporaries(out, [s.number for s in CALIBRATION_SEQUENCES if s.camera in todo])
     if not quiet:
         print(f"evaluate.calibration_sequences: {len(todo)} camera(s) x 3 sequences of {job.frames} frames "

@@ -112,7 +112,7 @@ def board_free_photos() -> list[tuple[str, np.ndarray]]:
 def false_positive_experiment(detectors: dict[str, DetectorLike], target: BoardSpec, views: int = 10, seed: int = 0,
                               quiet: bool = False) -> dict:
     """Frames with corners and with a pose, per detector, on look-alikes of ``target`` and board-free photos."""
-    sets = {name: items for name, items in look_alike_views(target, views, seed).items()}
+    sets = look_alike_views(target, views, seed)
     photos = board_free_photos()
     sets["board-free photos"] = [(image, Camera.from_fov(image.shape[1], image.shape[0]).K) for _, image in photos]
     rows = []

@@ -37,7 +37,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Callable, ClassVar
 
 import cv2
 import numpy as np
@@ -367,9 +367,11 @@ def make_sequence(sequence: Sequence, seed: int, n_frames: int, board: BoardSpec
 
 
 @dataclass(frozen=True)
-class SequenceJob:
-    """What one run renders (everything a worker needs, picklable)."""
+class SceneJob:
+    """What one run of a rendered evaluation set renders (everything a worker needs, picklable); subclasses
+    name their ``command``."""
 
+    command: ClassVar[str]
     out: str
     seed: int
     frames: int
@@ -382,8 +384,15 @@ class SequenceJob:
 
     def content(self) -> dict:
         """The arguments that decide pixels and labels: a resumed run must agree on all of them."""
-        return {"command": "evaluate.sequences", "seed": self.seed, "frames": self.frames, "board": self.board.to_dict(),
+        return {"command": self.command, "seed": self.seed, "frames": self.frames, "board": self.board.to_dict(),
                 "width": self.width, "height": self.height, "samples": self.samples}
+
+
+@dataclass(frozen=True)
+class SequenceJob(SceneJob):
+    """A run of the paper's 26 sequences."""
+
+    command: ClassVar[str] = "evaluate.sequences"
 
     def generator(self, sequence: Sequence) -> dict:
         return {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "evaluate.sequences",
