@@ -23,10 +23,13 @@ import numpy as np
 
 @dataclass
 class SceneRender:
-    """radiance: (H, W, 3) float32 linear, row 0 at the top; unoccluded: (C,) bool per board corner."""
+    """radiance: (H, W, 3) float32 linear, row 0 at the top; unoccluded: (C,) bool per board corner;
+    marker_unoccluded: (M, 5) bool per marker of the board, its four corners then its centre
+    (`datagen.labels.marker_points`)."""
 
     radiance: np.ndarray
     unoccluded: np.ndarray
+    marker_unoccluded: np.ndarray | None = None
 
 
 def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRender:
@@ -36,6 +39,8 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
     """
     from blender_scenes import objects, render_setup, visibility
     from blender_scenes.conversions import blender_camera_from_K
+    from datagen.labels import marker_points
+    from datagen.scene import bent_points
 
     scene = render_setup.reset()
     params = blender_camera_from_K(spec.K, spec.width, spec.height)
@@ -59,11 +64,18 @@ def render_scene(spec, board, threads: int = 0, device: str = "cpu") -> SceneRen
         objects.add_light(i, light)
     objects.add_camera(spec)
 
-    corners_world = (spec.board_matrix[:3, :3] @ board.object_points().T).T + spec.board_matrix[:3, 3]
+    def world(points: np.ndarray) -> np.ndarray:
+        """Board-frame points of the flat board -> world points on the (possibly bent) sheet."""
+        points = bent_points(points, spec, board.size_m)
+        return (spec.board_matrix[:3, :3] @ points.T).T + spec.board_matrix[:3, 3]
+
+    _, markers = marker_points(board)
     if spec.board_present:
-        unoccluded = visibility.unoccluded(corners_world, spec.camera_matrix[:3, 3])
+        unoccluded = visibility.unoccluded(world(board.object_points()), spec.camera_matrix[:3, 3])
+        marker_unoccluded = visibility.unoccluded(world(markers.reshape(-1, 3)), spec.camera_matrix[:3, 3])
     else:
         unoccluded = np.zeros(board.num_corners, dtype=bool)
+        marker_unoccluded = np.zeros(markers.shape[0] * 5, dtype=bool)
     radiance = render_setup.render_radiance(scene)
-    return SceneRender(radiance=radiance, unoccluded=unoccluded)
+    return SceneRender(radiance=radiance, unoccluded=unoccluded, marker_unoccluded=marker_unoccluded.reshape(-1, 5))
 

@@ -18,7 +18,7 @@ from mathutils import Matrix
 
 from blender_scenes.conversions import blender_camera_from_K, blender_camera_matrix
 from blender_scenes.textures import board_texture, distractor_texture, poster_texture
-from datagen.scene import BoardLook, Distractor, Light, SceneSpec, Shape, Surface, World
+from datagen.scene import BoardLook, Distractor, Light, SceneSpec, Shape, Surface, World, bend_profile
 from datagen.sensor import REC709_LUMA
 from deepcharuco.board import BoardSpec
 
@@ -112,12 +112,43 @@ def _link(name: str, data, matrix: np.ndarray) -> bpy.types.Object:
     return obj
 
 
+def _bent_sheet(name: str, x0: float, y0: float, x1: float, y1: float, spec: SceneSpec,
+                board_size_m: tuple[float, float]) -> bpy.types.Mesh:
+    """`_quad`'s sheet, bent as `datagen.scene.bend_profile` says: a strip of flat pieces whose vertices
+    lie at the profile's knots (and at the sheet's far edge), so the labels' ``np.interp`` of the
+    profile is exactly this surface. UVs as `_quad`'s: the texture keeps its board coordinates."""
+    knots, z = bend_profile(spec, board_size_m)
+    low, high = (x0, x1) if spec.bend_axis == 0 else (y0, y1)
+    along = np.unique(np.concatenate([[low], knots[(knots > low) & (knots < high)], [high]]))
+    heights = np.interp(along, knots, z)
+    vertices, faces, uvs = [], [], []
+    for a, h in zip(along, heights):
+        for across in ((y0, y1) if spec.bend_axis == 0 else (x0, x1)):
+            x, y = (a, across) if spec.bend_axis == 0 else (across, a)
+            vertices.append((float(x), float(y), float(h)))
+            uvs.append(((x - x0) / (x1 - x0), 1.0 - (y - y0) / (y1 - y0)))
+    for i in range(len(along) - 1):
+        a0, b0, a1, b1 = 2 * i, 2 * i + 1, 2 * i + 2, 2 * i + 3
+        # The winding of `_quad` (normal along the board's +Z) whichever axis the strip runs along.
+        faces.append((a0, a1, b1, b0) if spec.bend_axis == 0 else (a0, b0, b1, a1))
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(vertices, [], faces)
+    uv = mesh.uv_layers.new(name="UVMap")
+    for loop in mesh.loops:
+        uv.data[loop.index].uv = uvs[loop.vertex_index]
+    return mesh
+
+
 def add_board(board: BoardSpec, spec: SceneSpec) -> bpy.types.Object:
-    """The target board: a quad in the board frame carrying the area-exact texture, margin included."""
+    """The target board: a quad in the board frame carrying the area-exact texture, margin included
+    (a strip of quads following `bend_profile` for a bent print)."""
     texture = board_texture(board, spec.margin_m)
     width_m, height_m = texture.size_m
     x0 = y0 = -texture.margin
-    mesh = _quad("board", x0, y0, x0 + width_m, y0 + height_m)
+    if spec.bend:
+        mesh = _bent_sheet("board", x0, y0, x0 + width_m, y0 + height_m, spec, board.size_m)
+    else:
+        mesh = _quad("board", x0, y0, x0 + width_m, y0 + height_m)
     image = image_from_array("board", texture.image, "Non-Color")
     mesh.materials.append(_printed_material("board", image, spec.board_look))
     return _link("board", mesh, spec.board_matrix)

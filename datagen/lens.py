@@ -189,3 +189,19 @@ def monotonic_k2(k1: float) -> float:
     """A k2 that keeps r (1 + k1 r^2 + k2 r^4) monotonic for every r (derivative 1 + 3 k1 r^2 + 5 k2 r^4 > 0
     needs 9 k1^2 < 20 k2 when k1 < 0): k1^2, as real barrel lenses pair a negative k1 with a positive k2."""
     return float(k1 * k1)
+
+
+# Training-frame lenses (datagen.render --distortion-probability): k1 from a webcam's strong barrel
+# (the real sets' 1280x720 webcams calibrate at k1 = -0.33) to a mild pincushion.
+K1_RANGE = (-0.4, 0.1)
+
+
+def sample_distortion(rng: np.random.Generator, probability: float,
+                      k1_range: tuple[float, float] = K1_RANGE) -> np.ndarray | None:
+    """With ``probability``, OpenCV's (5,) k1 k2 p1 p2 k3 of a random lens: k1 uniform in ``k1_range``,
+    k2 = `monotonic_k2` (k1^2: one to one at every radius, as real lenses pair them), no tangential or k3
+    term; else None (a pinhole frame). Draws the same two numbers either way."""
+    chance, k1 = rng.random(), float(rng.uniform(*k1_range))
+    if chance >= probability:
+        return None
+    return np.array([k1, monotonic_k2(k1), 0.0, 0.0, 0.0])

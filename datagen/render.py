@@ -1,6 +1,11 @@
 """Render training frames with Blender into HDF5 shards: ``python -m datagen.render --n 50000``.
 
-Frame ``i`` is a pure function of (seed, i, board, size, samples, --clean) and lands in shard
+``--board`` renders one board (the paper's by default); ``--family DICT_4X4`` renders a random
+board of that marker family in every frame (`datagen.family`), with marker labels and lens
+distortion (``--distortion-probability``) next to the corner labels.
+
+Frame ``i`` is a pure function of (seed, i, board or family, size, samples, --clean, distortion
+probability) and lands in shard
 ``i // shard_size``. Shards are the unit of work: local worker processes take them from a
 pool (and are replaced every ``--recycle`` frames, as Blender's memory grows), and a cluster
 splits them with ``--shard-index j --num-shards n`` (job j renders shards s with s % n == j)
@@ -17,8 +22,11 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
+
 import deepcharuco
-from datagen.scene import SceneConfig
+from datagen.family import FamilySampling, check_prefixes, parse_families
+from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
 from datagen.shards import ShardReader, list_shards, temporary_prefix, update_index, write_shard
 from datagen.workers import TaskError, death_cause, report_progress, run_tasks
 from deepcharuco.board import BoardSpec
@@ -26,17 +34,22 @@ from deepcharuco.cli import describe_os_error, output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
-CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean")
+CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean", "family",
+                "distortion_probability")
+FAMILY_DISTORTION_P = 0.5  # --distortion-probability's default with --family (0 with one board, as before)
 
 
 @dataclass(frozen=True)
 class RenderJob:
-    """What one run renders (everything a worker needs, picklable)."""
+    """What one run renders (everything a worker needs, picklable).
+
+    ``board``: the board of every frame, or None with ``families`` (a random board per frame).
+    ``distortion_p``: the probability of a distorted frame."""
 
     n: int
     out: str
     seed: int
-    board: BoardSpec
+    board: BoardSpec | None
     width: int
     height: int
     samples: int | None
@@ -44,10 +57,30 @@ class RenderJob:
     clean: bool
     device: str
     threads: int
+    families: tuple[str, ...] = ()
+    distortion_p: float = 0.0
+
+    def __post_init__(self) -> None:
+        if (self.board is None) == (not self.families):
+            raise ValueError("a RenderJob renders one board or random boards of families: give exactly one")
 
     def content(self) -> dict:
-        return {"n": self.n, "seed": self.seed, "board": self.board.to_dict(), "width": self.width,
-                "height": self.height, "samples": self.samples, "shard_size": self.shard_size, "clean": self.clean}
+        content = {"n": self.n, "seed": self.seed, "board": self.board.to_dict() if self.board else None,
+                   "width": self.width, "height": self.height, "samples": self.samples, "shard_size": self.shard_size,
+                   "clean": self.clean}
+        # Only where set, so that runs made before these options existed still resume.
+        if self.families:
+            content["family"] = list(self.families)
+        if self.distortion_p:
+            content["distortion_probability"] = self.distortion_p
+        return content
+
+    def family_attribute(self) -> dict | None:
+        """The shards' ``family`` attribute: how each frame's board was drawn (None for one board)."""
+        if not self.families:
+            return None
+        scene = {key: list(value) if isinstance(value, tuple) else value for key, value in RANDOM_BOARD_SCENE.items()}
+        return {"families": list(self.families), "sampling": FamilySampling().to_dict(), "scene": scene}
 
     def generator(self) -> dict:
         return {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "datagen.render",
@@ -64,6 +97,8 @@ class RenderJob:
 def scene_config(job: RenderJob) -> SceneConfig:
     config = SceneConfig.clean() if job.clean else SceneConfig()
     config = replace(config, width=job.width, height=job.height)
+    if job.families:
+        config = random_board_config(config)
     return replace(config, samples=job.samples) if job.samples else config
 
 
@@ -72,11 +107,15 @@ def render_shard(job: RenderJob, shard: int) -> int:
     from datagen.frames import make_frame
 
     config = scene_config(job)
+    # OpenCV warns on stderr about every board whose markers fill more than ~0.8 of their squares (the
+    # family's ratios reach 0.85 on purpose, as printed boards do): it would bury the progress bar.
+    cv2.setLogLevel(2)  # errors only; this is a worker process of its own
     frames = []
     for index in job.frames_of(shard):
-        frames.append(make_frame(index, job.seed, job.board, config, threads=job.threads, device=job.device))
+        frames.append(make_frame(index, job.seed, job.board, config, threads=job.threads, device=job.device,
+                                 families=job.families, distortion_p=job.distortion_p))
         report_progress(1)
-    write_shard(job.out, shard, frames, job.board, job.generator())
+    write_shard(job.out, shard, frames, job.board, job.generator(), family=job.family_attribute())
     return len(frames)
 
 
@@ -167,6 +206,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="data/renders", help="output folder of shard-*.h5 + index.json")
     parser.add_argument("--seed", type=int, default=0, help="run seed: frame i depends only on (seed, i, arguments)")
     parser.add_argument("--board", default=None, help="BoardSpec .json/.yaml file (default: the paper's 5x5 DICT_5X5_50 board)")
+    parser.add_argument("--family", default=None,
+                        help="instead of --board: a random board of this marker family in every frame (DICT_4X4, "
+                             "DICT_5X5, DICT_6X6, DICT_7X7, APRILTAG_36h11; several separated by commas): 3..25 "
+                             "squares a side, marker/square 0.5-0.85, legacy or not, first marker ID within 0-249, "
+                             "some prints inverted, mirrored or bent")
+    parser.add_argument("--distortion-probability", type=float, default=None,
+                        help=f"probability that a frame is taken through a distorting lens (k1 uniform in -0.4..+0.1, "
+                             f"k2 = k1^2; default: {FAMILY_DISTORTION_P} with --family, 0 with a board, as before)")
     parser.add_argument("--width", type=int, default=320, help="image width in pixels")
     parser.add_argument("--height", type=int, default=240, help="image height in pixels")
     parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: 4, --clean 64)")
@@ -189,16 +236,28 @@ def main(argv: list[str] | None = None) -> int:
                 if getattr(args, name) < low]
     if args.samples is not None and args.samples < 1:
         problems.append(f"--samples must be >= 1, got {args.samples}")
+    if args.distortion_probability is not None and not 0.0 <= args.distortion_probability <= 1.0:
+        problems.append(f"--distortion-probability must be in [0, 1], got {args.distortion_probability}")
     if not 0 <= args.shard_index < args.num_shards:
         problems.append(f"--shard-index must be in [0, --num-shards), got {args.shard_index} of {args.num_shards}")
     if problems:
         parser.error("; ".join(problems))
     def body() -> None:
-        board = BoardSpec.load(args.board) if args.board else BoardSpec()
+        if args.family is not None and args.board is not None:
+            raise DeepCharucoError("--family and --board exclude each other: --family draws a random board of the "
+                                   "family for every frame, --board renders one board; pass only one of them")
+        families = parse_families(args.family) if args.family is not None else ()
+        for family in families:
+            check_prefixes(family)
+        board = None if families else (BoardSpec.load(args.board) if args.board else BoardSpec())
+        distortion_p = args.distortion_probability
+        if distortion_p is None:
+            distortion_p = FAMILY_DISTORTION_P if families else 0.0
         threads = args.threads or max(1, (os.cpu_count() or 1) // args.workers)
         job = RenderJob(n=args.n, out=args.out, seed=args.seed, board=board, width=args.width, height=args.height,
                         samples=args.samples or (64 if args.clean else None), shard_size=args.shard_size,
-                        clean=args.clean, device=args.device, threads=threads)
+                        clean=args.clean, device=args.device, threads=threads, families=families,
+                        distortion_p=float(distortion_p))
         started = time.perf_counter()
         index = run(job, workers=args.workers, shard_index=args.shard_index, num_shards=args.num_shards,
                     resume=args.resume, recycle=args.recycle, quiet=args.quiet)

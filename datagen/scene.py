@@ -124,6 +124,10 @@ class SceneSpec:
     samples: int
     tags: dict = field(default_factory=dict)
     denoise: bool = False  # OpenImageDenoise on the render: for a render many frames share (evaluate.sequences)
+    # A slightly bent print (`bend_profile`): the sag at the middle as a fraction of the bent length
+    # (> 0 bulges towards the camera's side, the printed face's -Z), bent along board X (axis 0) or Y (1).
+    bend: float = 0.0
+    bend_axis: int = 0
 
     @property
     def camera_matrix(self) -> np.ndarray:
@@ -161,6 +165,12 @@ class SceneConfig:
     board_kinds_p: tuple[float, float, float] = (0.6, 0.3, 0.1)
     samples: int = 4
     sensor: SensorParams = SensorParams()
+    distractor_names: tuple[str, ...] = DISTRACTOR_NAMES
+    # Random boards of every size (datagen.family): the board's apparent square width, as a fraction of
+    # the image width, drawn log-uniformly here; `fitted_diag_frac` turns it into board_diag_frac.
+    square_frac: tuple[float, float] | None = None
+    bend_p: float = 0.0  # probability of a bent print
+    max_bend: float = 0.02  # largest sag / bent length
 
     @classmethod
     def clean(cls, **overrides) -> "SceneConfig":
@@ -169,6 +179,20 @@ class SceneConfig:
                    occluder_p=0.0, out_of_frame_p=0.0, board_diag_frac=(0.6, 1.2), max_view_angle_deg=45.0,
                    board_kinds_p=(1.0, 0.0, 0.0), samples=32, sensor=SensorParams(noise=False))
         return replace(base, **overrides)
+
+
+# Random boards of a family (datagen.render --family): squares 10-64 px wide at 320 px (a 3x3 board is
+# never a speck, a 25x25 board is seen in part, close), bent prints, and distractors without chessboard
+# corners (ArUco grids): a ChArUco board or chessboard that is not labelled would teach a board-agnostic
+# corner detector to miss real corners.
+RANDOM_BOARD_SCENE = dict(square_frac=(1 / 32, 1 / 5), board_diag_frac=(0.25, 4.0), bend_p=0.3, max_bend=0.02,
+                          distractor_names=("aruco-grid-4x3-DICT_5X5_50", "aruco-grid-5x4-DICT_4X4_50",
+                                            "aruco-grid-3x3-DICT_6X6_250", "aruco-grid-4x4-DICT_APRILTAG_36h11"))
+
+
+def random_board_config(config: SceneConfig) -> SceneConfig:
+    """``config`` for frames of random boards of every size (`RANDOM_BOARD_SCENE`)."""
+    return replace(config, **RANDOM_BOARD_SCENE)
 
 
 def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
@@ -394,7 +418,7 @@ def sample_scene(rng: np.random.Generator, board_size_m: tuple[float, float], co
     if negative or rng.random() < config.distractor_p:
         count = 1 if negative else int(rng.integers(1, 3))
         for k in range(count):
-            name = DISTRACTOR_NAMES[rng.integers(len(DISTRACTOR_NAMES))]
+            name = config.distractor_names[rng.integers(len(config.distractor_names))]
             if negative and k == 0:  # in the target's place, so the camera looks right at it
                 place = rigid(rotation, np.zeros(3))
             else:
@@ -408,9 +432,58 @@ def sample_scene(rng: np.random.Generator, board_size_m: tuple[float, float], co
         "spot": any(l.kind == "SPOT" for l in lights), "shadow_caster": any(s.role == "shadow-caster" for s in shapes),
         "occluder": any(s.role == "occluder" for s in shapes), "distractors": len(distractors), "shake": shake,
     }
+    render_seed = int(rng.integers(0, 2**31 - 1))
+    bend, bend_axis = 0.0, 0
+    # Drawn last, and only when enabled, so that scenes of configurations without bends stay as they were.
+    if config.bend_p > 0 and rng.random() < config.bend_p:
+        bend = float(rng.uniform(-1.0, 1.0) * config.max_bend)
+        bend_axis = int(rng.integers(2))
+        tags["bend"] = bend
+    elif config.bend_p > 0:
+        tags["bend"] = 0.0
     return SceneSpec(
         width=config.width, height=config.height, K=K, trajectory=trajectory, exposure_s=exposure_s,
         board_present=not negative, board_matrix=board_matrix, board_look=look, margin_m=margin_m,
         world=world, lights=lights, shapes=shapes, distractors=distractors, lux=lux,
-        render_seed=int(rng.integers(0, 2**31 - 1)), samples=config.samples, tags=tags,
+        render_seed=render_seed, samples=config.samples, tags=tags, bend=bend, bend_axis=bend_axis,
     )
+
+
+def fitted_diag_frac(squares: tuple[int, int], config: SceneConfig) -> tuple[float, float]:
+    """The board_diag_frac range that gives a board of ``squares`` (x, y) squares the apparent square width
+    ``config.square_frac`` (fractions of the image width), within ``config.board_diag_frac``: a 3x3 board
+    is then never a speck and a 25x25 board is seen in part, close enough for its squares to be found.
+    Without square_frac, board_diag_frac itself."""
+    if config.square_frac is None:
+        return config.board_diag_frac
+    diagonal = math.hypot(*squares)  # in squares
+    low = min(max(config.square_frac[0] * diagonal, config.board_diag_frac[0]), config.board_diag_frac[1])
+    high = max(min(config.square_frac[1] * diagonal, config.board_diag_frac[1]), low)
+    return low, high
+
+
+BEND_SEGMENTS = 48  # straight pieces of a bent board's mesh; labels follow the same pieces exactly
+
+
+def bend_profile(spec: SceneSpec, board_size_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """A bent board's shape: (knots (S+1,), z (S+1,)) metres along the bent axis of the board frame
+    (spanning the printed sheet, margins included) and the sheet's Z there: a parabola sampled at the
+    knots, zero at both ends, ``-spec.bend`` x the sheet's length at the middle. Between knots (and
+    beyond the last, the partial texture pixel) the sheet is straight: z is ``np.interp`` of these."""
+    length = board_size_m[spec.bend_axis] + 2 * spec.margin_m
+    knots = np.linspace(-spec.margin_m, length - spec.margin_m, BEND_SEGMENTS + 1)
+    t = (knots + spec.margin_m) / length * 2.0 - 1.0
+    return knots, -spec.bend * length * (1.0 - t * t)
+
+
+def bent_points(points: np.ndarray, spec: SceneSpec, board_size_m: tuple[float, float]) -> np.ndarray:
+    """(N, 3) board-frame points of the flat board -> (N, 3) where they lie on the (possibly) bent sheet.
+
+    The sheet bends without moving along X and Y (the texture keeps its board coordinates), so a
+    printed point (X, Y, 0) goes to (X, Y, z(X or Y)); exact for the mesh `blender_scenes` builds."""
+    points = np.array(points, dtype=np.float64, copy=True)
+    if spec.bend == 0.0:
+        return points
+    knots, z = bend_profile(spec, board_size_m)
+    points[:, 2] += np.interp(points[:, spec.bend_axis], knots, z)
+    return points

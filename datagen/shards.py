@@ -16,6 +16,7 @@ from contextlib import contextmanager
 import socket
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from functools import lru_cache
 from pathlib import Path
 
 import h5py
@@ -74,6 +75,25 @@ def _hdf5_atomic(final: Path, index: int):
 
 
 @dataclass
+class MarkerLabels:
+    """The markers of a frame's board (M = the board's markers, in `BoardSpec.marker_corners` order).
+
+    Attributes:
+        ids: (M,) int32 dictionary IDs.
+        corners: (M, 4, 2) float32 image positions of each marker's corners in OpenCV's order (clockwise
+            from the printed marker's top-left, as ``cv2.aruco`` detects them), NaN where not projected.
+        centres: (M, 2) float32 image position of each marker's centre point (the projection of the
+            centre, not the mean of the corners), NaN where not projected.
+        visible: (M,) bool: all four corners and the centre inside the image and not occluded.
+    """
+
+    ids: np.ndarray
+    corners: np.ndarray
+    centres: np.ndarray
+    visible: np.ndarray
+
+
+@dataclass
 class FrameLabels:
     """One rendered frame and its labels, as stored in a shard.
 
@@ -83,6 +103,11 @@ class FrameLabels:
         visible: (C,) bool, inside the image and not occluded.
         K: (3, 3) intrinsics; rvec, tvec: (3,) board -> camera pose (zeros for negatives).
         meta: per-frame scalars (seed, lux, exposure_s, gain, blur_px, has_board, tags ...).
+        board: the frame's board (C = its corners); read back from every shard (a shard of one board
+            gives that board), needed when writing a shard of random boards (`write_shard` board=None).
+        markers: marker labels, or None (shards written before they existed, or by writers without them).
+        dist: (5,) float32 OpenCV distortion (k1 k2 p1 p2 k3) of the camera that took the frame, or None
+            where the shard stores none (its frames are undistorted).
     """
 
     image: np.ndarray
@@ -92,16 +117,34 @@ class FrameLabels:
     rvec: np.ndarray
     tvec: np.ndarray
     meta: dict = field(default_factory=dict)
+    board: BoardSpec | None = None
+    markers: MarkerLabels | None = None
+    dist: np.ndarray | None = None
 
 
-def _check_frames(frames: list[FrameLabels], board: BoardSpec) -> tuple[int, int]:
+def _frame_boards(frames: list[FrameLabels], board: BoardSpec | None) -> list[BoardSpec]:
+    """Each frame's board: ``board`` for a shard of one board (a frame naming another is refused), else
+    every frame's own."""
+    boards = []
+    for i, frame in enumerate(frames):
+        if board is None and frame.board is None:
+            raise ShardError(f"frame {i} has no board: a shard of random boards (board=None) needs FrameLabels.board")
+        if board is not None and frame.board is not None and frame.board != board:
+            raise ShardError(f"frame {i} shows {frame.board}, not the shard's board {board}")
+        boards.append(board if board is not None else frame.board)
+    return boards
+
+
+def _check_frames(frames: list[FrameLabels], boards: list[BoardSpec]) -> tuple[int, int]:
     if not frames:
         raise ShardError("a shard needs at least one frame")
     height, width = frames[0].image.shape
     keys = set(frames[0].meta)
     if "has_board" not in keys:
         raise ShardError("meta must hold has_board (False for negative frames)")
-    for i, frame in enumerate(frames):
+    with_markers = frames[0].markers is not None
+    with_dist = frames[0].dist is not None
+    for i, (frame, board) in enumerate(zip(frames, boards)):
         if frame.image.dtype != np.uint8 or frame.image.shape != (height, width):
             raise ShardError(f"frame {i}: image must be uint8 {(height, width)}, got {frame.image.dtype} {frame.image.shape}")
         if frame.corners.shape != (board.num_corners, 2) or frame.visible.shape != (board.num_corners,):
@@ -109,6 +152,17 @@ def _check_frames(frames: list[FrameLabels], board: BoardSpec) -> tuple[int, int
                 f"frame {i}: corners/visible must be ({board.num_corners}, 2)/({board.num_corners},) for this board, "
                 f"got {frame.corners.shape}/{frame.visible.shape}"
             )
+        if (frame.markers is not None) != with_markers or (frame.dist is not None) != with_dist:
+            raise ShardError(f"frame {i}: every frame of a shard has marker labels and dist, or none does")
+        if frame.markers is not None:
+            m = board.num_markers
+            shapes = (frame.markers.ids.shape, frame.markers.corners.shape, frame.markers.centres.shape,
+                      frame.markers.visible.shape)
+            if shapes != ((m,), (m, 4, 2), (m, 2), (m,)):
+                raise ShardError(f"frame {i}: marker ids/corners/centres/visible must be ({m},)/({m}, 4, 2)/({m}, 2)/"
+                                 f"({m},) for its board, got {shapes}")
+        if frame.dist is not None and np.ravel(frame.dist).shape != (5,):
+            raise ShardError(f"frame {i}: dist must hold OpenCV's 5 coefficients k1 k2 p1 p2 k3, got {np.shape(frame.dist)}")
         if set(frame.meta) != keys:
             raise ShardError(f"frame {i}: meta keys {sorted(frame.meta)} differ from frame 0's {sorted(keys)}")
         if not frame.meta["has_board"] and (np.any(np.isfinite(frame.corners)) or np.any(frame.visible)):
@@ -116,36 +170,72 @@ def _check_frames(frames: list[FrameLabels], board: BoardSpec) -> tuple[int, int
     return width, height
 
 
+def _padded(arrays: list[np.ndarray], fill, dtype) -> np.ndarray:
+    """(N, L, ...) stack of (l_i, ...) arrays, each padded with ``fill`` to L = max l_i."""
+    length = max(len(a) for a in arrays)
+    out = np.full((len(arrays), length, *np.shape(arrays[0])[1:]), fill, dtype=dtype)
+    for i, array in enumerate(arrays):
+        out[i, : len(array)] = array
+    return out
+
+
 def write_shard(
-    directory: str | Path, index: int, frames: list[FrameLabels], board: BoardSpec, generator: dict,
-    created: str | None = None,
+    directory: str | Path, index: int, frames: list[FrameLabels], board: BoardSpec | None, generator: dict,
+    created: str | None = None, family: dict | None = None,
 ) -> Path:
     """Write ``frames`` as shard ``index`` in ``directory`` atomically, then refresh index.json.
 
-    ``generator`` (package version, command-line arguments ...) is stored as JSON; ``created``
-    defaults to `creation_time()`. Everything else in the file is a function of the inputs.
+    ``board``: the board every frame shows; None for frames of random boards (each frame's
+    ``FrameLabels.board``), stored per frame with padded label arrays (docs/conventions.md) and
+    ``family`` (how the boards were drawn) as the ``family`` attribute. ``generator`` (package
+    version, command-line arguments ...) is stored as JSON; ``created`` defaults to
+    `creation_time()`. Everything else in the file is a function of the inputs.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    width, height = _check_frames(frames, board)
+    boards = _frame_boards(frames, board)
+    width, height = _check_frames(frames, boards)
     final = directory / shard_name(index)
     n = len(frames)
+    data = {}  # name -> array, compressed when it is a padded (per-board) array
+    if board is None:
+        data["corners"] = _padded([fr.corners for fr in frames], np.nan, np.float32)
+        data["visible"] = _padded([fr.visible for fr in frames], False, bool)
+    else:
+        data["corners"] = np.stack([fr.corners for fr in frames]).astype(np.float32)
+        data["visible"] = np.stack([fr.visible for fr in frames]).astype(bool)
+    data["K"] = np.stack([fr.K for fr in frames]).astype(np.float32)
+    data["rvec"] = np.stack([np.ravel(fr.rvec) for fr in frames]).astype(np.float32)
+    data["tvec"] = np.stack([np.ravel(fr.tvec) for fr in frames]).astype(np.float32)
+    if frames[0].dist is not None:
+        data["dist"] = np.stack([np.ravel(fr.dist) for fr in frames]).astype(np.float32)
+    if board is None:
+        data["corner_count"] = np.array([b.num_corners for b in boards], np.int32)
+        data["marker_count"] = np.array([b.num_markers for b in boards], np.int32)
+    if frames[0].markers is not None:
+        data["marker_ids"] = _padded([fr.markers.ids for fr in frames], -1, np.int32)
+        data["marker_corners"] = _padded([fr.markers.corners for fr in frames], np.nan, np.float32)
+        data["marker_centres"] = _padded([fr.markers.centres for fr in frames], np.nan, np.float32)
+        data["marker_visible"] = _padded([fr.markers.visible for fr in frames], False, bool)
     with _hdf5_atomic(final, index) as f:
         f.attrs["schema_version"] = SCHEMA_VERSION
-        f.attrs["board"] = board.to_json()
+        if board is not None:
+            f.attrs["board"] = board.to_json()
+        else:
+            f.attrs["family"] = json.dumps(family or {}, sort_keys=True)
         f.attrs["generator"] = json.dumps(generator, sort_keys=True)
         f.attrs["image_size"] = np.array([width, height], dtype=np.int64)
         f.attrs["created"] = created or creation_time()
         f.create_dataset("images", data=np.stack([fr.image for fr in frames]), chunks=(1, height, width),
                          compression="gzip", compression_opts=4, shuffle=True, track_times=False)
-        for name, dtype, stack in [
-            ("corners", np.float32, [fr.corners for fr in frames]),
-            ("visible", bool, [fr.visible for fr in frames]),
-            ("K", np.float32, [fr.K for fr in frames]),
-            ("rvec", np.float32, [np.ravel(fr.rvec) for fr in frames]),
-            ("tvec", np.float32, [np.ravel(fr.tvec) for fr in frames]),
-        ]:
-            f.create_dataset(name, data=np.stack(stack).astype(dtype), track_times=False)
+        if board is None:
+            f.create_dataset("boards", data=np.array([b.to_json() for b in boards], dtype=h5py.string_dtype()),
+                             track_times=False)
+        for name, array in data.items():
+            # The marker arrays are mostly padding for a large board (NaN, -1): gzip costs little there.
+            big = array.ndim >= 2 and name not in ("K", "rvec", "tvec", "dist")
+            f.create_dataset(name, data=array, track_times=False,
+                             **({"compression": "gzip", "compression_opts": 4, "shuffle": True} if big and board is None else {}))
         meta = f.create_group("meta", track_order=True)
         for key in frames[0].meta:
             values = [fr.meta[key] for fr in frames]
@@ -228,12 +318,41 @@ class ShardReader:
             if "images" not in f:
                 raise ShardError(f"{self.path} is not a frame shard (no 'images'){' but a RefineNet patch shard' if 'patches' in f else ''}: "
                                  f"give a folder of frame shards from python -m datagen.render")
-            self.board = BoardSpec.from_json(f.attrs["board"])
+            # A shard of random boards (datagen.render --family) has a board per frame and no single board.
+            self.family: dict | None = json.loads(f.attrs["family"]) if "family" in f.attrs else None
+            if self.family is None:
+                self._board: BoardSpec | None = BoardSpec.from_json(f.attrs["board"])
+                self._boards: list[str] | None = None
+            else:
+                self._board = None
+                self._boards = [v.decode() if isinstance(v, bytes) else str(v) for v in f["boards"][()]]
             self.generator = json.loads(f.attrs["generator"])
             self.image_size = tuple(int(v) for v in f.attrs["image_size"])
             self.meta_keys = list(f["meta"].keys())
             self._length = int(f["images"].shape[0])
+            self.has_markers = "marker_ids" in f
+            self.has_dist = "dist" in f
         self._file: h5py.File | None = None
+
+    @property
+    def board(self) -> BoardSpec:
+        """The board every frame shows. A shard of random boards has none: `ShardError` saying so
+        (a reader made for one board cannot use it), `board_of` gives each frame's."""
+        if self._board is None:
+            families = ", ".join(self.family.get("families", [])) if self.family else ""
+            raise ShardError(f"{self.path} holds frames of random boards (datagen.render --family {families}), one "
+                             f"board per frame, not one board: read each frame's board (FrameLabels.board, "
+                             f"ShardReader.board_of), or render shards of one board with --board")
+        return self._board
+
+    @property
+    def single_board(self) -> bool:
+        """True for a shard of one board (`board`), False for one of random boards (`board_of`)."""
+        return self._board is not None
+
+    def board_of(self, i: int) -> BoardSpec:
+        """The board frame ``i`` shows."""
+        return self._board if self._board is not None else _board_from_json(self._boards[i])
 
     def __len__(self) -> int:
         return self._length
@@ -248,12 +367,21 @@ class ShardReader:
             raise IndexError(f"frame {i} out of range for {self._length} frames in {self.path.name}")
         f = self._handle()
         meta = {}
+        board = self.board_of(i)
+        # Arrays padded for a shard of random boards are cut back to this frame's board.
+        corners, markers = board.num_corners, board.num_markers
         try:
             for key in self.meta_keys:
                 value = f["meta"][key][i]
                 meta[key] = value.decode() if isinstance(value, bytes) else value.item()
-            return FrameLabels(image=f["images"][i], corners=f["corners"][i], visible=f["visible"][i],
-                               K=f["K"][i], rvec=f["rvec"][i], tvec=f["tvec"][i], meta=meta)
+            marker_labels = None
+            if self.has_markers:
+                marker_labels = MarkerLabels(ids=f["marker_ids"][i][:markers], corners=f["marker_corners"][i][:markers],
+                                             centres=f["marker_centres"][i][:markers],
+                                             visible=f["marker_visible"][i][:markers])
+            return FrameLabels(image=f["images"][i], corners=f["corners"][i][:corners], visible=f["visible"][i][:corners],
+                               K=f["K"][i], rvec=f["rvec"][i], tvec=f["tvec"][i], meta=meta, board=board,
+                               markers=marker_labels, dist=f["dist"][i] if self.has_dist else None)
         except OSError as error:  # a damaged chunk: HDF5 only finds out when it reads it
             raise ShardError(f"frame {i} of {self.path} cannot be read ({_first_line(error)}): the shard is corrupt; "
                              f"{FRAME_SHARD_FIX}") from None
@@ -265,6 +393,11 @@ class ShardReader:
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_file": None}  # h5py handles do not cross processes
+
+
+@lru_cache(maxsize=4096)
+def _board_from_json(text: str) -> BoardSpec:
+    return BoardSpec.from_json(text)
 
 
 PATCH_SIZE = 24

@@ -55,6 +55,9 @@ class BoardSpec:
         mirrored: the board is seen from a mirror-printed back face (its image is the
             left-right mirror of the board's); detectors look for it in the flipped image and
             poses use `object_points`, the mirrored corner positions.
+        first_marker_id: the board's markers are the dictionary's IDs first_marker_id ..
+            first_marker_id + num_markers - 1 (OpenCV's ``CharucoBoard`` ``ids`` argument);
+            0, OpenCV's default, is left out of `to_dict`, so files of such boards are unchanged.
 
     Two specs that differ only in size (square_length and marker_length scaled together),
     polarity or mirroring have the same `layout`: the same corners, IDs and markers.
@@ -68,6 +71,7 @@ class BoardSpec:
     legacy: bool = False
     inverted: bool = False
     mirrored: bool = False
+    first_marker_id: int = 0
 
     def __post_init__(self) -> None:
         for name in ("squares_x", "squares_y"):
@@ -95,6 +99,16 @@ class BoardSpec:
             raise BoardSpecError(f"dictionary must be a name such as 'DICT_5X5_50', got {self.dictionary!r}")
         object.__setattr__(self, "dictionary", self.dictionary.upper())
         dictionary_size = self.cv_dictionary().bytesList.shape[0]
+        first = self.first_marker_id
+        if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
+            raise BoardSpecError(f"first_marker_id must be an integer >= 0, got {first!r}")
+        object.__setattr__(self, "first_marker_id", int(first))
+        if first and first + self.num_markers > dictionary_size:
+            raise BoardSpecError(
+                f"a {self.squares_x}x{self.squares_y} board with markers from ID {first} needs IDs up to "
+                f"{first + self.num_markers - 1} but {self.dictionary} has only {dictionary_size} markers; use a "
+                f"larger dictionary (e.g. {self.dictionary.rsplit('_', 1)[0]}_1000) or a smaller first_marker_id"
+            )
         if self.num_markers > dictionary_size:
             raise BoardSpecError(
                 f"a {self.squares_x}x{self.squares_y} board needs {self.num_markers} markers but "
@@ -125,10 +139,10 @@ class BoardSpec:
 
     @property
     def layout(self) -> tuple:
-        """What decides which corner is which: grid, dictionary, legacy flag and the marker/square
-        ratio (rounded to 1e-6). Size, polarity and mirroring only change how the board is seen."""
+        """What decides which corner is which: grid, dictionary, legacy flag, the marker/square
+        ratio (rounded to 1e-6) and the first marker ID. Size, polarity and mirroring only change how the board is seen."""
         return (self.squares_x, self.squares_y, self.dictionary, self.legacy,
-                round(self.marker_length / self.square_length, 6))
+                round(self.marker_length / self.square_length, 6), self.first_marker_id)
 
     def same_layout(self, other: "BoardSpec") -> bool:
         """True when ``other`` is this board printed at another size, inverted or mirrored."""
@@ -139,8 +153,9 @@ class BoardSpec:
 
     @cached_property
     def _cv_board(self) -> cv2.aruco.CharucoBoard:
+        ids = np.arange(self.first_marker_id, self.first_marker_id + self.num_markers, dtype=np.int32)
         board = cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y), self.square_length, self.marker_length, self.cv_dictionary()
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, self.cv_dictionary(), ids
         )
         board.setLegacyPattern(self.legacy)
         return board
@@ -182,7 +197,10 @@ class BoardSpec:
 
     # ----------------------------------------------------------------- (de)serialisation
     def to_dict(self) -> dict:
-        return asdict(self)
+        data = asdict(self)
+        if not data["first_marker_id"]:
+            del data["first_marker_id"]  # OpenCV's default: board files and shards stay as they were
+        return data
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "a board description") -> "BoardSpec":
