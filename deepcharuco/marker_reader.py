@@ -15,6 +15,12 @@ and under blur the right marker still correlates best although no single bit can
 thresholded; each read proposes its few best (marker, turn) pairs and the board's geometry
 decides among them (`placement`).
 
+Two readers (``reader``): "sampled" is the above; "learned" rectifies each square onto its marker's
+bit grid (`rectify_squares`) and a small CNN (`models.bit_reader`) gives each bit's log-likelihood
+ratio white / black, which a blur several bits long still leaves readable where the NCC of bit
+means fails. A candidate marker's score is then its log-likelihood, scaled to [-1, 1] as NCC is
+(`correlate`), so the proposals, the placement vote and the final check are the same for both.
+
 Square frame: (x, y) in [0, 1]^2, x along the board's X (right), y along its Y (down).
 """
 
@@ -22,6 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -37,6 +44,13 @@ BIT_FILL = 0.5  # the samples span this fraction of a bit cell (its edges blur i
 MIN_CONTRAST = 1.0
 PROPOSALS_PER_READ = 2  # a blurred read's right marker is often second best, rarely third
 MIN_NCC = 0.3  # below this a (marker, turn) explains a read no better than a random board marker would
+READERS = ("sampled", "learned")
+DEFAULT_READER = "sampled"
+BIT_READER_WEIGHTS = Path(__file__).resolve().parent / "weights" / "bit_reader.pt"
+# The learned reader's logits are clipped here before scoring: no single bit may outvote more than this
+# (log-likelihood ratio 4: p = 0.018 that a confident bit is wrong), so one smeared bit costs a marker
+# a bounded amount.
+MAX_BIT_LOGIT = 4.0
 
 # Quarter turns: (x, y) in the board's square frame -> (u, v) in the cell's unit square.
 QUARTER_TURNS = np.array([
@@ -109,7 +123,14 @@ def _sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     return bits, ring
 
 
-def read_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float
+def _reader(reader: str | None) -> str:
+    reader = DEFAULT_READER if reader is None else reader
+    if reader not in READERS:
+        raise ValueError(f"reader must be one of {READERS}, got {reader!r}")
+    return reader
+
+
+def read_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float, reader: str | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Read the marker bits of R squares.
 
@@ -117,11 +138,26 @@ def read_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: f
         gray: (H, W) uint8 image in the board's canonical appearance (black ink on white paper).
         homographies: (R, 3, 3) each square's unit frame -> image pixels.
         size: inner bits per side (n); ratio: marker side / square side.
+        reader: "sampled" or "learned" (default `DEFAULT_READER`).
 
     Returns:
-        (bits (R, n, n) float32 mean grey level of each inner bit, contrast (R,) float32 grey levels
-        between the paper ring and the marker's border; 0 where the square is unreadable).
+        (bits (R, n, n) float32: "sampled": mean grey level of each inner bit; "learned": each bit's
+        log-likelihood ratio white / black over `MAX_BIT_LOGIT`, clipped to [-1, 1];
+        contrast (R,) float32 grey levels between the paper ring and the marker's border; 0 where the
+        square is unreadable, whichever the reader).
     """
+    reader = _reader(reader)
+    bits, contrast = _sampled_reads(gray, homographies, size, ratio)
+    if reader == "learned" and np.any(contrast > 0):
+        readable = np.flatnonzero(contrast > 0)
+        bits = np.zeros_like(bits)
+        bits[readable] = learned_bits(gray, np.asarray(homographies, np.float64)[readable], size, ratio)
+    return bits, contrast
+
+
+def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """`read_squares` with the "sampled" reader."""
     count = len(homographies)
     grid = size + 2
     if count == 0:
@@ -154,6 +190,49 @@ def read_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: f
     return bits[:, 1:-1, 1:-1].astype(np.float32), np.where(readable, contrast, 0.0).astype(np.float32)
 
 
+def rectify_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float) -> np.ndarray:
+    """(H, W) uint8 image, (R, 3, 3) square unit frames -> image -> (R, P, P) float32 patches on each marker's
+    bit grid (`models.bit_reader.patch_points`: P = (n + 2 + 2 margin) x samples per bit), bilinear, the
+    image's border replicated beyond its edges."""
+    from deepcharuco.models.bit_reader import patch_points, patch_side
+
+    side = patch_side(size)
+    if len(homographies) == 0:
+        return np.zeros((0, side, side), np.float32)
+    local = patch_points(size, ratio)
+    mapped = np.c_[local, np.ones(len(local))] @ np.asarray(homographies, np.float64).transpose(0, 2, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        points = mapped[:, :, :2] / mapped[:, :, 2:]
+    points = np.nan_to_num(points, nan=-1e4, posinf=-1e4, neginf=-1e4).clip(-1e4, 1e5).astype(np.float32)
+    return _sample(gray, points.reshape(-1, 2)).reshape(len(homographies), side, side)
+
+
+@cache
+def _bit_reader(path: Path):
+    """The learned reader at ``path``, loaded once per process (imported here: "sampled" needs no torch)."""
+    from deepcharuco.models.bit_reader import load_bit_reader
+
+    return load_bit_reader(path)
+
+
+def learned_bits(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float,
+                 weights: Path = BIT_READER_WEIGHTS, batch: int = 512) -> np.ndarray:
+    """(H, W) uint8, (R, 3, 3) square unit frames -> image -> (R, n, n) float32 bit logits of the learned
+    reader, clipped to +-`MAX_BIT_LOGIT` and divided by it (> 0: white)."""
+    import torch
+
+    from deepcharuco.models.bit_reader import normalise_patches
+
+    model = _bit_reader(Path(weights))
+    patches = normalise_patches(rectify_squares(gray, homographies, size, ratio))
+    out = np.zeros((len(patches), size, size), np.float32)
+    with torch.inference_mode():
+        for start in range(0, len(patches), batch):
+            chunk = torch.from_numpy(patches[start:start + batch])[:, None]
+            out[start:start + batch] = model(chunk, size).numpy()
+    return np.clip(out, -MAX_BIT_LOGIT, MAX_BIT_LOGIT) / MAX_BIT_LOGIT
+
+
 def _sample(gray: np.ndarray, points: np.ndarray, row: int = 4096) -> np.ndarray:
     """(H, W) image, (P, 2) float32 x, y -> (P,) float32 bilinear samples. ``cv2.remap`` maps take at most
     32767 rows or columns: the points go through as rows of ``row``."""
@@ -172,8 +251,15 @@ def _normalised(values: np.ndarray) -> np.ndarray:
     return centred / np.where(norm > 1e-9, norm, 1.0)
 
 
-def correlate(bits: np.ndarray, markers: BoardMarkers) -> np.ndarray:
-    """(R, n, n) inner bit means -> (R, M, 4) NCC with each board marker in each quarter turn."""
+def correlate(bits: np.ndarray, markers: BoardMarkers, reader: str | None = None) -> np.ndarray:
+    """(R, n, n) reads of ``reader`` (`read_squares`) -> (R, M, 4) scores in [-1, 1] of each board marker in
+    each quarter turn: "sampled": NCC of the bit means with the marker's bits; "learned": the marker's
+    log-likelihood under the clipped bit logits, sum_i (2 b_i - 1) l_i / n^2 (1: every bit confidently as
+    the marker has it; 0 on average for an unrelated marker), up to a constant per read."""
+    if _reader(reader) == "learned":
+        signs = markers.bits.reshape(len(markers.ids) * 4, -1).astype(np.float64) * 2 - 1
+        flat = bits.reshape(len(bits), markers.size * markers.size).astype(np.float64)
+        return (flat @ signs.T / signs.shape[1]).reshape(len(bits), len(markers.ids), 4)
     expected = _normalised(markers.bits.reshape(len(markers.ids) * 4, -1).astype(np.float64))
     read = _normalised(bits.reshape(len(bits), markers.size * markers.size).astype(np.float64))
     return (read @ expected.T).reshape(len(bits), len(markers.ids), 4)
@@ -192,11 +278,11 @@ class MarkerMatches:
 
 
 def match_markers(bits: np.ndarray, contrast: np.ndarray, markers: BoardMarkers,
-                  per_read: int = PROPOSALS_PER_READ) -> MarkerMatches:
-    """(R, n, n) bit means and (R,) contrasts -> each readable read's ``per_read`` best (marker, turn) pairs
-    with NCC >= `MIN_NCC`, best first within a read."""
+                  per_read: int = PROPOSALS_PER_READ, reader: str | None = None) -> MarkerMatches:
+    """(R, n, n) reads of ``reader`` and (R,) contrasts -> each readable read's ``per_read`` best (marker, turn)
+    pairs scoring >= `MIN_NCC` (`correlate`), best first within a read."""
     readable = np.flatnonzero(contrast > 0)
-    ncc = correlate(bits[readable], markers).reshape(len(readable), len(markers.ids) * 4)
+    ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
     per_read = min(per_read, ncc.shape[1])
     best = np.argpartition(-ncc, per_read - 1, axis=1)[:, :per_read] if per_read < ncc.shape[1] \
         else np.tile(np.arange(ncc.shape[1]), (len(ncc), 1))

@@ -60,12 +60,13 @@ def _translate(dx: float, dy: float) -> np.ndarray:
 
 
 def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
-                     read_gray: np.ndarray | None = None) -> MarkerView | None:
+                     read_gray: np.ndarray | None = None, reader: str | None = None) -> MarkerView | None:
     """The view of ``board`` that the markers around ``pixels`` (N, 2) corner candidates agree on, or None.
 
     ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
     ``pixels`` (most confident first) were found in; ``read_gray``: the same image at a higher resolution to read the markers in
-    (default ``gray``). The view returned maps to ``gray``'s pixels."""
+    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs). The view returned maps to
+    ``gray``'s pixels."""
     quads = find_cells(pixels)
     if len(quads) == 0:
         return None
@@ -79,8 +80,8 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
     squares = np.einsum("qij,sjk->qsik", cells, shifts).reshape(-1, 3, 3)
     markers = board_markers(board)
     read_gray, to_read = _reading_image(gray, read_gray)
-    bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio)
-    matches = match_markers(bits, contrast, markers)
+    bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio, reader)
+    matches = match_markers(bits, contrast, markers, reader=reader)
     if len(np.unique(matches.marker)) < MIN_MARKERS:
         return None
     # Each proposal: board square units -> image, via its square's frame and the quarter turn.
@@ -128,18 +129,19 @@ def _reading_image(gray: np.ndarray, read_gray: np.ndarray | None) -> tuple[np.n
     return read_gray, np.array([[rx, 0, 0.5 * rx - 0.5], [0, ry, 0.5 * ry - 0.5], [0, 0, 1]])
 
 
-def marker_agreement(gray: np.ndarray, board: BoardSpec, homography: np.ndarray) -> tuple[int, int]:
+def marker_agreement(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None
+                     ) -> tuple[int, int]:
     """Read every marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly in
     ``gray`` (canonical appearance). -> (markers whose read correlates best with the marker printed there,
     in the right turn, among all the board's markers and turns; readable markers)."""
     markers = board_markers(board)
     scale = np.diag([board.square_length, board.square_length, 1.0])
     squares = np.stack([homography @ scale @ _translate(sx, sy) for sx, sy in markers.squares.astype(np.float64)])
-    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio)
+    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
     readable = np.flatnonzero(contrast > 0)
     if len(readable) == 0:
         return 0, 0
-    ncc = correlate(bits[readable], markers).reshape(len(readable), len(markers.ids) * 4)
+    ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
     return int(np.sum(ncc.argmax(axis=1) == readable * 4)), len(readable)
 
 
@@ -150,21 +152,21 @@ def chance_of_agreement(agreeing: int, readable: int, markers: int) -> float:
     return float(sum(math.comb(readable, k) * p ** k * (1 - p) ** (readable - k) for k in range(agreeing, readable + 1)))
 
 
-def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray) -> bool:
+def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None) -> bool:
     """True when the markers in the view ``homography`` (board metres -> pixels) of canonical ``gray`` read as
     the board's own: at least `MIN_MARKERS`, at least `MIN_MARKER_AGREEMENT` of the readable ones, and more
     than chance could explain (`chance_of_agreement` <= `MAX_CHANCE`)."""
-    agreeing, readable = marker_agreement(gray, board, homography)
+    agreeing, readable = marker_agreement(gray, board, homography, reader)
     return (agreeing >= MIN_MARKERS and agreeing >= MIN_MARKER_AGREEMENT * readable
             and chance_of_agreement(agreeing, readable, board.num_markers) <= MAX_CHANCE)
 
 
 def marker_view_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
-                         read_gray: np.ndarray | None = None) -> bool:
+                         read_gray: np.ndarray | None = None, reader: str | None = None) -> bool:
     """`view_is_verified` for a view found in ``gray`` (board metres -> ``gray``'s pixels), read in
     ``read_gray``, the same image at full resolution (default ``gray``)."""
     read_gray, to_read = _reading_image(gray, read_gray)
-    return view_is_verified(read_gray, board, to_read @ homography)
+    return view_is_verified(read_gray, board, to_read @ homography, reader)
 
 
 def _support(marker: np.ndarray, ncc: np.ndarray) -> float:
@@ -191,13 +193,13 @@ def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates, refits: int = 2,
-                         read_gray: np.ndarray | None = None
+                         read_gray: np.ndarray | None = None, reader: str | None = None
                          ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView | None]:
     """The board's corners among ``candidates``, identified by the markers around them, in a view whose
     markers read as the board's own (`view_is_verified`).
 
     ``gray``: the canonical image the candidates were found in; ``read_gray``: the same image at full
-    resolution, where the markers are read (default ``gray``).
+    resolution, where the markers are read (default ``gray``); ``reader``: how (`marker_reader.READERS`).
 
     Returns ((ids (K,), pixels (K, 2) float32, scores (K,) float32) strongest first, the marker view or
     None). The view's homography is refitted ``refits`` times on the corners it claimed (RANSAC), which
@@ -205,7 +207,7 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     # The view is searched among the most confident corners only (an untrained or confused point head must
     # not cost seconds); every candidate may then take a corner the view predicts.
     strongest = np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]
-    found = find_marker_view(gray, board, candidates.pixels[strongest], read_gray)
+    found = find_marker_view(gray, board, candidates.pixels[strongest], read_gray, reader)
     if found is None:
         return no_corners(), None
     board_xy = board.corner_points()[:, :2]
@@ -220,6 +222,6 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
             break
         view = BoardView(homography=homography, inliers=mask.ravel().astype(bool))
         ids, pixels, scores = assign_ids(view, board_xy, candidates, (width, height))
-    if not marker_view_verified(gray, board, view.homography, read_gray):
+    if not marker_view_verified(gray, board, view.homography, read_gray, reader):
         return no_corners(), None
     return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)
