@@ -36,6 +36,7 @@ from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import corners_from_markers, marker_view_verified
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, corners_from_canonical
+from deepcharuco.runtime import make_runner
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
@@ -117,12 +118,15 @@ class Detector:
             head's corners are read and matched to the board's own, and the view that 2 or more distinct
             markers agree on names every corner (`deepcharuco.placement`). A board with other markers
             (another dictionary, other IDs, mirrored) yields nothing.
+        backend: how the networks run (`deepcharuco.runtime`): "auto" (default: on CPU, ONNX Runtime with the
+            weights' accepted int8 ChArUcoNet if they carry one, else float32 ONNX Runtime when installed, else
+            PyTorch), "torch", "onnx" or "onnx-int8".
     """
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
-                 mode: str = "deep"):
+                 mode: str = "deep", backend: str = "auto"):
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
         if mode not in MODES:
@@ -137,7 +141,6 @@ class Detector:
                     f"train.charuconet and python -m train.refinenet, then pass weights=..., refine_weights=...")
         self.device = torch.device(device)
         self.charuconet, trained_for, self.checkpoint = load_charuconet(weights)
-        self.charuconet.to(self.device)
         self.board = board or trained_for
         own_board = self.board.same_layout(trained_for)
         if geometry is None:
@@ -159,11 +162,11 @@ class Detector:
         self.refinenet = None
         if refine == "refinenet":
             self.refinenet, _ = load_refinenet(refine_weights or weights)
-            self.refinenet.to(self.device)
+        self.runner = make_runner(backend, self.charuconet, self.refinenet, self.device, self.checkpoint)
 
     def __repr__(self) -> str:
         return (f"Detector(board={self.board!r}, refine={self.refine!r}, geometry={self.geometry!r}, "
-                f"mode={self.mode!r}, device={str(self.device)!r})")
+                f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
 
     @torch.inference_mode()
     def detect(self, image: np.ndarray) -> Detection:
@@ -228,12 +231,11 @@ class Detector:
         height, width = gray.shape
         # The network sees whole 8x8 cells: pad right and bottom by replicating the border.
         padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
-        tensor = torch.from_numpy(padded).to(self.device, torch.float32).div_(255.0)[None, None]
-        point_logits, id_logits = self.charuconet(tensor)
+        point_logits, id_logits = self.runner.charuconet((padded[None, None] / np.float32(255.0)))
         if self.geometry == "markers":
-            candidates = _inside(cell_candidates(point_logits[0].cpu(), None, self.threshold), (width, height))
+            candidates = _inside(cell_candidates(point_logits, None, self.threshold), (width, height))
             return corners_from_markers(gray, self.board, candidates, read_gray=full)[0]
-        return self.decode(point_logits[0].cpu(), id_logits[0].cpu(), (width, height), gray, full)
+        return self.decode(point_logits, id_logits, (width, height), gray, full)
 
     def _refine(self, gray: np.ndarray, pixels: np.ndarray, window_scale: float = 1.0) -> np.ndarray:
         """(N, 2) corner pixels -> (N, 2) float32 refined in ``gray`` by ``self.refine``; ``window_scale``
@@ -289,8 +291,7 @@ class Detector:
         padded = cv2.copyMakeBorder(gray, border, border, border, border, cv2.BORDER_REPLICATE)
         origins = pixels.astype(np.int64) - PATCH_ORIGIN  # patch top-left in image pixels
         patches = np.stack([padded[y + border:y + border + PATCH, x + border:x + border + PATCH] for x, y in origins])
-        tensor = torch.from_numpy(patches).to(self.device, torch.float32).div_(255.0)[:, None]
-        offsets = decode_offsets(self.refinenet(tensor), self.soft_radius).cpu().numpy()
+        offsets = decode_offsets(self.runner.refinenet(patches[:, None] / np.float32(255.0)), self.soft_radius).numpy()
         return (origins + offsets).astype(np.float32)
 
     def estimate_pose(self, detection: Detection, K: np.ndarray, dist: np.ndarray | None = None, **kwargs) -> Pose | None:

@@ -16,6 +16,7 @@ import argparse
 import csv
 import json
 import sys
+import time
 from collections.abc import Iterator
 from collections import Counter
 from dataclasses import dataclass, field
@@ -33,6 +34,8 @@ from deepcharuco.draw import draw_detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.pose import Pose
+from deepcharuco.runtime import BACKENDS
+from deepcharuco.tracking import BoardTracker
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
@@ -126,14 +129,16 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
 
 
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
-                  refine_weights: str | None = None):
+                  refine_weights: str | None = None, backend: str = "auto"):
+    """"opencv", "deep" or "hybrid" (OpenCV first, the networks where its corners do not verify)."""
     if name == "opencv":
         if refine == "refinenet":
-            raise DeepCharucoError("--refine refinenet needs --detector deep; OpenCV takes subpix or none")
+            raise DeepCharucoError("--refine refinenet needs --detector deep or hybrid; OpenCV takes subpix or none")
         return OpenCVDetector(board, refine=refine)
     from deepcharuco.deep_detector import Detector
 
-    return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights)
+    return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights,
+                    mode="hybrid" if name == "hybrid" else "deep", backend=backend)
 
 
 def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
@@ -166,9 +171,12 @@ def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
 def run(args: argparse.Namespace) -> dict:
     board = BoardSpec.load(args.board) if args.board else None  # deep: default to the weights' board
     camera = read_camera(args.camera) if args.camera else None
-    detector = make_detector(args.detector, board, args.refine, args.weights, args.refine_weights)
+    detector = make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend)
     board = detector.board
     source = open_source(args.source, args.max_frames)
+    # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames).
+    tracking = source.kind in ("video", "camera") and args.refresh_every > 1
+    finder = BoardTracker(detector, args.refresh_every) if tracking else detector
     out = output_folder(args.out)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
@@ -180,10 +188,17 @@ def run(args: argparse.Namespace) -> dict:
     with open(csv_path, "w", newline="") as csv_file:
         rows = csv.DictWriter(csv_file, fieldnames=CSV_FIELDS)
         rows.writeheader()
+        detect_seconds, total_seconds = None, 0.0
         try:
-            for index, (name, frame) in enumerate(tqdm(source.frames, total=source.total, unit="frame",
-                                                       disable=source.kind == "image" or args.quiet)):
-                detection = detector.detect(frame)
+            progress = tqdm(source.frames, total=source.total, unit="frame", disable=source.kind == "image" or args.quiet)
+            for index, (name, frame) in enumerate(progress):
+                started = time.perf_counter()
+                detection = finder.detect(frame)
+                elapsed = time.perf_counter() - started
+                total_seconds += elapsed
+                # Live detection speed (an exponential average: a camera's rate changes as the board moves).
+                detect_seconds = elapsed if detect_seconds is None else 0.9 * detect_seconds + 0.1 * elapsed
+                progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps", refresh=False)
                 frame_camera = _camera_for(camera, frame.shape)
                 pose = detector.estimate_pose(detection, frame_camera.K, frame_camera.dist) if frame_camera else None
                 record = frame_record(index, name, detection, pose)
@@ -221,6 +236,7 @@ def run(args: argparse.Namespace) -> dict:
                                                        "image_size": list(camera.image_size)},
                 "frames": records,
                 "skipped": source.skipped,
+                "detect_fps": len(records) / total_seconds if total_seconds > 0 else None,
             }
             json_path.write_text(json.dumps(summary))
     with_pose = sum(r["pose"] is not None for r in records)
@@ -248,7 +264,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--board", help="board description (.json/.yaml); default: the paper's 5x5 DICT_5X5_50 board")
     parser.add_argument("--camera", help="OpenCV intrinsics YAML (camera_matrix, distortion_coefficients, "
                                          "image_width, image_height); without it no pose is estimated")
-    parser.add_argument("--detector", choices=["opencv", "deep"], default="opencv", help="which detector")
+    parser.add_argument("--detector", choices=["opencv", "deep", "hybrid"], default="opencv",
+                        help="which detector (hybrid: OpenCV, and the deep detector where OpenCV's corners do not "
+                             "fit one view of the board)")
+    parser.add_argument("--backend", choices=list(BACKENDS), default="auto",
+                        help="deep/hybrid: how the networks run (auto: ONNX Runtime when installed, int8 when the "
+                             "weights carry an accepted int8 model; else PyTorch)")
+    parser.add_argument("--refresh-every", type=int, default=30,
+                        help="video/camera: search the whole frame at least every N frames, in between only around "
+                             "the last board found (1: whole frames always)")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default="subpix",
                         help="corner refinement")
     parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle "
@@ -263,7 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.refresh_every < 1:
+        parser.error(f"--refresh-every must be >= 1 (1: search whole frames always), got {args.refresh_every}")
 
     def body() -> None:
         run(args)

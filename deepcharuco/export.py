@@ -22,6 +22,7 @@ ONNX files are run with onnxruntime when installed, otherwise with OpenCV's DNN 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import warnings
@@ -83,6 +84,12 @@ def export_torchscript(model: torch.nn.Module, example: torch.Tensor, path: Path
 
 def export_onnx(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec, path: Path) -> Path:
     """Write ``model`` as ONNX with dynamic batch (and image size for ChArUcoNet)."""
+    path.write_bytes(onnx_bytes(model, example, spec))
+    return path
+
+
+def onnx_bytes(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec) -> bytes:
+    """``model`` as a serialized ONNX model (opset `OPSET`, the dynamic axes of ``spec``)."""
     try:
         import onnx  # noqa: F401  (torch's exporter needs it)
     except ImportError:
@@ -92,10 +99,11 @@ def export_onnx(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec
         warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notice
         # dynamo=False: the TorchScript-based exporter handles these plain conv nets with no extra
         # packages (the torch.export-based one needs onnxscript, which wants numpy 2).
-        torch.onnx.export(model, (example,), str(path), dynamo=False, opset_version=OPSET,
+        buffer = io.BytesIO()
+        torch.onnx.export(model, (example,), buffer, dynamo=False, opset_version=OPSET,
                           input_names=[spec.input_name], output_names=list(spec.output_names),
                           dynamic_axes=spec.dynamic_axes)
-    return path
+    return buffer.getvalue()
 
 
 def run_torchscript(path: Path, inputs: np.ndarray) -> list[np.ndarray]:

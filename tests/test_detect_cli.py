@@ -134,3 +134,15 @@ def test_unwritable_or_file_out(tmp_path, capsys, unwritable_dir):
         assert main([str(EXAMPLES / "board_320x240.png"), "--out", str(out), "--quiet"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert message in err[-1] and not any("Traceback" in line for line in err)
+
+
+def test_hybrid_detector_and_tracking_options(tmp_path, capsys):
+    out = tmp_path / "hybrid"
+    assert main([str(EXAMPLES / "board_320x240.png"), "--detector", "hybrid", "--backend", "torch",
+                 "--out", str(out), "--no-overlay"]) == 0
+    result = json.loads((out / "board_320x240.json").read_text())
+    assert "mode='hybrid'" in result["detector"] and result["frames"][0]["num_corners"] == 16
+    assert result["detect_fps"] > 0
+    with pytest.raises(SystemExit):
+        main([str(EXAMPLES / "board_320x240.png"), "--refresh-every", "0", "--out", str(tmp_path / "x")])
+    assert "--refresh-every must be >= 1" in capsys.readouterr().err

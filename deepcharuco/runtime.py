@@ -1,0 +1,185 @@
+"""How the two networks run: PyTorch, or ONNX Runtime in float32 or int8 (CPU inference).
+
+    backend     ChArUcoNet                               RefineNet
+    "torch"     PyTorch, channels-last on CPU            PyTorch
+    "onnx"      ONNX Runtime, float32                    ONNX Runtime, float32
+    "onnx-int8" ONNX Runtime, int8 (the bundle's own,    ONNX Runtime, float32 (sub-pixel offsets
+                quantised and accepted by                stay float: the patches are few and the
+                `train.quantize`)                  refinement is what int8 would cost)
+    "auto"      "onnx-int8" when the weights carry an accepted int8 model, else "onnx" when ONNX
+                Runtime is installed, else "torch"; always "torch" on a GPU device
+
+The float32 ONNX models are exported from the loaded networks in memory when the `Runner` is made
+(about a second), so they always match the weights; the int8 model is stored inside the bundle
+(``charuconet["int8"]``) with what it was calibrated and checked on. Both runners take and return
+the same arrays, so the decoding never knows which one ran.
+
+Measured on this project's 2-core CPU (``python benchmarks/detect.py``): PyTorch's default NCHW
+convolutions are the slowest path here, channels-last halves them, ONNX Runtime is faster still
+and int8 (VNNI) faster again; the README's speed table has the numbers.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import warnings
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.models.charuconet import ChArUcoNet
+from deepcharuco.models.refinenet import PATCH, RefineNet
+
+BACKENDS = ("auto", "torch", "onnx", "onnx-int8")
+INT8_KEY = "int8"  # in a ChArUcoNet checkpoint: {"onnx": bytes, "calibration": ..., "validation": ...}
+
+
+class Runner(Protocol):
+    """Runs the networks on CPU arrays; returns CPU tensors."""
+
+    name: str
+
+    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(1, 1, H, W) float32 in [0, 1], H and W multiples of 8 -> point logits (65, H/8, W/8), ID logits
+        (N+1, H/8, W/8)."""
+
+    def refinenet(self, patches: np.ndarray) -> torch.Tensor:
+        """(B, 1, 24, 24) float32 in [0, 1] -> (B, 4096) logits."""
+
+
+def onnxruntime_available() -> bool:
+    return importlib.util.find_spec("onnxruntime") is not None
+
+
+def weights_fingerprint(model: torch.nn.Module) -> str:
+    """sha256 of a network's weights as loaded (batch norm folded): ties an int8 model to the float one it
+    was quantised from, and keys the in-memory ONNX exports."""
+    digest = hashlib.sha256()
+    for name, tensor in model.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def int8_model(checkpoint: dict, fingerprint: str | None = None) -> bytes | None:
+    """The accepted int8 ChArUcoNet (serialized ONNX) a checkpoint carries, or None; with ``fingerprint``
+    (`weights_fingerprint` of the loaded float network) one quantised from other weights is ignored."""
+    entry = checkpoint.get(INT8_KEY)
+    if not isinstance(entry, dict) or not entry.get("onnx"):
+        return None
+    if fingerprint is not None and entry.get("weights_sha256") != fingerprint:
+        warnings.warn("the int8 model in these weights was quantised from other float weights: ignored "
+                      "(make a new one with python -m train.quantize)", stacklevel=3)
+        return None
+    return entry["onnx"]
+
+
+def resolve_backend(backend: str, device: torch.device, checkpoint: dict) -> str:
+    """The backend ``backend`` means for these weights on ``device`` (see the module's table)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        if device.type != "cpu" or not onnxruntime_available():
+            return "torch"
+        return "onnx-int8" if INT8_KEY in checkpoint else "onnx"
+    if backend != "torch":
+        if device.type != "cpu":
+            raise DeepCharucoError(f"backend={backend!r} runs on the CPU: use backend='torch' for device {device}")
+        if not onnxruntime_available():
+            raise DeepCharucoError(f"backend={backend!r} needs ONNX Runtime: pip install onnxruntime "
+                                   f"(or use backend='torch')")
+        if backend == "onnx-int8" and INT8_KEY not in checkpoint:
+            raise DeepCharucoError("these weights carry no int8 model: make one with python -m train.quantize "
+                                   "(or use backend='onnx')")
+    return backend
+
+
+class TorchRunner:
+    """PyTorch on ``device``; on CPU the networks run channels-last (NHWC), which oneDNN convolves about
+    twice as fast as NCHW here."""
+
+    name = "torch"
+
+    def __init__(self, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device):
+        self.device = device
+        self.memory_format = torch.channels_last if device.type == "cpu" else torch.contiguous_format
+        self._charuconet = charuconet.to(device, memory_format=self.memory_format)
+        self._refinenet = None if refinenet is None else refinenet.to(device, memory_format=self.memory_format)
+
+    def _tensor(self, array: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(array).to(self.device).contiguous(memory_format=self.memory_format)
+
+    @torch.inference_mode()
+    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        points, ids = self._charuconet(self._tensor(image))
+        return points[0].float().cpu().contiguous(), ids[0].float().cpu().contiguous()
+
+    @torch.inference_mode()
+    def refinenet(self, patches: np.ndarray) -> torch.Tensor:
+        return self._refinenet(self._tensor(patches)).float().cpu()
+
+
+def _session(model: bytes, threads: int):
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
+
+
+_EXPORTS: dict[str, bytes] = {}  # weights fingerprint -> float32 ONNX: one export per process and weights
+
+
+def float_onnx(model: ChArUcoNet | RefineNet) -> bytes:
+    """A loaded ChArUcoNet or RefineNet as float32 ONNX (exported once per process and weights)."""
+    from deepcharuco.export import network_specs, onnx_bytes
+
+    fingerprint = weights_fingerprint(model)
+    if fingerprint not in _EXPORTS:
+        kind = "charuconet" if isinstance(model, ChArUcoNet) else "refinenet"
+        example = torch.zeros(1, 1, 240, 320) if kind == "charuconet" else torch.zeros(1, 1, PATCH, PATCH)
+        _EXPORTS[fingerprint] = onnx_bytes(model.cpu(), example, network_specs((320, 240))[kind])
+    return _EXPORTS[fingerprint]
+
+
+class OnnxRunner:
+    """ONNX Runtime on the CPU with as many threads as PyTorch uses (``torch.get_num_threads()``, which
+    follows OMP_NUM_THREADS); ChArUcoNet from ``charuconet_model`` (serialized ONNX, e.g. the bundle's int8
+    model) or exported from ``charuconet``."""
+
+    def __init__(self, charuconet: ChArUcoNet, refinenet: RefineNet | None, charuconet_model: bytes | None = None,
+                 name: str = "onnx"):
+        self.name = name
+        threads = torch.get_num_threads()
+        self._charuconet = _session(charuconet_model or float_onnx(charuconet), threads)
+        self._charuconet_input = self._charuconet.get_inputs()[0].name
+        self._refinenet = None
+        if refinenet is not None:
+            self._refinenet = _session(float_onnx(refinenet), threads)
+            self._refinenet_input = self._refinenet.get_inputs()[0].name
+
+    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        points, ids = self._charuconet.run(None, {self._charuconet_input: image})
+        return torch.from_numpy(points[0]), torch.from_numpy(ids[0])
+
+    def refinenet(self, patches: np.ndarray) -> torch.Tensor:
+        (logits,) = self._refinenet.run(None, {self._refinenet_input: patches})
+        return torch.from_numpy(logits)
+
+
+def make_runner(backend: str, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device,
+                checkpoint: dict) -> Runner:
+    """The `Runner` for ``backend`` (resolved by `resolve_backend`) over the loaded networks."""
+    backend = resolve_backend(backend, device, checkpoint)
+    if backend == "torch":
+        return TorchRunner(charuconet, refinenet, device)
+    if backend == "onnx-int8":
+        model = int8_model(checkpoint, weights_fingerprint(charuconet))
+        if model is not None:
+            return OnnxRunner(charuconet, refinenet, model, name="onnx-int8")
+    return OnnxRunner(charuconet, refinenet)

@@ -1,0 +1,87 @@
+"""`BoardTracker`: in a video, search each frame only around the board found in the frame before.
+
+A board moves little between frames, so the region around the previous frame's corners (widened by
+`MARGIN` of its size and at least `MIN_MARGIN_SQUARES` corner spacings, for motion and for the
+markers beyond the outermost corners) holds it again; the detector runs on that crop, which at
+1280x720 with the board covering a quarter of the frame costs a quarter of the pixels. A full-frame
+search runs when the crop finds nothing, when there was no board before, and every ``refresh_every``
+frames (a second board, or the board re-entering elsewhere, is never missed for long).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deepcharuco.detection import Detection
+
+MARGIN = 0.5  # of the corners' bounding box, on each side
+MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
+MIN_CROP = 64  # px: smaller crops are widened to this
+MIN_CORNERS = 4  # a crop's detection with fewer corners falls back to the full frame
+
+
+def corner_spacing(corners: np.ndarray) -> float:
+    """Median distance from each corner to its nearest neighbour, px ((N, 2) corners, N >= 2)."""
+    distances = np.linalg.norm(corners[:, None] - corners[None], axis=-1)
+    np.fill_diagonal(distances, np.inf)
+    return float(np.median(distances.min(axis=1)))
+
+
+def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1), exclusive ends, of the crop to search the next frame in, around (N, 2) ``corners``
+    (N >= 2), inside an image of ``image_size`` (W, H)."""
+    limits = np.array(image_size, np.float64)
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    margin = np.maximum(MARGIN * (high - low), MIN_MARGIN_SQUARES * corner_spacing(corners))
+    size = np.minimum(np.maximum(high - low + 2 * margin, MIN_CROP), limits)
+    # Centred on the corners, moved (not cut) to stay inside the image, so a board at an edge keeps its margin.
+    start = np.clip(np.floor((low + high - size) / 2), 0, limits - np.ceil(size))
+    x0, y0 = (int(v) for v in start)
+    x1, y1 = (int(v) for v in np.minimum(start + np.ceil(size), limits))
+    return x0, y0, x1, y1
+
+
+class BoardTracker:
+    """Wraps any detector (``detect(image) -> Detection``) for consecutive video frames.
+
+    Args:
+        detector: `Detector`, `OpenCVDetector`, ...
+        refresh_every: a full-frame search at least every this many frames (1: always, no tracking).
+
+    ``detect(image)`` returns corners in ``image``'s pixels, as the detector would; ``last_search`` says
+    whether the last call searched the "crop" or the "full" frame.
+    """
+
+    def __init__(self, detector, refresh_every: int = 30):
+        if refresh_every < 1:
+            raise ValueError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
+        self.detector = detector
+        self.refresh_every = refresh_every
+        self._region: tuple[int, int, int, int] | None = None
+        self._since_full = 0
+        self.last_search = "full"
+
+    def reset(self) -> None:
+        """Forget the board (a cut in the video): the next frame is searched whole."""
+        self._region = None
+
+    def detect(self, image: np.ndarray) -> Detection:
+        height, width = image.shape[:2]
+        self._since_full += 1
+        if self._region is not None and self._since_full < self.refresh_every:
+            x0, y0, x1, y1 = self._region
+            found = self.detector.detect(image[y0:y1, x0:x1])
+            if len(found) >= MIN_CORNERS:
+                detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
+                                      scores=found.scores)
+                self._follow(detection, (width, height))
+                self.last_search = "crop"
+                return detection
+        detection = self.detector.detect(image)
+        self._since_full = 0
+        self._follow(detection, (width, height))
+        self.last_search = "full"
+        return detection
+
+    def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
+        self._region = search_region(detection.corners, image_size) if len(detection) >= MIN_CORNERS else None

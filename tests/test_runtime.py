@@ -1,0 +1,91 @@
+"""Backends (deepcharuco.runtime): PyTorch and ONNX Runtime give the same corners; int8 only when accepted."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from conftest import make_view
+from deepcharuco import BoardSpec
+from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
+from deepcharuco.errors import DeepCharucoError
+from deepcharuco.runtime import INT8_KEY, int8_model, onnxruntime_available, resolve_backend, weights_fingerprint
+from evaluate.protocols import TestFrame
+from train import quantize as quantize_module
+
+EXAMPLE = cv2.imread(str(DEFAULT_WEIGHTS.parents[1] / "examples" / "board_320x240.png"), cv2.IMREAD_GRAYSCALE)
+needs_onnxruntime = pytest.mark.skipif(not onnxruntime_available(), reason="ONNX Runtime not installed")
+
+
+@needs_onnxruntime
+@pytest.mark.parametrize("refine", ["refinenet", "subpix"])
+def test_onnx_and_torch_find_the_same_corners(refine):
+    image = cv2.resize(EXAMPLE, (640, 480), interpolation=cv2.INTER_LINEAR)  # two search levels
+    torch_result = Detector(refine=refine, backend="torch").detect(image)
+    onnx_detector = Detector(refine=refine, backend="onnx")
+    onnx_result = onnx_detector.detect(image)
+    assert onnx_detector.runner.name == "onnx" and "backend='onnx'" in repr(onnx_detector)
+    assert len(torch_result) >= 15
+    np.testing.assert_array_equal(onnx_result.ids, torch_result.ids)
+    np.testing.assert_allclose(onnx_result.corners, torch_result.corners, atol=1e-3)
+
+
+def test_auto_picks_by_device_and_installed_runtime():
+    checkpoint = {}
+    assert resolve_backend("auto", torch.device("cuda"), checkpoint) == "torch"
+    expected = "onnx" if onnxruntime_available() else "torch"
+    assert resolve_backend("auto", torch.device("cpu"), checkpoint) == expected
+    with pytest.raises(ValueError, match="backend must be one of"):
+        resolve_backend("tensorrt", torch.device("cpu"), checkpoint)
+    with pytest.raises(DeepCharucoError, match="runs on the CPU"):
+        resolve_backend("onnx", torch.device("cuda"), checkpoint)
+
+
+@needs_onnxruntime
+def test_int8_needs_an_int8_model(tmp_path):
+    bundle = torch.load(DEFAULT_WEIGHTS, map_location="cpu", weights_only=True)
+    bundle["charuconet"].pop(INT8_KEY, None)
+    torch.save(bundle, tmp_path / "float.pt")
+    assert Detector(weights=tmp_path / "float.pt").runner.name == "onnx"
+    with pytest.raises(DeepCharucoError, match="python -m train.quantize"):
+        Detector(weights=tmp_path / "float.pt", backend="onnx-int8")
+
+
+def test_an_int8_model_of_other_weights_is_ignored():
+    detector = Detector(backend="torch")
+    fingerprint = weights_fingerprint(detector.charuconet)
+    entry = {INT8_KEY: {"onnx": b"model", "weights_sha256": fingerprint}}
+    assert int8_model(entry, fingerprint) == b"model"
+    with pytest.warns(UserWarning, match="other float weights"):
+        assert int8_model({INT8_KEY: {"onnx": b"model", "weights_sha256": "0" * 64}}, fingerprint) is None
+
+
+@pytest.fixture(scope="module")
+def validation_frames(camera=None):
+    from deepcharuco.camera import Camera
+
+    camera = Camera.from_fov(320, 240, hfov_deg=60.0)
+    board = BoardSpec()
+    frames = []
+    for i, pose in enumerate([dict(distance=0.35, tilt_x_deg=20), dict(distance=0.4, tilt_y_deg=-25, roll_deg=10)]):
+        image, rvec, tvec, corners = make_view(board, camera, **pose)
+        frames.append(TestFrame(image, corners.astype(np.float32), np.ones(len(corners), bool), camera.K, rvec, tvec,
+                                f"view#{i}"))
+    return frames
+
+
+@needs_onnxruntime
+def test_quantize_stores_an_accepted_int8_model_and_refuses_a_worse_one(tmp_path, monkeypatch, validation_frames):
+    monkeypatch.setattr(quantize_module, "load_frames", lambda *args, **kwargs: validation_frames)
+    out = tmp_path / "int8.pt"
+    with pytest.raises(quantize_module.QuantizeError, match="not written"):
+        quantize_module.quantize(DEFAULT_WEIGHTS, "views", out, calibration_frames=2, max_drop=-1.0, quiet=True)
+    assert not out.exists() and not list(tmp_path.iterdir())  # a refused model leaves nothing behind
+    record = quantize_module.quantize(DEFAULT_WEIGHTS, "views", out, calibration_frames=2, max_drop=1.0, quiet=True)
+    assert set(record["int8"]) == {"blur", "darkness"} and len(record["int8"]["blur"]) == 11
+    detector = Detector(weights=out)  # auto: the accepted int8 model
+    assert detector.runner.name == "onnx-int8"
+    found = detector.detect(EXAMPLE)
+    assert len(found) >= 14
+    with pytest.raises(quantize_module.QuantizeError, match="--force"):
+        quantize_module.quantize(DEFAULT_WEIGHTS, "views", out, calibration_frames=2, quiet=True)

@@ -1,0 +1,91 @@
+"""BoardTracker: a video's frames searched around the last board, whole frames when that fails."""
+
+import numpy as np
+import pytest
+
+from conftest import make_view
+from deepcharuco import BoardSpec, OpenCVDetector
+from deepcharuco.camera import Camera
+from deepcharuco.detection import Detection
+from deepcharuco.tracking import BoardTracker, search_region
+
+
+class Recording:
+    """A detector that remembers the image sizes it was given."""
+
+    def __init__(self, detector):
+        self.detector, self.sizes = detector, []
+
+    def detect(self, image):
+        self.sizes.append(image.shape[:2])
+        return self.detector.detect(image)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """A 640x480 clip: the board drifts right over 6 frames, then leaves (2 empty frames), then returns."""
+    camera = Camera.from_fov(640, 480, hfov_deg=60.0)
+    board = BoardSpec()
+    views = [make_view(board, camera, distance=0.45, tilt_x_deg=15, offset=(-0.06 + 0.02 * i, 0.0)) for i in range(6)]
+    empty = np.full((480, 640), 120, np.uint8)
+    back = make_view(board, camera, distance=0.45, offset=(0.05, 0.03))
+    return [v[0] for v in views] + [empty, empty] + [back[0]], [v[3] for v in views] + [None, None] + [back[3]]
+
+
+def test_crops_follow_the_board_and_find_what_the_full_frame_finds(frames):
+    images, truths = frames
+    recording = Recording(OpenCVDetector(BoardSpec(), refine="subpix"))
+    tracker = BoardTracker(recording, refresh_every=100)
+    searches = []
+    for image, truth in zip(images, truths):
+        found = tracker.detect(image)
+        searches.append(tracker.last_search)
+        if truth is None:
+            assert len(found) == 0
+        else:
+            assert len(found) == 16
+            np.testing.assert_allclose(found.corners, truth[found.ids], atol=0.3)
+    assert searches[:6] == ["full"] + ["crop"] * 5
+    assert searches[6:] == ["full", "full", "full"]  # the crop finds nothing -> whole frame; no board -> whole frame
+    crop_pixels = [h * w for h, w in recording.sizes[1:6]]
+    assert max(crop_pixels) < 0.5 * 640 * 480
+
+
+def test_refresh_every_forces_whole_frames(frames):
+    images, _ = frames
+    tracker = BoardTracker(OpenCVDetector(BoardSpec()), refresh_every=3)
+    searches = []
+    for image in images[:6]:
+        tracker.detect(image)
+        searches.append(tracker.last_search)
+    assert searches == ["full", "crop", "crop", "full", "crop", "crop"]  # a whole frame every 3rd
+    with pytest.raises(ValueError, match="refresh_every must be >= 1"):
+        BoardTracker(OpenCVDetector(BoardSpec()), refresh_every=0)
+
+
+def test_search_region_stays_inside_the_image_and_has_a_minimum_size():
+    corners = np.array([[5.0, 5.0], [10.0, 5.0], [5.0, 10.0], [10.0, 10.0]], np.float32)
+    x0, y0, x1, y1 = search_region(corners, (640, 480))
+    assert (x0, y0) == (0, 0) and x1 - x0 >= 64 and y1 - y0 >= 64
+    corners = np.array([[600.0, 440.0], [630.0, 440.0], [600.0, 470.0], [630.0, 470.0]], np.float32)
+    x0, y0, x1, y1 = search_region(corners, (640, 480))
+    assert x1 == 640 and y1 == 480 and x0 < 600 - 30 and y0 < 440 - 30  # two corner spacings of margin
+
+
+def test_a_crop_detection_with_too_few_corners_searches_the_whole_frame():
+    class Scripted:
+        def __init__(self):
+            self.calls = []
+
+        def detect(self, image):
+            self.calls.append(image.shape)
+            if image.shape == (480, 640):
+                return Detection(np.arange(4), np.array([[300, 200], [330, 200], [300, 230], [330, 230]]), np.ones(4))
+            return Detection(np.arange(2), np.zeros((2, 2)), np.ones(2))  # a crop that finds too little
+
+    scripted = Scripted()
+    tracker = BoardTracker(scripted)
+    tracker.detect(np.zeros((480, 640), np.uint8))
+    found = tracker.detect(np.zeros((480, 640), np.uint8))
+    assert len(found) == 4 and tracker.last_search == "full"
+    assert scripted.calls[0] == (480, 640) and scripted.calls[1] != (480, 640) and scripted.calls[2] == (480, 640)
