@@ -74,7 +74,8 @@ def write_calibration(path: str | Path, result: CalibrationResult, board: BoardS
     write_camera(path, result.camera)
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_APPEND)
     try:
-        storage.write("distortion_model", result.model)
+        if result.camera.model == "pinhole":  # write_camera names the fisheye model itself
+            storage.write("distortion_model", result.model)
         storage.write("avg_reprojection_error", float(result.rms))
         storage.write("nr_of_frames", len(result.views))
         if result.std:

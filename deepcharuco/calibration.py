@@ -14,8 +14,10 @@ The steps (each a function, `calibrate` runs them in order):
    for the ``pinhole`` (k1 k2 p1 p2 k3) and ``rational`` (+ k4 k5 k6) models, with the parameters'
    standard deviations; ``cv2.fisheye.calibrate`` for ``fisheye`` (k1..k4, no deviations);
 4. outliers: corners whose residual exceeds ``corner_outlier`` x the RMS (and 1 px) are dropped,
-   then views whose RMS exceeds ``view_outlier`` x the median view RMS (and 0.3 px), and it is
-   solved again, until nothing changes (at most `MAX_ROUNDS`).
+   then views whose RMS exceeds ``view_outlier`` x the median view RMS (and `MIN_OUTLIER_PX`), and
+   it is solved again, until nothing changes (at most `MAX_ROUNDS`). The pinhole and rational
+   models go through this twice: first with k3 (k4..k6) held at 0 (`STIFF`), then free, started
+   from the first stage's solution.
 
 Bad input raises `CalibrationError` with one line saying what to capture instead: no board in any
 frame, fewer usable views than ``min_views``, all views at one tilt (the focal length is then not
@@ -38,7 +40,12 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.pose import MIN_SPREAD_RATIO
 
 MODELS = ("pinhole", "rational", "fisheye")
-MAX_ROUNDS = 4
+MAX_ROUNDS = 4  # solves per stage; outliers are rejected between them
+# The first stage of every pinhole and rational calibration: k3 (and k4..k6) at 0. Outliers are judged
+# under this model first: one that can bend its edges with k3 bends them to meet a wrong corner there
+# (a corner the deep detector put 17 px off, at the image's edge, took a free-k3 solve to fx 0.7 % and
+# cy 4 px off the rendered truth; judged under the stiff model it was dropped and the lens recovered).
+STIFF = ("pinhole", True)
 MIN_COVERAGE = 0.5  # below this share of the image holding corners, the result says the distortion is extrapolated
 MIN_OUTLIER_PX = 0.5  # a view within this RMS is never an outlier: cornerSubPix noise alone reaches it
 MIN_TILT_SPREAD_DEG = 10.0  # Zhang's method needs at least two board orientations this far apart
@@ -334,34 +341,73 @@ def _flags(model: str, fix_k3: bool) -> int:
 
 
 def solve(object_points: list[np.ndarray], image_points: list[np.ndarray], image_size: tuple[int, int],
-          model: str, fix_k3: bool = False) -> _Solution:
+          model: str, fix_k3: bool = False, guess: _Solution | None = None) -> _Solution:
     """One solve of OpenCV's calibration. object_points[v]: (N_v, 3), image_points[v]: (N_v, 2).
-    ``fix_k3``: keep k3 at 0 (pinhole and rational models)."""
+    ``fix_k3``: keep k3 at 0 (pinhole and rational models). ``guess``: a solution to start from
+    (pinhole and rational models).
+
+    Without a guess, a model with k3 (or k4..k6) free is solved in two stages: first with them held
+    at 0 (`STIFF`), then free from there. Started from no distortion at all, OpenCV's
+    Levenberg-Marquardt can settle where k2 and k3 cancel each other."""
     try:
         if model == "fisheye":
-            flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
-            criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
-            _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
-                [p.reshape(-1, 1, 3).astype(np.float64) for p in object_points],
-                [p.reshape(-1, 1, 2).astype(np.float64) for p in image_points], image_size, None, None,
-                flags=flags, criteria=criteria)
-            std: dict[str, float] = {}
+            return _solve_fisheye(object_points, image_points, image_size)
+        objects = [p.astype(np.float32) for p in object_points]
+        images = [p.astype(np.float32) for p in image_points]
+        if guess is None:
+            first = _solve_opencv(objects, images, image_size, cv2.CALIB_FIX_K3, None, None)
+            if (model, fix_k3) == STIFF:
+                return _named(first, model, fix_k3)
+            guess = _named(first, *STIFF)
         else:
-            criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-            _, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
-                [p.astype(np.float32) for p in object_points], [p.astype(np.float32) for p in image_points],
-                image_size, None, None, flags=_flags(model, fix_k3), criteria=criteria)
-            count = 5 if model == "pinhole" else 8
-            dist = np.asarray(dist, np.float64).ravel()[:count]
-            names = STD_NAMES[:4 + count]
-            std = {name: float(v) for name, v in zip(names, np.asarray(std_intrinsics).ravel()[:len(names)])
-                   if not (fix_k3 and name == "k3")}
+            first = None
+        second = _solve_opencv(objects, images, image_size, _flags(model, fix_k3) | cv2.CALIB_USE_INTRINSIC_GUESS,
+                               guess.K, guess.dist)
     except cv2.error as exc:
         raise CalibrationError(f"OpenCV's {model} calibration failed ({str(exc).strip().splitlines()[-1]}): capture "
                                f"more views covering the whole image at varied tilts") from None
-    return _Solution(K=np.asarray(K, np.float64), dist=np.asarray(dist, np.float64).ravel(),
+    # Levenberg-Marquardt only ever lowers the error from its start, but the extrinsics are started afresh:
+    # should the freer model end worse, the first stage's solution is the better one of this model too.
+    if first is not None and second[5] > first[5] + 1e-9:
+        return _named(first, model, fix_k3)
+    return _named(second, model, fix_k3)
+
+
+def _solve_opencv(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int], flags: int,
+                  K: np.ndarray | None, dist: np.ndarray | None) -> tuple:
+    """(K, dist (14,), rvecs, tvecs, std (18,), rms) of ``cv2.calibrateCameraExtended``."""
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    if K is not None:
+        K = K.copy()
+        dist = np.pad(np.asarray(dist, np.float64).ravel(), (0, max(0, 14 - np.asarray(dist).size)))
+    rms, K, dist, rvecs, tvecs, std, _, _ = cv2.calibrateCameraExtended(objects, images, image_size, K, dist,
+                                                                       flags=flags, criteria=criteria)
+    dist = np.pad(np.asarray(dist, np.float64).ravel(), (0, max(0, 14 - np.asarray(dist).size)))
+    return K, dist, rvecs, tvecs, np.asarray(std, np.float64).ravel(), float(rms)
+
+
+def _named(raw: tuple, model: str, fix_k3: bool) -> _Solution:
+    K, dist, rvecs, tvecs, std_intrinsics, _ = raw
+    count = 5 if model == "pinhole" else 8
+    names = STD_NAMES[:4 + count]
+    std = {name: float(v) for name, v in zip(names, std_intrinsics[:len(names)])
+           if not (fix_k3 and name == "k3") and not (v == 0.0 and name in ("k3", "k4", "k5", "k6"))}
+    return _Solution(K=np.asarray(K, np.float64), dist=dist[:count].copy(),
                      rvecs=np.asarray(rvecs, np.float64).reshape(-1, 3), tvecs=np.asarray(tvecs, np.float64).reshape(-1, 3),
                      std=std)
+
+
+def _solve_fisheye(object_points: list[np.ndarray], image_points: list[np.ndarray],
+                   image_size: tuple[int, int]) -> _Solution:
+    flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+    _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
+        [p.reshape(-1, 1, 3).astype(np.float64) for p in object_points],
+        [p.reshape(-1, 1, 2).astype(np.float64) for p in image_points], image_size, None, None,
+        flags=flags, criteria=criteria)
+    return _Solution(K=np.asarray(K, np.float64), dist=np.asarray(dist, np.float64).ravel(),
+                     rvecs=np.asarray(rvecs, np.float64).reshape(-1, 3), tvecs=np.asarray(tvecs, np.float64).reshape(-1, 3),
+                     std={})
 
 
 def reproject(object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray,
@@ -389,19 +435,24 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     masks = {v.index: np.ones(len(v.ids), bool) for v in views}
     outliers: dict[int, str] = {}
     dropped_corners: dict[int, int] = {}
-    for rounds in range(1, MAX_ROUNDS + 1):
-        active = [v for v in views if v.index not in outliers]
-        solution = solve([board.object_points()[v.ids[masks[v.index]]] for v in active],
-                         [v.corners[masks[v.index]] for v in active], image_size, model, fix_k3)
-        residuals = [v.corners[masks[v.index]] - reproject(board.object_points()[v.ids[masks[v.index]]], r, t,
-                                                           solution.K, solution.dist, model)
-                     for v, r, t in zip(active, solution.rvecs, solution.tvecs)]
-        norms = [np.linalg.norm(r, axis=1) for r in residuals]
-        rms = float(np.sqrt(np.mean(np.concatenate(norms) ** 2)))
-        view_rms = np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
-        if rounds == MAX_ROUNDS or not _reject_outliers(active, norms, view_rms, rms, masks, outliers,
-                                                        dropped_corners, options):
-            break
+    stages = [(model, fix_k3)] if model == "fisheye" or (model, fix_k3) == STIFF else [STIFF, (model, fix_k3)]
+    solution, rounds = None, 0
+    for stage_model, stage_fix_k3 in stages:
+        for stage_round in range(1, MAX_ROUNDS + 1):
+            rounds += 1
+            active = [v for v in views if v.index not in outliers]
+            solution = solve([board.object_points()[v.ids[masks[v.index]]] for v in active],
+                             [v.corners[masks[v.index]] for v in active], image_size, stage_model, stage_fix_k3,
+                             guess=solution)
+            residuals = [v.corners[masks[v.index]] - reproject(board.object_points()[v.ids[masks[v.index]]], r, t,
+                                                               solution.K, solution.dist, stage_model)
+                         for v, r, t in zip(active, solution.rvecs, solution.tvecs)]
+            norms = [np.linalg.norm(r, axis=1) for r in residuals]
+            rms = float(np.sqrt(np.mean(np.concatenate(norms) ** 2)))
+            view_rms = np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
+            if stage_round == MAX_ROUNDS or not _reject_outliers(active, norms, view_rms, rms, masks, outliers,
+                                                                 dropped_corners, options):
+                break
     _check_solution(solution, model, image_size)
     decisions = []
     kept_rms = dict(zip((v.index for v in active), view_rms))
@@ -417,7 +468,8 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
             decisions.append(ViewDecision(frame.index, frame.name, len(frame.ids), "dropped", stage, reason))
     used_views = [FrameDetection(v.index, v.name, v.ids[masks[v.index]], v.corners[masks[v.index]], v.sharpness)
                   for v in active]
-    camera = Camera(K=solution.K, dist=solution.dist, image_size=image_size)
+    camera = Camera(K=solution.K, dist=solution.dist, image_size=image_size,
+                    model="fisheye" if model == "fisheye" else "pinhole")
     return CalibrationResult(model=model, camera=camera, rms=rms, std=solution.std, views=used_views,
                              per_view_rms=view_rms, rvecs=solution.rvecs, tvecs=solution.tvecs, residuals=residuals,
                              decisions=decisions, frames=len(frames), rounds=rounds,

@@ -1,4 +1,5 @@
-"""Pinhole camera intrinsics and their OpenCV FileStorage YAML files."""
+"""Camera intrinsics (OpenCV's pinhole model with its distortion, or OpenCV's fisheye model) and their
+OpenCV FileStorage YAML files."""
 
 from __future__ import annotations
 
@@ -11,20 +12,28 @@ import numpy as np
 
 from deepcharuco.errors import CameraFileError
 
+# "pinhole": OpenCV's standard model (cv2.projectPoints; 4, 5, 8, 12 or 14 coefficients, the rational
+# model included); "fisheye": cv2.fisheye's equidistant model (k1..k4), which cv2.projectPoints would
+# misread as k1 k2 p1 p2.
+CAMERA_MODELS = ("pinhole", "fisheye")
+
 
 @dataclass(frozen=True)
 class Camera:
-    """OpenCV pinhole intrinsics for images of ``image_size`` = (width, height) pixels.
+    """OpenCV intrinsics for images of ``image_size`` = (width, height) pixels.
 
     Attributes:
         K: (3, 3) float64 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]].
-        dist: (D,) float64 OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]).
+        dist: (D,) float64 OpenCV distortion coefficients: (k1, k2, p1, p2[, k3, ...]) for the
+            "pinhole" model, (k1, k2, k3, k4) for "fisheye".
         image_size: (width, height) in pixels the intrinsics belong to.
+        model: "pinhole" (OpenCV's standard model) or "fisheye" (``cv2.fisheye``).
     """
 
     K: np.ndarray
     dist: np.ndarray
     image_size: tuple[int, int]
+    model: str = "pinhole"
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
@@ -37,6 +46,10 @@ class Camera:
             raise CameraFileError(
                 f"distortion_coefficients must hold 4, 5, 8, 12 or 14 finite values, got {dist.size}"
             )
+        if self.model not in CAMERA_MODELS:
+            raise CameraFileError(f"distortion_model must be one of {', '.join(CAMERA_MODELS)}, got {self.model!r}")
+        if self.model == "fisheye" and dist.size != 4:
+            raise CameraFileError(f"a fisheye camera has 4 distortion coefficients (k1..k4), got {dist.size}")
         width, height = (int(v) for v in self.image_size)
         if width <= 0 or height <= 0:
             raise CameraFileError(f"image size must be positive, got {self.image_size}")
@@ -66,7 +79,7 @@ class Camera:
         K[0, 2] = sx * (K[0, 2] + 0.5) - 0.5
         K[1, 1] *= sy
         K[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
-        return Camera(K=K, dist=self.dist.copy(), image_size=(width, height))
+        return Camera(K=K, dist=self.dist.copy(), image_size=(width, height), model=self.model)
 
     def for_image_size(self, width: int, height: int) -> "Camera":
         """These intrinsics for frames of (width, height): themselves, or `scaled` when the frames are
@@ -82,11 +95,38 @@ class Camera:
         return self.scaled(width, height)
 
 
+    def project(self, object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels of the (N, 3) points under the pose (rvec, tvec), through this camera's model."""
+        points = np.asarray(object_points, np.float64).reshape(-1, 1, 3)
+        rvec = np.asarray(rvec, np.float64).reshape(3, 1)
+        tvec = np.asarray(tvec, np.float64).reshape(3, 1)
+        if self.model == "fisheye":
+            pixels, _ = cv2.fisheye.projectPoints(points, rvec, tvec, self.K, self.dist)
+        else:
+            pixels, _ = cv2.projectPoints(points, rvec, tvec, self.K, self.dist)
+        return pixels.reshape(-1, 2)
+
+    def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
+        """(N, 2) where the (N, 2) distorted pixels would lie in an undistorted image with the same K: what a
+        pinhole-only consumer (``cv2.solvePnP`` with no distortion) of a fisheye camera's corners needs."""
+        points = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
+        if len(points) == 0:
+            return np.zeros((0, 2))
+        # OpenCV's default criteria stop 1e-3 px short on a strong lens; 50 iterations to 1e-10 cost nothing.
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+        if self.model == "fisheye":
+            undistorted = cv2.fisheye.undistortPoints(points, self.K, self.dist, R=np.eye(3), P=self.K, criteria=criteria)
+        else:
+            undistorted = cv2.undistortPointsIter(points, self.K, self.dist, None, self.K, criteria)
+        return undistorted.reshape(-1, 2)
+
+
 def read_camera(path: str | Path) -> Camera:
     """Read intrinsics from an OpenCV FileStorage file (YAML/XML/JSON), as calibration writes them.
 
-    Required nodes: ``camera_matrix``; optional ``distortion_coefficients`` (zeros when
-    absent), ``image_width`` and ``image_height``.
+    Required nodes: ``camera_matrix``, ``image_width`` and ``image_height``; optional
+    ``distortion_coefficients`` (zeros when absent) and ``distortion_model`` ("fisheye" for
+    ``cv2.fisheye``'s model; "pinhole", "rational" or absent for OpenCV's standard one).
     """
     path = Path(path)
     if not path.is_file():
@@ -107,13 +147,25 @@ def read_camera(path: str | Path) -> Camera:
         if width_node.empty() or height_node.empty():
             raise CameraFileError(f"{path} lacks image_width / image_height: add the calibration resolution")
         size = (int(width_node.real()), int(height_node.real()))
+        model_node = storage.getNode("distortion_model")
+        model = "pinhole" if model_node.empty() else model_node.string()
     finally:
         storage.release()
-    return Camera(K=K, dist=np.zeros(5) if dist is None else dist, image_size=size)
+    # "rational" (deepcharuco.calibrate's name for the 8-coefficient model) and the names OpenCV's samples and
+    # ROS write for the standard model are all the one cv2.projectPoints applies.
+    model = "pinhole" if model in ("pinhole", "rational", "plumb_bob", "rational_polynomial") else model
+    if model == "equidistant":
+        model = "fisheye"
+    if model not in CAMERA_MODELS:
+        raise CameraFileError(f"{path}: distortion_model {model!r} is not one OpenCV applies; use pinhole, rational "
+                              f"or fisheye")
+    return Camera(K=K, dist=np.zeros(4 if model == "fisheye" else 5) if dist is None else dist, image_size=size,
+                  model=model)
 
 
 def write_camera(path: str | Path, camera: Camera) -> Path:
-    """Write intrinsics in OpenCV's FileStorage format (YAML unless the suffix says .xml/.json)."""
+    """Write intrinsics in OpenCV's FileStorage format (YAML unless the suffix says .xml/.json); a fisheye
+    camera's file says so in ``distortion_model`` (else its 4 coefficients read as k1 k2 p1 p2)."""
     path = Path(path)
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
@@ -121,6 +173,8 @@ def write_camera(path: str | Path, camera: Camera) -> Path:
         storage.write("image_height", camera.image_size[1])
         storage.write("camera_matrix", camera.K)
         storage.write("distortion_coefficients", camera.dist.reshape(-1, 1))
+        if camera.model != "pinhole":
+            storage.write("distortion_model", camera.model)
     finally:
         storage.release()
     return path

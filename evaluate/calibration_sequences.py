@@ -173,6 +173,16 @@ class CalibrationJob(SceneJob):
     """A run of the calibration sequences (picklable for the worker processes)."""
 
     command: ClassVar[str] = "evaluate.calibration_sequences"
+    conditions: tuple[str, ...] = CONDITIONS
+
+    def content(self) -> dict:
+        # Named only when not all three: shards of a full run (before the option existed) still resume.
+        extra = {} if tuple(self.conditions) == CONDITIONS else {"conditions": list(self.conditions)}
+        return {**super().content(), **extra}
+
+    def numbers(self, cameras: list[int]) -> list[int]:
+        """The shard numbers this job writes for ``cameras``."""
+        return [s.number for s in CALIBRATION_SEQUENCES if s.camera in cameras and s.condition in self.conditions]
 
 
 def _noise_rng(seed: int, camera: int, attempt: int, frame: int, condition: int) -> np.random.Generator:
@@ -220,11 +230,11 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
     from datagen.workers import report_progress
     from evaluate.sequences import MOTION_LUX, _shake
 
-    sequences = [s for s in CALIBRATION_SEQUENCES if s.camera == camera]
+    sequences = [s for s in CALIBRATION_SEQUENCES if s.camera == camera and s.condition in job.conditions]
     size = (job.width, job.height)
     attempt = 0
     rng = np.random.default_rng([job.seed, SEED_OFFSET + camera, attempt])
-    K, dist = true_camera(rng, sequences[0].k1, size)
+    K, dist = true_camera(rng, K1_VALUES[camera], size)
     K_wide, wide_size = wide_camera(K, dist, size)
     maps = distortion_maps(K, dist, size, K_wide)
     scene = sample_scene(rng, job.board.size_m, calibration_config(*wide_size, job.samples))
@@ -238,14 +248,17 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
     shake_lux = float(math.exp(rng.uniform(*np.log(MOTION_LUX))))
     sensor = SensorParams()
     renders = {"static": [], "shake": []}
-    for k, t in enumerate(times):
+    # The static renders come first and draw their seeds first: a run without the shake video renders the
+    # same good-light and 1-lux frames as a full one.
+    static = any(s.condition != "shake" for s in sequences)
+    for k, t in enumerate(times if static else []):
         pose = hand_waved_pose(path, t, job.board, K, dist, size)
         spec = replace(scene, trajectory=np.stack([_camera_world(scene.board_matrix, pose)] * 3),
                        render_seed=int(rng.integers(0, 2**31 - 1)))
         renders["static"].append((pose, spec, render_labelled(spec, job.board, threads=job.threads, device=job.device)))
         report_progress(1)
     exposure_s = exposure_time_for(shake_lux, scene.board_look, sensor)
-    for k, t in enumerate(times):
+    for k, t in enumerate(times if any(s.condition == "shake" for s in sequences) else []):
         poses = [np.linalg.inv(_shaken(shake, t + dt)) @ hand_waved_pose(path, t + dt, job.board, K, dist, size)
                  for dt in (-exposure_s / 2, 0.0, exposure_s / 2)]
         spec = replace(scene, trajectory=np.stack([_camera_world(scene.board_matrix, p) for p in poses]),
@@ -253,7 +266,8 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
         renders["shake"].append((poses[1], spec, render_labelled(spec, job.board, threads=job.threads, device=job.device)))
         report_progress(1)
 
-    for index, sequence in enumerate(sequences):
+    for sequence in sequences:
+        index = CONDITIONS.index(sequence.condition)  # the noise stream of a condition, whichever others are rendered
         lux = {"good": GOOD_LUX, "1lux": DARK_LUX}.get(sequence.condition, shake_lux)
         frames = []
         for k, (pose, spec, shot) in enumerate(renders["shake" if sequence.condition == "shake" else "static"]):
@@ -280,6 +294,11 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
     return len(sequences) * job.frames
 
 
+def renders_per_camera(job: CalibrationJob) -> int:
+    """Cycles renders of one camera: the still views (good light and 1 lux share them) and the shaken ones."""
+    return job.frames * (any(c != "shake" for c in job.conditions) + ("shake" in job.conditions))
+
+
 def read_truth(shard: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """(K (3, 3), dist (5,), (width, height)) of a calibration sequence shard's camera."""
     from datagen.shards import ShardReader
@@ -299,17 +318,17 @@ def run(job: CalibrationJob, cameras: list[int], *, resume: bool, workers: int =
     from datagen.render import check_existing, remove_stale_temporaries, run_shard_tasks
     from datagen.shards import update_index
 
-    numbers = [s.number for s in CALIBRATION_SEQUENCES if s.camera in cameras]
-    done = check_existing(job, numbers, resume)
-    todo = [c for c in cameras if not all(s.number in done for s in CALIBRATION_SEQUENCES if s.camera == c)]
+    done = check_existing(job, job.numbers(cameras), resume)
+    todo = [c for c in cameras if not set(job.numbers([c])) <= done]
     out = output_folder(job.out)  # a writable folder, before anything is rendered
-    remove_stale_temporaries(out, [s.number for s in CALIBRATION_SEQUENCES if s.camera in todo])
+    remove_stale_temporaries(out, job.numbers(todo))
+    renders = renders_per_camera(job)
     if not quiet:
-        print(f"evaluate.calibration_sequences: {len(todo)} camera(s) x 3 sequences of {job.frames} frames "
-              f"({2 * job.frames} renders each) into {out}", file=sys.stderr)
+        print(f"evaluate.calibration_sequences: {len(todo)} camera(s) x {len(job.conditions)} sequence(s) "
+              f"({', '.join(job.conditions)}) of {job.frames} frames ({renders} renders each) into {out}", file=sys.stderr)
     if todo:
-        run_shard_tasks(render_camera, [(job, c) for c in todo], [3 * c for c in todo], out, noun="camera",
-                        total=2 * job.frames * len(todo), unit="render", workers=workers, tasks_per_child=1, quiet=quiet)
+        run_shard_tasks(render_camera, [(job, c) for c in todo], [job.numbers([c])[0] for c in todo], out, noun="camera",
+                        total=renders * len(todo), unit="render", workers=workers, tasks_per_child=1, quiet=quiet)
     return update_index(out)
 
 
@@ -325,6 +344,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=4, help="Cycles samples per pixel (denoised)")
     parser.add_argument("--cameras", type=int, nargs="+", default=None,
                         help=f"render only these cameras (0..{len(K1_VALUES) - 1}: k1 = {K1_VALUES})")
+    parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS),
+                        help="render only these videos of each camera (good and 1lux share their renders; shake "
+                             "doubles the work)")
     parser.add_argument("--resume", action="store_true", help="continue a run in --out")
     parser.add_argument("--width", type=int, default=320, help="image width in pixels")
     parser.add_argument("--height", type=int, default=240, help="image height in pixels")
@@ -345,7 +367,8 @@ def main(argv: list[str] | None = None) -> int:
         board = BoardSpec.load(args.board) if args.board else BoardSpec()
         threads = args.threads or max(1, (os.cpu_count() or 1) // args.workers)
         job = CalibrationJob(out=args.out, seed=args.seed, frames=args.frames, board=board, width=args.width,
-                             height=args.height, samples=args.samples, device=args.device, threads=threads)
+                             height=args.height, samples=args.samples, device=args.device, threads=threads,
+                             conditions=tuple(c for c in CONDITIONS if c in args.conditions))
         started = time.perf_counter()
         index = run(job, sorted(set(cameras)), resume=args.resume, workers=args.workers, quiet=args.quiet)
     except DeepCharucoError as error:

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from conftest import make_view
-from datagen.lens import distort_image, distortion_maps, wide_camera
-from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera
+from datagen.lens import distort_image, distortion_maps, pixels_to_rays, wide_camera
+from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera, write_camera
 from deepcharuco.calibrate import detect_frames, main
 from deepcharuco.calibration import (
     CalibrationError, FrameDetection, SelectionOptions, calibrate, sharpness, usable_reason,
@@ -88,6 +88,40 @@ def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
 def test_fisheye_model_writes_four_coefficients(tmp_path, detections):
     result = calibrate(detections, BOARD, SIZE, "fisheye")
     assert result.camera.dist.shape == (4,) and result.std == {} and result.rms < 0.5
+    assert result.camera.model == "fisheye"
+
+
+def test_fisheye_file_reads_back_as_fisheye(tmp_path, waved):
+    images, K, dist = waved
+    out = tmp_path / "fisheye.yaml"
+    assert main([str(_video(tmp_path / "wave.avi", images)), "--out", str(out), "--model", "fisheye", "--quiet",
+                 "--no-report"]) == 0
+    camera = read_camera(out)
+    # Read as a pinhole camera, its k1..k4 would be k1 k2 p1 p2: the file must say which model it is.
+    assert camera.model == "fisheye" and camera.dist.shape == (4,)
+    storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    assert storage.getNode("distortion_model").string() == "fisheye"
+    storage.release()
+    # The model read back maps the true camera's rays where the true camera does (an equidistant fit of a
+    # k1 = -0.3 lens: within a pixel over the middle of the image, where the board was).
+    truth = Camera(K=K, dist=dist, image_size=SIZE)
+    xs, ys = np.meshgrid(np.linspace(60, 260, 9), np.linspace(50, 190, 7))
+    pixels = np.stack([xs.ravel(), ys.ravel()], 1)
+    rays = pixels_to_rays(pixels, K, dist)  # Newton to 1e-12 (cv2.undistortPoints stops 1e-3 px short)
+    points = np.column_stack([rays, np.ones(len(rays))])
+    mapped = camera.project(points, np.zeros(3), np.zeros(3))
+    assert np.abs(mapped - pixels).max() < 1.0
+    # undistort_points inverts each model: back onto the rays, in an undistorted image with the same K.
+    np.testing.assert_allclose(truth.undistort_points(pixels), rays * K[[0, 1], [0, 1]] + K[:2, 2], atol=1e-4)
+    np.testing.assert_allclose(camera.undistort_points(mapped), rays * camera.K[[0, 1], [0, 1]] + camera.K[:2, 2],
+                               atol=1e-4)
+    # write_camera and read_camera keep the model; a pinhole file names none (OpenCV's samples' format).
+    write_camera(tmp_path / "again.yaml", camera)
+    again = read_camera(tmp_path / "again.yaml")
+    assert again.model == "fisheye" and np.array_equal(again.dist, camera.dist)
+    write_camera(tmp_path / "pinhole.yaml", truth)
+    assert "distortion_model" not in (tmp_path / "pinhole.yaml").read_text()
+    assert read_camera(tmp_path / "pinhole.yaml").model == "pinhole"
 
 
 def test_a_wrong_corner_costs_itself_and_a_wrong_view_is_dropped(detections):
