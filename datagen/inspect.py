@@ -81,6 +81,12 @@ def histograms(meta: dict[str, np.ndarray], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     keys = [k for k in NUMERIC if k in meta]
+    if not keys:  # shards from a writer that records none of them (evaluate.autolabel's captures)
+        figure, axis = plt.subplots(figsize=(3.2, 2.8))
+        axis.text(0.5, 0.5, "no numeric meta", ha="center", va="center")
+        figure.savefig(path, dpi=90)
+        plt.close(figure)
+        return
     figure, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 2.8))
     for axis, key in zip(np.atleast_1d(axes), keys):
         values = meta[key].astype(float)

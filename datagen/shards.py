@@ -354,6 +354,20 @@ class ShardReader:
         """The board frame ``i`` shows."""
         return self._board if self._board is not None else _board_from_json(self._boards[i])
 
+    @property
+    def max_corners(self) -> int:
+        """The most inner corners of any frame's board (the padded ``corners`` width of a shard of random boards)."""
+        if self._board is not None:
+            return self._board.num_corners
+        return max(_board_from_json(text).num_corners for text in self._boards)
+
+    @property
+    def max_markers(self) -> int:
+        """The most markers of any frame's board."""
+        if self._board is not None:
+            return self._board.num_markers
+        return max(_board_from_json(text).num_markers for text in self._boards)
+
     def __len__(self) -> int:
         return self._length
 
