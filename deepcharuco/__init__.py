@@ -13,13 +13,14 @@ from deepcharuco.errors import BoardSpecError, CameraFileError, DeepCharucoError
 from deepcharuco.metrics import CornerMatch, match_corners
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.pose import Pose, estimate_pose, project_corners
+from deepcharuco.tracking import BoardTracker
 
 __version__ = "0.1.0"
 
 __all__ = [
     "BoardSpec", "BoardTexture", "dictionary_names", "Camera", "read_camera", "write_camera",
     "Detection", "Detector", "BoardSpecError", "CameraFileError", "DeepCharucoError", "ImageError",
-    "CornerMatch", "match_corners", "OpenCVDetector", "Pose", "estimate_pose", "project_corners",
+    "CornerMatch", "match_corners", "OpenCVDetector", "Pose", "estimate_pose", "project_corners", "BoardTracker",
 ]
 
 

@@ -14,6 +14,7 @@ from deepcharuco.models import (
     load_charuconet, offset_to_cell, save_checkpoint,
 )
 from deepcharuco.models.cells import decode_cells, encode_cells
+from deepcharuco.runtime import TorchRunner
 
 
 def megabytes(model):
@@ -185,7 +186,7 @@ def test_detector_plumbing(tmp_path, default_views):
         assert np.all((d.corners >= -1) & (d.corners < [316, 238]))
     detector = Detector(weights=weights, refine="refinenet", refine_weights=refine, threshold=0.0, soft_radius=0,
                         geometry="none")
-    detector.refinenet = OneHotRefineNet([13.3, 10.7])
+    detector.runner = TorchRunner(detector.charuconet, OneHotRefineNet([13.3, 10.7]), detector.device)
     refined = detector.detect(image)
     expected = results["none"].corners - PATCH_ORIGIN + cell_to_offset(offset_to_cell(torch.tensor([13.3, 10.7]))).numpy()
     np.testing.assert_allclose(refined.corners, expected, atol=1e-5)

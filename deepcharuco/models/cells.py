@@ -58,31 +58,46 @@ class CellCandidates:
         return len(self.confidence)
 
 
-def point_candidates(point_logits: torch.Tensor, min_confidence: float) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+def _array(logits: torch.Tensor | np.ndarray) -> np.ndarray:
+    return logits.detach().float().cpu().numpy() if isinstance(logits, torch.Tensor) else np.asarray(logits, np.float32)
+
+
+def _softmax(logits: np.ndarray, axis: int) -> np.ndarray:
+    shifted = np.exp(logits - logits.max(axis=axis, keepdims=True))
+    return shifted / shifted.sum(axis=axis, keepdims=True)
+
+
+def point_candidates(point_logits: torch.Tensor | np.ndarray, min_confidence: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One image's point logits (65, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``:
-    (flat cell indices (M,) tensor, pixels (M, 2) float32 x, y of each cell's likeliest pixel, confidence (M,) float32)."""
-    point_prob = torch.softmax(point_logits.float(), dim=0)
-    confidence = (1.0 - point_prob[-1]).flatten()
-    position = point_prob[:-1].argmax(dim=0).flatten()  # 0..63 inside each cell
-    cells = torch.nonzero(confidence >= min_confidence).flatten()
-    cols = point_logits.shape[2]
-    pos, cells_np = position[cells].numpy(), cells.numpy()
-    pixels = np.stack([(cells_np % cols) * CELL + pos % CELL, (cells_np // cols) * CELL + pos // CELL], axis=1)
-    return cells, pixels.astype(np.float32).reshape(-1, 2), confidence[cells].numpy().astype(np.float32)
+    (flat cell indices (M,) int64, pixels (M, 2) float32 x, y of each cell's likeliest pixel, confidence (M,) float32).
+
+    In numpy: on these small arrays PyTorch's thread pool costs more than the arithmetic, and far more on a
+    busy CPU. Only the dustbin's probability is needed (the likeliest pixel is the largest logit)."""
+    logits = _array(point_logits)
+    cols = logits.shape[2]
+    flat = logits.reshape(len(logits), -1)
+    top = flat.max(axis=0)
+    dustbin = 1.0 / np.exp(flat - top).sum(axis=0) * np.exp(flat[-1] - top)  # P(dustbin) per cell
+    confidence = (1.0 - dustbin).astype(np.float32)
+    cells = np.flatnonzero(confidence >= min_confidence)
+    position = flat[:-1, cells].argmax(axis=0)  # 0..63 inside each cell
+    pixels = np.stack([(cells % cols) * CELL + position % CELL, (cells // cols) * CELL + position // CELL], axis=1)
+    return cells, pixels.astype(np.float32).reshape(-1, 2), confidence[cells]
 
 
-def cell_candidates(point_logits: torch.Tensor, id_logits: torch.Tensor | None, min_confidence: float) -> CellCandidates:
+def cell_candidates(point_logits: torch.Tensor | np.ndarray, id_logits: torch.Tensor | np.ndarray | None,
+                    min_confidence: float) -> CellCandidates:
     """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``.
     Without ``id_logits`` (a board the ID head does not know) ``id_prob`` is (M, 0)."""
     cells, pixels, confidence = point_candidates(point_logits, min_confidence)
     if id_logits is None:
         return CellCandidates(pixels=pixels, confidence=confidence, id_prob=np.zeros((len(cells), 0), np.float32))
-    id_prob = torch.softmax(id_logits.float(), dim=0)
-    num_corners = id_logits.shape[0] - 1
-    return CellCandidates(
-        pixels=pixels, confidence=confidence,
-        id_prob=id_prob[:-1].flatten(1)[:, cells].T.numpy().astype(np.float32).reshape(-1, num_corners),
-    )
+    logits = _array(id_logits)
+    num_corners = logits.shape[0] - 1
+    id_prob = _softmax(logits.reshape(len(logits), -1)[:, cells].T, axis=1)  # only the candidate cells
+    return CellCandidates(pixels=pixels, confidence=confidence,
+                          id_prob=id_prob[:, :-1].astype(np.float32).reshape(-1, num_corners))
 
 
 def best_per_id(candidates: CellCandidates, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
