@@ -20,8 +20,9 @@ from datagen.shards import ShardReader, list_shards
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
-NUMERIC = ("lux", "blur_px", "visible_count", "exposure_s", "gain")
-CATEGORICAL = ("has_board", "board_kind", "hdri", "shake", "spot", "shadow_caster", "occluder", "distractors", "lamps")
+NUMERIC = ("lux", "blur_px", "visible_count", "exposure_s", "gain", "dist_k1", "bend", "squares_x", "squares_y")
+CATEGORICAL = ("has_board", "board_kind", "hdri", "shake", "spot", "shadow_caster", "occluder", "distractors", "lamps",
+               "dictionary", "legacy", "inverted", "mirrored")
 
 
 def collect_meta(paths: list[Path]) -> dict[str, np.ndarray]:
