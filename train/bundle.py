@@ -11,7 +11,9 @@ free-form provenance.
 ``--threshold auto`` chooses the Detector's default score threshold on the ChArUcoNet run's own
 validation shards (never on test data): the one that maximises right corners minus wrong ones
 (a wrong ID, > 3 px off, or any corner on a frame without the board), the detections PnP gets,
-decoded as ``Detector()`` decodes them (board-geometry check included: ``--geometry``).
+decoded as ``Detector()`` decodes them (board-geometry check included: ``--geometry``); for a
+points-only ChArUcoNet (``--heads points``, a family model) each frame of its own board, read by
+its markers as ``Detector`` then does.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import deepcharuco
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from deepcharuco.board_check import GEOMETRY_MODES
 from deepcharuco.cli import output_file, run_command
@@ -31,7 +34,8 @@ from deepcharuco.deep_detector import Detector
 from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
-from deepcharuco.models.checkpoint import save_bundle
+from datagen.shards import ShardReader
+from deepcharuco.models.checkpoint import id_head_trained, read_checkpoint, save_bundle
 from train.dataset import FrameDataset, split_shards
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
@@ -54,13 +58,13 @@ def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames
     """(threshold, {threshold: right - wrong}) over the validation shards of the run that wrote ``charuconet``
     (or of ``data``), split as the trainer split them, at most ``max_frames`` frames, decoded by a `Detector`
     with board-geometry mode ``geometry``."""
+    if not id_head_trained(read_checkpoint(charuconet, "charuconet")):
+        geometry = "markers"  # a points-only network: its ID head is untrained, boards are read by their markers
+    if geometry == "markers":
+        return _choose_threshold_markers(charuconet, data, max_frames)
     detector = Detector(weights=charuconet, refine="none", geometry=geometry)
     model, board, checkpoint = detector.charuconet, detector.board, detector.checkpoint
-    settings = checkpoint.get("training", {}).get("config", {})
-    folder = data or settings.get("data")
-    if not folder:
-        raise DeepCharucoError(f"{charuconet} does not say what it was trained on: pass --threshold-data FOLDER")
-    _, validation = split_shards(folder, settings.get("val_fraction", 0.1))
+    _, validation = _validation_shards(charuconet, checkpoint, data)
     frames = FrameDataset(validation, board, augmentation=None)
     balance = dict.fromkeys(THRESHOLDS, 0)
     for index in range(min(len(frames), max_frames)):
@@ -80,6 +84,43 @@ def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames
     return float(best), {float(t): int(v) for t, v in balance.items()}
 
 
+def _validation_shards(charuconet: str | Path, checkpoint: dict, data: str | None) -> tuple[list[Path], list[Path]]:
+    """The (train, validation) split of the shards the run that wrote ``charuconet`` trained on (or of ``data``)."""
+    settings = checkpoint.get("training", {}).get("config", {})
+    folder = data or settings.get("data")
+    if not folder:
+        raise DeepCharucoError(f"{charuconet} does not say what it was trained on: pass --threshold-data FOLDER")
+    return split_shards(folder, settings.get("val_fraction", 0.1))
+
+
+def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_frames: int) -> tuple[float, dict]:
+    """`choose_threshold` for geometry "markers": every validation frame is detected whole (its shard's board,
+    read by its markers) at each threshold, as `Detector.detect` does; the network runs once per frame and
+    threshold, so fewer frames are used (a third of ``max_frames``)."""
+    checkpoint = read_checkpoint(charuconet, "charuconet")
+    _, validation = _validation_shards(charuconet, checkpoint, data)
+    balance = dict.fromkeys(THRESHOLDS, 0)
+    budget = max(1, max_frames // 3)
+    frames = [(reader, index) for reader in map(ShardReader, validation) for index in range(len(reader))][:budget]
+    detectors: dict = {}  # one per board: a shard of random boards (datagen.render --family) has one per frame
+    for reader, index in tqdm(frames, desc="threshold (markers)", unit="frame", leave=False):
+        frame = reader[index]
+        board = frame.board or reader.board_of(index)
+        if board not in detectors:
+            detectors[board] = Detector(board=board, weights=charuconet, refine="none", geometry="markers")
+        detector = detectors[board]
+        for threshold in THRESHOLDS:
+            detector.threshold = threshold
+            detection = detector.detect(frame.image)
+            if not frame.meta["has_board"]:
+                balance[threshold] -= len(detection.ids)
+                continue
+            match = match_corners(detection, frame.corners, frame.visible)
+            balance[threshold] += 2 * match.num_correct - len(detection.ids)
+    best = max(THRESHOLDS, key=lambda t: (balance[t], t))
+    return float(best), {float(t): int(v) for t, v in balance.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m train.bundle", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -94,8 +135,9 @@ def main(argv: list[str] | None = None) -> int:
                              "validation shards (default: none stored, the Detector uses 0.3)")
     parser.add_argument("--threshold-data", default=None,
                         help="--threshold auto: frame shards to split for validation (default: the run's --data)")
-    parser.add_argument("--geometry", choices=GEOMETRY_MODES, default="repair",
-                        help="--threshold auto: the Detector's board-geometry mode to choose it for")
+    parser.add_argument("--geometry", choices=(*GEOMETRY_MODES, "markers"), default="repair",
+                        help="--threshold auto: the Detector's board-geometry mode to choose it for ('markers' "
+                             "whatever is given for a points-only ChArUcoNet, python -m train.charuconet --heads points)")
     parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE", help="provenance to record (repeatable)")
     args = parser.parse_args(argv)
     note = {}

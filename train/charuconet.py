@@ -6,6 +6,12 @@ cell; ``--id-positive-weight w`` weights the cells holding a corner w times in t
 corner cells are ~2 % of all cells, stayed near chance for thousands of steps on a CPU run).
 Validation: the paper's corner accuracy (right ID within 3 px, / N corners) on the validation
 shards' positives, detections on negatives, and the loss.
+
+``--heads points`` trains the point head alone (the ID term is dropped) on shards of any boards,
+e.g. random boards of one marker family: the ID head of such a network could only learn one board,
+and `Detector` finds every board from the point head's corners and the board's markers
+("markers"). Its checkpoint records ``heads: "points"``; validation is then the point head's F1
+(corners found within 3 px, any ID, at point confidence >= 0.5).
 """
 
 from __future__ import annotations
@@ -21,7 +27,9 @@ from datagen.shards import ShardReader
 from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
-from deepcharuco.models.cells import decode_cells
+from deepcharuco.board import BoardSpec
+from deepcharuco.models.cells import decode_cells, point_candidates
+from deepcharuco.models.checkpoint import HEADS, read_checkpoint
 from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
 from train.augment import AugmentConfig
 from train.cli import parse_crop, run_trainer
@@ -38,9 +46,24 @@ class ChArUcoNetTask:
             raise DeepCharucoError("--label-sigma applies to RefineNet's targets; ChArUcoNet's are cell classes")
         if augmentation is not None and config.crop:
             augmentation = replace(augmentation, crop=parse_crop(config.crop))
+        if config.heads not in HEADS:
+            raise DeepCharucoError(f"--heads {config.heads!r}: choose one of {', '.join(HEADS)}")
+        self.points_only = config.heads == "points"
+        if self.points_only:
+            self.metric_names = POINT_METRICS
+            if config.id_positive_weight != TrainConfig.id_positive_weight:
+                raise DeepCharucoError("--id-positive-weight weights the ID loss, which --heads points leaves out")
         train_paths, val_paths = split_shards(config.data, config.val_fraction)
         reader = ShardReader(train_paths[0])
-        self.board, self.image_size = reader.board, reader.image_size
+        if not self.points_only and not reader.single_board:
+            raise DeepCharucoError(f"{config.data} holds renders of random boards (datagen.render --family): an ID "
+                                   "head learns one board's corners; train the point head alone with --heads points, "
+                                   "or render one board with datagen.render --board B.yaml")
+        self.board, self.image_size = reader.board_of(0), reader.image_size
+        if self.points_only and config.init:
+            # The ID head is carried along untrained; its size (and the board stored with it, which a
+            # Detector without board= looks for) is the warm start's, so that every layer loads.
+            self.board = BoardSpec.from_dict(read_checkpoint(config.init, "charuconet")["board"])
         crop = augmentation.crop if augmentation is not None else None
         if crop and (crop[0] > self.image_size[0] or crop[1] > self.image_size[1]):
             raise DeepCharucoError(f"--crop {crop[0]}x{crop[1]} is larger than the {self.image_size[0]}x{self.image_size[1]} "
@@ -50,15 +73,20 @@ class ChArUcoNetTask:
         self.model = ChArUcoNet(architecture)
         self.id_weights = torch.full((self.board.num_corners + 1,), float(config.id_positive_weight))
         self.id_weights[-1] = 1.0  # the dustbin
-        self.train_set = FrameDataset(train_paths, self.board, augmentation, seed=config.seed)
-        self.val_set = FrameDataset(val_paths, self.board, augmentation=None)
+        shard_board = None if self.points_only else self.board
+        self.train_set = FrameDataset(train_paths, shard_board, augmentation, seed=config.seed)
+        self.val_set = FrameDataset(val_paths, shard_board, augmentation=None)
 
     def loss(self, model, batch: dict, device: torch.device) -> torch.Tensor:
         points, ids = model(batch["image"].to(device, non_blocking=True))
-        return (F.cross_entropy(points.float(), batch["points"].to(device))
-                + F.cross_entropy(ids.float(), batch["ids"].to(device), weight=self.id_weights.to(device)))
+        point_loss = F.cross_entropy(points.float(), batch["points"].to(device))
+        if self.points_only:
+            return point_loss
+        return point_loss + F.cross_entropy(ids.float(), batch["ids"].to(device), weight=self.id_weights.to(device))
 
     def validate(self, model, batches: list[dict], device: torch.device) -> dict:
+        if self.points_only:
+            return validate_points(model, batches, device)
         accuracies, false_positives, losses = [], [], []
         for batch in batches:
             points, ids = model(batch["image"].to(device))
@@ -76,11 +104,62 @@ class ChArUcoNetTask:
                 "negative_detections": float(np.mean(false_positives)) if false_positives else 0.0}
 
     def checkpoint_kwargs(self) -> dict:
-        return {"board": self.board, "input_size": self.image_size}
+        return {"board": self.board, "input_size": self.image_size, **({"heads": "points"} if self.points_only else {})}
+
+
+POINT_METRICS = ("score", "point_f1", "point_recall", "point_precision", "val_loss", "negative_detections")
+POINT_CONFIDENCE = 0.5  # validation's operating point for the point head (the Detector's own is chosen later)
+POINT_TOLERANCE_PX = 3.0  # the paper's corner-accuracy distance
+
+
+def match_points(found: np.ndarray, truth: np.ndarray) -> int:
+    """How many of the (M, 2) ``found`` pixels lie within 3 px of a distinct (T, 2) ``truth`` corner
+    (greedy by distance: each truth corner takes at most one)."""
+    if len(found) == 0 or len(truth) == 0:
+        return 0
+    distance = np.linalg.norm(found[:, None].astype(np.float64) - truth[None], axis=2)
+    matched, used_found, used_truth = 0, set(), set()
+    for flat in np.argsort(distance, axis=None):
+        i, j = divmod(int(flat), distance.shape[1])
+        if distance[i, j] > POINT_TOLERANCE_PX:
+            break
+        if i not in used_found and j not in used_truth:
+            used_found.add(i)
+            used_truth.add(j)
+            matched += 1
+    return matched
+
+
+def validate_points(model, batches: list[dict], device: torch.device) -> dict:
+    """The point head alone on validation frames of any boards: F1 (score), recall and precision of its corners
+    (cells at confidence >= 0.5, within 3 px of a visible true corner), corners on negatives, point loss."""
+    found_total = true_total = matched_total = 0
+    false_positives, losses = [], []
+    for batch in batches:
+        points, _ = model(batch["image"].to(device))
+        losses.append(float(F.cross_entropy(points.float(), batch["points"].to(device))))
+        for k in range(len(points)):
+            _, pixels, _ = point_candidates(points[k].cpu(), POINT_CONFIDENCE)
+            if not batch["has_board"][k]:
+                false_positives.append(len(pixels))
+                found_total += len(pixels)
+                continue
+            visible = batch["visible"][k].numpy()
+            truth = batch["corners"][k].numpy()[visible]
+            truth = truth[np.isfinite(truth).all(axis=1)]
+            found_total += len(pixels)
+            true_total += len(truth)
+            matched_total += match_points(pixels, truth)
+    recall = matched_total / true_total if true_total else 0.0
+    precision = matched_total / found_total if found_total else 0.0
+    f1 = 2 * recall * precision / (recall + precision) if recall + precision else 0.0
+    return {"score": f1, "point_f1": f1, "point_recall": recall, "point_precision": precision,
+            "val_loss": float(np.mean(losses)),
+            "negative_detections": float(np.mean(false_positives)) if false_positives else 0.0}
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_trainer("charuconet", ChArUcoNetTask, __doc__, "corner accuracy",
+    return run_trainer("charuconet", ChArUcoNetTask, __doc__, "score (corner accuracy; --heads points: point F1)",
                        {"data": "data/renders", "out": "runs/charuconet"}, argv)
 
 if __name__ == "__main__":

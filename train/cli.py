@@ -6,6 +6,7 @@ import argparse
 from dataclasses import fields
 
 from deepcharuco.cli import run_command
+from deepcharuco.models.checkpoint import HEADS
 from train.loop import TrainConfig, pick_device, train
 
 HELP = {
@@ -16,6 +17,9 @@ HELP = {
     "amp": "mixed precision on CUDA",
     "init": "start from these weights (checkpoint or bundle of the same network), with a fresh optimizer and schedule",
     "id_positive_weight": "ChArUcoNet only: weight of cells holding a corner in the ID cross-entropy (1 = the paper's plain mean)",
+    "heads": "ChArUcoNet only: 'all' trains the point and ID heads on one board's renders; 'points' the point head "
+             "alone (ID loss off) on renders of any boards, e.g. a marker family: the checkpoint records that its ID "
+             "head is untrained, so Detector finds every board by its markers",
     "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell",
     "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames",
     "resume": "continue the run in --out exactly where it stopped (the folder may have been moved; log.csv is cut "
@@ -33,6 +37,8 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=HELP.get(field.name, " "))
         elif field.name == "width":
             parser.add_argument(flag, choices=("paper", "lite"), default=default, help=HELP[field.name])
+        elif field.name == "heads":
+            parser.add_argument(flag, choices=HEADS, default=default, help=HELP[field.name])
         else:
             parser.add_argument(flag, type=type(default), default=default, help=HELP.get(field.name, " "))
     args = parser.parse_args(argv)

@@ -37,13 +37,19 @@ def split_shards(directory: str | Path, val_fraction: float = 0.1,
 
 class FrameDataset(torch.utils.data.Dataset):
     """Frames of the given shards -> dict(image (1, H, W) float32 in [0, 1], points (H/8, W/8) int64,
-    ids (H/8, W/8) int64, corners (C, 2) float32, visible (C,) bool, has_board bool)."""
+    ids (H/8, W/8) int64, corners (C, 2) float32, visible (C,) bool, has_board bool).
 
-    def __init__(self, shards: list[Path], board: BoardSpec, augmentation: AugmentConfig | None = AugmentConfig(),
+    ``board=None`` takes shards of any boards (shards of other boards, or of random boards of a marker
+    family, ``datagen.render --family``; for the point head alone): C is then the largest board's corner
+    count, smaller boards' rows padded with NaN and not visible (a batch stacks), and ``ids`` are each
+    frame's own board's corner IDs, which mean nothing across boards."""
+
+    def __init__(self, shards: list[Path], board: BoardSpec | None, augmentation: AugmentConfig | None = AugmentConfig(),
                  seed: int = 0):
         self.readers = [ShardReader(p) for p in shards]
+        self.num_corners = max(r.max_corners for r in self.readers) if board is None else board.num_corners
         for reader in self.readers:
-            if reader.board != board:
+            if board is not None and reader.board != board:
                 raise ShardError(f"{reader.path} was rendered for {reader.board}, not for {board}")
             width, height = reader.image_size
             if width % CELL or height % CELL:
@@ -64,6 +70,10 @@ class FrameDataset(torch.utils.data.Dataset):
         frame = self.readers[shard][int(index - self.starts[shard])]
         image = frame.image.astype(np.float32) / 255.0
         corners, visible = frame.corners.astype(np.float32), frame.visible.astype(bool)
+        if len(corners) < self.num_corners:  # a smaller board among a family's (board=None)
+            missing = self.num_corners - len(corners)
+            corners = np.concatenate([corners, np.full((missing, 2), np.nan, np.float32)])
+            visible = np.concatenate([visible, np.zeros(missing, bool)])
         has_board = bool(frame.meta["has_board"])
         if self.augmentation is not None:
             rng = np.random.default_rng([self.seed, self.epoch, index])

@@ -59,6 +59,7 @@ class TrainConfig:
     width: str = "paper"  # "paper" or "lite"
     init: str = ""  # start from these weights (a checkpoint of the same network), fresh optimizer and schedule
     id_positive_weight: float = 1.0  # ChArUcoNet: weight of corner cells in the ID cross-entropy; 1 = plain mean
+    heads: str = "all"  # ChArUcoNet: "all" (point + ID heads) or "points" (point head alone: any boards, a family model)
     label_sigma: float = 2.0  # RefineNet: Gaussian target width in grid cells (1/8 px); 0 = one-hot
     crop: str = ""  # ChArUcoNet: train on random WxH crops ("160x120"); "" = whole frames
     val_fraction: float = 0.1
@@ -324,11 +325,24 @@ class _EpochBatches:
         return len(self.batches)
 
 
+# ChArUcoNet's ID classifier: its size is the board's corner count, so it is the one layer a warm start
+# from another board's weights cannot take (the rest of the network is board-agnostic).
+ID_CLASSIFIER = "id_head.1."
+
+
 def _load_init(model: torch.nn.Module, path: str, kind: str) -> None:
-    """Warm start: the weights of the ``kind`` checkpoint (or bundle) at ``path``, which must fit ``model``."""
+    """Warm start: the weights of the ``kind`` checkpoint (or bundle) at ``path``, which must fit ``model``;
+    a ChArUcoNet of a board with another corner count gives all but its ID classifier, which starts fresh."""
     data = read_checkpoint(path, kind)
+    state = data["state_dict"]
+    own = model.state_dict()
+    other_board = [k for k in state if k.startswith(ID_CLASSIFIER) and k in own and state[k].shape != own[k].shape]
+    if kind == "charuconet" and other_board:
+        state = {**state, **{k: own[k] for k in other_board}}
+        print(f"--init {path}: its ID head classifies {data['config']['num_corners']} corners, this board has "
+              f"{model.config.num_corners}; its ID classifier starts fresh, the rest is warm-started")
     try:
-        model.load_state_dict(data["state_dict"])
+        model.load_state_dict(state)
     except RuntimeError as error:
         raise DeepCharucoError(f"--init {path}: its weights ({data['config']}) do not fit this run's network "
                                f"(check --width): {str(error).splitlines()[0]}") from None

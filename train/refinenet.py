@@ -58,6 +58,8 @@ class RefineNetTask:
     def __init__(self, config: TrainConfig):
         if config.crop:
             raise DeepCharucoError("--crop applies to ChArUcoNet's frames; RefineNet trains on whole 24x24 patches")
+        if config.heads != TrainConfig.heads:
+            raise DeepCharucoError("--heads chooses ChArUcoNet's heads; RefineNet has one")
         if config.id_positive_weight != 1.0:
             raise DeepCharucoError("--id-positive-weight applies to ChArUcoNet's ID head; RefineNet has none")
         training, validation = split_shards(config.data, config.val_fraction,

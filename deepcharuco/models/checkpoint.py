@@ -10,6 +10,9 @@ A checkpoint is a ``torch.save`` dict:
     state_dict: the weights
     training: free-form (step, metrics, command ...)
     threshold: optional, ChArUcoNet: the score threshold chosen on validation frames
+    heads: optional, ChArUcoNet: "points" when only the point head was trained (a family model, trained
+        on many boards: its ID head means nothing, so every board is decoded by its markers); absent
+        when both heads were trained
 
 A "bundle" holds both: {"format": ..., "kind": "bundle", "charuconet": {...}, "refinenet": {...}}.
 Loading checks all of it and says what is wrong and what to do.
@@ -17,6 +20,7 @@ Loading checks all of it and says what is wrong and what to do.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
@@ -28,6 +32,27 @@ from deepcharuco.models.refinenet import RefineNet, RefineNetConfig
 
 FORMAT = "deepcharuco-checkpoint"
 FORMAT_VERSION = 1
+HEADS = ("all", "points")  # which ChArUcoNet heads a run trains: both, or the point head alone
+
+
+@dataclass(frozen=True)
+class PointsOnlyBoard(BoardSpec):
+    """The board stored with a ChArUcoNet whose ID head was never trained (``heads: "points"``).
+
+    It is a real board (the default a `Detector` without ``board=`` looks for), but no board has its
+    layout, itself included: whoever compares layouts to decide whether the ID head applies
+    (`Detector`'s "repair" for its own board) is told it does not, and decodes by markers."""
+
+    @property
+    def layout(self) -> tuple:
+        return ("untrained ID head", *super().layout)
+
+    def same_layout(self, other: "BoardSpec") -> bool:
+        return False
+
+    def plain(self) -> BoardSpec:
+        """The same board as an ordinary `BoardSpec` (to render it, save it, compare it with shards')."""
+        return BoardSpec(**{f.name: getattr(self, f.name) for f in fields(BoardSpec)})
 
 
 class CheckpointError(DeepCharucoError, ValueError):
@@ -35,8 +60,11 @@ class CheckpointError(DeepCharucoError, ValueError):
 
 
 def checkpoint_dict(model: torch.nn.Module, board: BoardSpec | None = None, input_size: tuple[int, int] | None = None,
-                    training: dict | None = None) -> dict:
-    """The dict to ``torch.save`` for ``model`` (a ChArUcoNet needs ``board``)."""
+                    training: dict | None = None, heads: str = "all") -> dict:
+    """The dict to ``torch.save`` for ``model`` (a ChArUcoNet needs ``board``). ``heads="points"``: only
+    ChArUcoNet's point head was trained, recorded so that loading never trusts its ID head."""
+    if heads not in HEADS:
+        raise CheckpointError(f"heads must be one of {HEADS}, got {heads!r}")
     if isinstance(model, ChArUcoNet):
         if board is None or board.num_corners != model.config.num_corners:
             raise CheckpointError("a ChArUcoNet checkpoint needs the BoardSpec whose corners its ID head classifies")
@@ -45,10 +73,22 @@ def checkpoint_dict(model: torch.nn.Module, board: BoardSpec | None = None, inpu
         kind, input_size = "refinenet", (24, 24)
     else:
         raise CheckpointError(f"not a ChArUcoNet or RefineNet: {type(model).__name__}")
+    if heads != "all" and kind != "charuconet":
+        raise CheckpointError(f"heads={heads!r} applies to ChArUcoNet; a {kind} has one head")
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    return {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "config": model.config.to_dict(),
+    if isinstance(board, PointsOnlyBoard):
+        board = board.plain()
+    data = {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "config": model.config.to_dict(),
             "board": board.to_dict() if board else None, "input_size": list(input_size) if input_size else None,
             "state_dict": state, "training": training or {}}
+    if heads != "all":  # absent in both-heads checkpoints, so their files stay as they always were
+        data["heads"] = heads
+    return data
+
+
+def id_head_trained(data: dict) -> bool:
+    """Whether a ChArUcoNet checkpoint's (or a bundle part's) ID head was trained (not a points-only run)."""
+    return data.get("heads", "all") != "points"
 
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
@@ -121,10 +161,16 @@ def load_charuconet(path: str | Path, board: BoardSpec | None = None) -> tuple[C
 
     ``board``, when given, must have the layout the ID head was trained for (`BoardSpec.same_layout`:
     the same board printed at another size, inverted or mirrored fits); the board returned is then
-    ``board`` itself, so poses come out in its size."""
+    ``board`` itself, so poses come out in its size.
+
+    A points-only checkpoint (``heads: "points"``, a family model) fits any ``board``; the board
+    returned is then a `PointsOnlyBoard` (the stored one), whose layout matches no board, so a
+    `Detector` decodes every board, its default one included, by markers (geometry "markers")."""
     data = read_checkpoint(path, "charuconet")
     trained_for = BoardSpec.from_dict(data["board"])
-    if board is not None:
+    if not id_head_trained(data):
+        trained_for = PointsOnlyBoard(**trained_for.to_dict())
+    elif board is not None:
         if not board.same_layout(trained_for):
             raise CheckpointError(
                 f"{path}'s ID head was trained for {trained_for}, whose layout (grid, dictionary, legacy, "

@@ -1,0 +1,286 @@
+"""train.pipeline: one command makes a model; it plans, resumes after a kill and refuses bad input.
+Also the points-only training it relies on for family models (train.charuconet --heads points)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import VIEW_POSES, make_view
+from datagen.shards import FrameLabels, write_shard
+from deepcharuco import BoardSpec, DeepCharucoError
+from deepcharuco.deep_detector import Detector
+from deepcharuco.models import load_charuconet
+from deepcharuco.models.checkpoint import PointsOnlyBoard, read_checkpoint
+from train import pipeline
+from train.bundle import choose_threshold
+from train.charuconet import ChArUcoNetTask, match_points
+from train.loop import TrainConfig, train
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "deepcharuco" / "weights" / "detector.pt"
+SMALL_BOARD = BoardSpec(squares_x=4, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50")
+# Rates as if recorded by an earlier run in the folder: the plan then needs no render probe (~15 s of Blender).
+RECORDED = {"render_s_per_frame": 1.0, "charuconet_s_per_step": 0.5, "refinenet_s_per_step": 0.2,
+            "patch_s_per_patch": 0.002}
+TINY = ["--frames", "4", "--charuconet-steps", "30", "--refinenet-steps", "4", "--synthetic-patches", "200",
+        "--eval-sequences", "1", "--eval-frames", "31", "--eval-images", "1", "--image-size", "160x120",
+        "--samples", "2", "--batch-size", "2", "--workers", "0", "--device", "cpu", "--quiet"]
+
+
+def seed_rates(run: Path) -> None:
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "rates.json").write_text(json.dumps({k: {"value": v, "source": "test"} for k, v in RECORDED.items()}))
+
+
+def pipeline_command(board_file: Path, run: Path) -> list[str]:
+    return [sys.executable, "-m", "train.pipeline", "--board", str(board_file), "--out", str(run), *TINY]
+
+
+def wait_for(condition, process: subprocess.Popen, timeout: float = 240.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if process.poll() is not None:
+            raise AssertionError(f"the pipeline ended (code {process.returncode}) before the moment to stop it:\n"
+                                 + process.stdout.read()[-3000:])
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out waiting for the pipeline")
+        time.sleep(0.1)
+
+
+# ------------------------------------------------------------------------------------------- end to end
+
+def test_pipeline_end_to_end_survives_kills(tmp_path):
+    """A tiny --board run: killed hard mid-render, stopped by SIGTERM mid-training, each time rerun with the
+    same command; it finishes with a bundle Detector loads, a card with the evaluation's numbers, and a
+    fourth run does nothing."""
+    board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
+    run = tmp_path / "run"
+    seed_rates(run)
+    command = pipeline_command(board_file, run)
+    renders = run / "data" / "renders"
+
+    # 1. A preemption mid-render: the whole process group killed with SIGKILL after the first shard.
+    first = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             start_new_session=True)
+    wait_for(lambda: (renders / "shard-00000.h5").is_file(), first)
+    os.killpg(first.pid, signal.SIGKILL)
+    output = first.communicate()[0]
+    assert "ETA:" in output and "1. render" in output and "8. card" in output and "reproduce: python -m train.pipeline" in output
+    assert "rates: render_s_per_frame 1 (test)" in output  # recorded rates are used, not measured again
+    assert not (run / "stages" / "render.json").exists()
+    first_shard = (renders / "shard-00000.h5").stat().st_mtime_ns
+
+    # 2. Rerun: the render resumes (its first shard kept); SIGTERM to the pipeline once ChArUcoNet checkpointed
+    #    (30 steps, a checkpoint every 3: on a fast machine the trainer may just have finished, then a later stage stops).
+    second = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_for(lambda: (run / "charuconet" / "last.pt").is_file(), second)
+    second.send_signal(signal.SIGTERM)
+    output = second.communicate()[0]
+    assert second.returncode == 143, output[-3000:]
+    stopped = output.split("stopped during stage ")[1].split(":")[0]
+    assert stopped in ("charuconet", "refinenet", "bundle"), output[-3000:]
+    assert (renders / "shard-00000.h5").stat().st_mtime_ns == first_shard
+    assert sorted(p.name for p in renders.glob("shard-*.h5")) == [f"shard-0000{i}.h5" for i in range(4)]
+    assert (run / "stages" / "render.json").is_file() and not (run / "stages" / f"{stopped}.json").exists()
+
+    # 3. Rerun: finished stages are skipped, a stopped trainer resumes from its last.pt, the rest runs.
+    third = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    assert third.returncode == 0, third.stdout[-3000:] + third.stderr[-3000:]
+    assert "== stage 1/8" not in third.stdout and "== stage 2/8" not in third.stdout
+    if stopped in ("charuconet", "refinenet"):
+        assert f"-m train.{stopped}" in third.stdout and " --resume" in third.stdout
+    assert (renders / "shard-00000.h5").stat().st_mtime_ns == first_shard
+
+    detector = Detector(board=SMALL_BOARD, weights=run / "detector.pt")
+    assert detector.geometry == "repair" and detector.board.same_layout(SMALL_BOARD)
+    bundle = read_checkpoint(run / "detector.pt", "charuconet")
+    assert bundle["training"]["step"] <= 30 and "threshold" in bundle and "heads" not in bundle
+    results = json.loads((run / "eval" / "results.json").read_text())["boards"]
+    (name, result), = results.items()
+    card = (run / "MODEL_CARD.md").read_text()
+    assert "## Make it again" in card and "--frames 4 --charuconet-steps 30" in card
+    assert f"| {name} | 1 | {result['summary']['deep']['k0']:.2f} / {result['summary']['opencv']['k0']:.2f} |" in card
+    assert "chosen by `train.bundle --threshold auto` on the validation shards" in card
+
+    # 4. Everything done: the plan says so and nothing runs again.
+    fourth = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    assert fourth.returncode == 0 and "== stage" not in fourth.stdout
+    assert fourth.stdout.count(" done\n") == 8
+
+
+# --------------------------------------------------------------------------------------------- refusals
+
+def run_main(argv: list[str], capsys) -> tuple[int, str]:
+    code = pipeline.main(argv)
+    return code, capsys.readouterr().err
+
+
+def test_refusals_name_the_problem_and_the_fix(tmp_path, capsys, unwritable_dir):
+    board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
+    out = ["--out", str(tmp_path / "run")]
+    code, err = run_main(["--family", "DICT_9X9", *out], capsys)
+    assert code == 2 and "--family 'DICT_9X9' is not a marker family" in err and "DICT_4X4" in err
+    code, err = run_main(["--family", "DICT_4X4", "--board", str(board_file), *out], capsys)
+    assert code == 2 and "exactly one of --family" in err and "not both" in err
+    code, err = run_main(out, capsys)
+    assert code == 2 and "exactly one of --family" in err
+    for budget in ("6 hours", "h", "-1h", "0m"):
+        code, err = run_main(["--board", str(board_file), f"--budget={budget}", *out], capsys)
+        assert code == 2 and f"--budget {budget!r}" in err, err
+    code, err = run_main(["--board", str(board_file), "--out", str(unwritable_dir / "run")], capsys)
+    assert code == 2 and "--out" in err and "writ" in err
+    (tmp_path / "file").write_text("")
+    code, err = run_main(["--board", str(board_file), "--out", str(tmp_path / "file")], capsys)
+    assert code == 2 and "is a file, not a folder" in err
+    code, err = run_main(["--board", str(tmp_path / "missing.yaml"), *out], capsys)
+    assert code == 2 and "missing.yaml" in err
+    code, err = run_main(["--board", str(board_file), "--init", str(tmp_path / "nope.pt"), *out], capsys)
+    assert code == 2 and "--init" in err and "'none'" in err
+    code, err = run_main(["--board", str(board_file), "--eval-frames", "10", *out], capsys)
+    assert code == 2 and "--eval-frames 10: give 31 or more" in err
+    assert not (tmp_path / "run").exists()  # refused before anything was made
+
+
+def make_pipeline(argv: list[str]) -> pipeline.Pipeline:
+    args = pipeline.build_parser().parse_args(argv)
+    return pipeline.Pipeline(args, pipeline.check_target(args))
+
+
+def test_resuming_with_other_settings_is_refused(tmp_path, capsys):
+    board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
+    run = tmp_path / "run"
+    first = make_pipeline(["--board", str(board_file), "--out", str(run), *TINY])
+    first.sizes = pipeline.Sizes(**{**pipeline.asdict(pipeline.FULL["all"]), **first.fixed_sizes()})
+    first.save_plan()
+    code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--seed", "5"], capsys)
+    assert code == 2 and "holds a run made with other settings (seed)" in err and "choose another --out" in err
+    code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--frames", "8"], capsys)
+    assert code == 2 and "other settings (frames)" in err
+
+
+def test_help_lists_defaults():
+    text = pipeline.build_parser().format_help()
+    for shown in ("(default: 320x240)", "(default: lite)", "(default: shipped)", "(default: auto)", "(default: 40)",
+                  "--budget", "--cluster {slurm,k8s}", "--family", "--board"):
+        assert shown in text, shown
+    assert "(default: None)" not in text
+
+
+# ------------------------------------------------------------------------------------------ budgets
+
+@pytest.mark.parametrize("text, seconds", [("6h", 21600), ("90m", 5400), ("1h30m", 5400), ("45s", 45), ("2.5h", 9000)])
+def test_durations(text, seconds):
+    assert pipeline.parse_duration(text) == seconds
+
+
+def test_budget_shrinks_what_was_not_given_and_says_so():
+    rates = {**pipeline.ASSUMED_RATES, "charuconet_s_per_step": 0.6, "refinenet_s_per_step": 0.05}
+    full = pipeline.FULL["points"]
+    assert sum(pipeline.eta_of(full, rates, 1, "points", False).values()) > 3600
+    sizes, notes = pipeline.fit_to_budget(full, {"refinenet_steps": 1500}, rates, 3600, 1, "points", False)
+    assert sum(pipeline.eta_of(sizes, rates, 1, "points", False).values()) <= 3600
+    assert sizes.frames < full.frames and sizes.charuconet_steps < full.charuconet_steps
+    assert sizes.refinenet_steps == 1500  # given on the command line: kept
+    assert any(n.startswith("frames:") for n in notes) and any(n.startswith("charuconet steps:") for n in notes)
+    unlimited, none = pipeline.fit_to_budget(full, {}, rates, None, 1, "points", False)
+    assert unlimited == full and none == []
+    with pytest.raises(pipeline.PipelineError, match="less than the smallest plan"):
+        pipeline.fit_to_budget(full, {}, rates, 60, 1, "points", False)
+
+
+def test_cluster_scripts_shard_the_render_and_run_training_under_torchrun(tmp_path, capsys):
+    board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
+    run = tmp_path / "run"
+    seed_rates(run)
+    for kind in ("slurm", "k8s"):
+        code = pipeline.main(["--board", str(board_file), "--out", str(run), *TINY, "--cluster", kind,
+                              "--num-shards", "4", "--nproc-per-node", "2"])
+        assert code == 0, capsys.readouterr().err
+    slurm = (run / "cluster" / "render.slurm").read_text()
+    assert "#SBATCH --array=0-3" in slurm and '--shard-index "$SLURM_ARRAY_TASK_ID" --num-shards 4' in slurm
+    assert "-m datagen.render" in slurm and f"--board {run / 'board.yaml'}" in slurm and "--n 4" in slurm
+    training = (run / "cluster" / "train.slurm").read_text()
+    assert "--nproc-per-node 2" in training and "python -m train.pipeline" in training and "DDP" in training
+    job = (run / "cluster" / "render-job.yaml").read_text()
+    assert "completionMode: Indexed" in job and "completions: 4" in job and "parallelism: 4" in job
+    assert "--shard-index $JOB_COMPLETION_INDEX --num-shards 4" in job and "kind: Job" in job
+    train_job = (run / "cluster" / "train-job.yaml").read_text()
+    assert "--nproc-per-node 2" in train_job and "nvidia.com/gpu: 2" in train_job
+    assert not (run / "stages").exists()  # written, nothing run
+    trainer = make_pipeline(["--board", str(board_file), "--out", str(run), "--nproc-per-node", "2"])
+    assert trainer.module("train.charuconet", torchrun=True)[:5] == ["torchrun", "--standalone", "--nproc-per-node", "2", "-m"]
+    assert trainer.module("datagen.render")[1:] == ["-m", "datagen.render"]
+
+
+# ------------------------------------------------------------------------------ points-only training
+
+@pytest.fixture(scope="module")
+def two_boards(tmp_path_factory, camera):
+    """Two shards of two different boards (what family renders look like to the trainer)."""
+    out = tmp_path_factory.mktemp("two-boards")
+    for shard, board in enumerate((BoardSpec(), SMALL_BOARD)):
+        views = [make_view(board, camera, **pose) for pose in VIEW_POSES[:3]]
+        write_shard(out, shard, [FrameLabels(image=img, corners=c.astype(np.float32), visible=np.ones(len(c), bool),
+                                             K=camera.K, rvec=r, tvec=t, meta={"has_board": True})
+                                 for img, r, t, c in views], board, {})
+    return out
+
+
+def config(data, out, **kw):
+    base = dict(data=str(data), out=str(out), steps=4, batch_size=3, lr=1e-3, warmup=1, width="lite", val_every=4,
+                val_batches=1, checkpoint_every=4, log_every=1, workers=0, seed=1, quiet=True, val_fraction=0.5,
+                heads="points")
+    return TrainConfig(**{**base, **kw})
+
+
+def test_points_only_training_marks_the_id_head_untrained(two_boards, tmp_path):
+    cfg = config(two_boards, tmp_path, init=str(SHIPPED))
+    task = ChArUcoNetTask(cfg)
+    assert task.train_set.num_corners == 16 and task.train_set[0]["corners"].shape == (16, 2)
+    result = train(task, cfg, "charuconet")
+    assert result["step"] == 4 and 0.0 <= result["point_f1"] <= 1.0
+    header = (tmp_path / "log.csv").read_text().splitlines()[0]
+    assert header == "step,loss,lr,seconds,score,point_f1,point_recall,point_precision,val_loss,negative_detections"
+    model, board, data = load_charuconet(tmp_path / "best.pt")
+    assert data["heads"] == "points" and isinstance(board, PointsOnlyBoard) and not board.same_layout(board)
+    assert not BoardSpec().same_layout(board)  # even the board stored with it: its ID head is not trusted
+    assert Detector(weights=tmp_path / "best.pt", refine="none").geometry == "markers"
+    assert Detector(board=BoardSpec(), weights=tmp_path / "best.pt", refine="none").geometry == "markers"
+    with pytest.raises(DeepCharucoError, match="geometry='repair' decodes with the ID head"):
+        Detector(board=BoardSpec(), weights=tmp_path / "best.pt", refine="none", geometry="repair")
+    threshold, balance = choose_threshold(tmp_path / "best.pt", max_frames=6)
+    assert 0 < threshold < 1 and set(balance) == {float(t) for t in np.round(np.arange(0.05, 0.951, 0.05), 2)}
+
+
+def test_points_only_options_are_checked(two_boards, tmp_path):
+    with pytest.raises(Exception, match="rendered for"):  # both heads need one board's shards
+        ChArUcoNetTask(config(two_boards, tmp_path, heads="all"))
+    with pytest.raises(DeepCharucoError, match="--id-positive-weight weights the ID loss"):
+        ChArUcoNetTask(config(two_boards, tmp_path, id_positive_weight=10.0))
+
+
+def test_init_from_another_board_keeps_all_but_the_id_classifier(tmp_path, camera, capsys):
+    views = [make_view(SMALL_BOARD, camera, **pose) for pose in VIEW_POSES[:2]]
+    write_shard(tmp_path / "data", 0, [FrameLabels(image=img, corners=c.astype(np.float32), visible=np.ones(9, bool),
+                                                   K=camera.K, rvec=r, tvec=t, meta={"has_board": True})
+                                       for img, r, t, c in views], SMALL_BOARD, {})
+    cfg = config(tmp_path / "data", tmp_path / "run", heads="all", steps=1, init=str(SHIPPED), id_positive_weight=10.0)
+    task = ChArUcoNetTask(cfg)
+    train(task, cfg, "charuconet")
+    assert "its ID head classifies 16 corners, this board has 9" in capsys.readouterr().out
+    _, board, _ = load_charuconet(tmp_path / "run" / "last.pt")
+    assert board == SMALL_BOARD
+
+
+def test_match_points_pairs_each_truth_once():
+    truth = np.array([[10.0, 10.0], [20.0, 10.0]])
+    assert match_points(np.array([[10.5, 10.0], [11.0, 10.0], [40.0, 40.0]]), truth) == 1
+    assert match_points(np.array([[10.0, 12.9], [19.0, 10.0]]), truth) == 2
+    assert match_points(np.zeros((0, 2)), truth) == 0
