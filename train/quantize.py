@@ -120,12 +120,16 @@ def quantize(weights: str | Path, frames_dir: str | Path, out: str | Path, *, ma
         with tqdm(total=2 * 2 * len(LEVELS) * len(frames), unit="image", disable=quiet, desc="float32 vs int8") as bar:
             reference = protocol_accuracy(float_detector, frames, bar)
             candidate = protocol_accuracy(int8_detector, frames, bar)
-        drops = [r - c for effect in reference for r, c in zip(reference[effect], candidate[effect])]
+        drops = {(effect, k): r - c for effect in reference
+                 for k, r, c in zip(LEVELS, reference[effect], candidate[effect])}
+        (effect, k), worst = max(drops.items(), key=lambda item: item[1])
         entry["validation"] = {"frames": str(frames_dir), "count": len(frames), "float32": reference,
-                               "int8": candidate, "largest_drop": max(drops), "max_drop": max_drop}
-        if max(drops) > max_drop:
-            raise QuantizeError(f"int8 loses up to {max(drops):.3f} accuracy on {frames_dir} (more than {max_drop}): "
-                                f"not written; keep backend='onnx'")
+                               "int8": candidate, "largest_drop": worst, "max_drop": max_drop}
+        if worst > max_drop:
+            raise QuantizeError(
+                f"int8 loses up to {worst:.3f} accuracy on {frames_dir} ({effect} k={k}: "
+                f"{reference[effect][k]:.3f} -> {candidate[effect][k]:.3f}; more than {max_drop}): not written; "
+                f"keep backend='onnx'")
         torch.save(bundle, temporary)  # now with its validation record
         os.replace(temporary, out)
     finally:
