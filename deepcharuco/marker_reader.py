@@ -47,9 +47,9 @@ MIN_NCC = 0.3  # below this a (marker, turn) explains a read no better than a ra
 READERS = ("sampled", "learned")
 DEFAULT_READER = "sampled"
 BIT_READER_WEIGHTS = Path(__file__).resolve().parent / "weights" / "bit_reader.pt"
-# The learned reader's logits are clipped here before scoring: no single bit may outvote more than this
-# (log-likelihood ratio 4: p = 0.018 that a confident bit is wrong), so one smeared bit costs a marker
-# a bounded amount.
+# The learned reader's logits are bounded as tanh(logit / MAX_BIT_LOGIT) before scoring: no bit outvotes the
+# others by more than a log-likelihood ratio of ~4 (p = 0.018 that a confident bit is wrong), so one smeared
+# bit costs a marker a bounded amount.
 MAX_BIT_LOGIT = 4.0
 
 # Quarter turns: (x, y) in the board's square frame -> (u, v) in the cell's unit square.
@@ -141,8 +141,8 @@ def read_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: f
         reader: "sampled" or "learned" (default `DEFAULT_READER`).
 
     Returns:
-        (bits (R, n, n) float32: "sampled": mean grey level of each inner bit; "learned": each bit's
-        log-likelihood ratio white / black over `MAX_BIT_LOGIT`, clipped to [-1, 1];
+        (bits (R, n, n) float32: "sampled": mean grey level of each inner bit; "learned": tanh of each
+        bit's logit (log-likelihood ratio white / black) over `MAX_BIT_LOGIT`, in (-1, 1);
         contrast (R,) float32 grey levels between the paper ring and the marker's border; 0 where the
         square is unreadable, whichever the reader).
     """
@@ -217,8 +217,8 @@ def _bit_reader(path: Path):
 
 def learned_bits(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float,
                  weights: Path = BIT_READER_WEIGHTS, batch: int = 512) -> np.ndarray:
-    """(H, W) uint8, (R, 3, 3) square unit frames -> image -> (R, n, n) float32 bit logits of the learned
-    reader, clipped to +-`MAX_BIT_LOGIT` and divided by it (> 0: white)."""
+    """(H, W) uint8, (R, 3, 3) square unit frames -> image -> (R, n, n) float32 tanh(logit / `MAX_BIT_LOGIT`) of
+    the learned reader's bit logits, in (-1, 1), > 0: white."""
     import torch
 
     from deepcharuco.models.bit_reader import normalise_patches
@@ -230,7 +230,7 @@ def learned_bits(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: f
         for start in range(0, len(patches), batch):
             chunk = torch.from_numpy(patches[start:start + batch])[:, None]
             out[start:start + batch] = model(chunk, size).numpy()
-    return np.clip(out, -MAX_BIT_LOGIT, MAX_BIT_LOGIT) / MAX_BIT_LOGIT
+    return np.tanh(out / MAX_BIT_LOGIT)
 
 
 def _sample(gray: np.ndarray, points: np.ndarray, row: int = 4096) -> np.ndarray:
@@ -253,13 +253,16 @@ def _normalised(values: np.ndarray) -> np.ndarray:
 
 def correlate(bits: np.ndarray, markers: BoardMarkers, reader: str | None = None) -> np.ndarray:
     """(R, n, n) reads of ``reader`` (`read_squares`) -> (R, M, 4) scores in [-1, 1] of each board marker in
-    each quarter turn: "sampled": NCC of the bit means with the marker's bits; "learned": the marker's
-    log-likelihood under the clipped bit logits, sum_i (2 b_i - 1) l_i / n^2 (1: every bit confidently as
-    the marker has it; 0 on average for an unrelated marker), up to a constant per read."""
+    each quarter turn: "sampled": NCC of the bit means with the marker's bits; "learned": the cosine of the
+    bounded bit logits l with the marker's signs s = 2 b - 1, s . l / (|s| |l|). Within a read it ranks the
+    markers as their log-likelihood does (s . l / 2 is it, up to a constant per read); dividing by |l| puts
+    a blurred read (all logits small) on the same scale as a sharp one, as NCC's normalisation does, so
+    `MIN_NCC` and the placement vote mean the same for both readers."""
     if _reader(reader) == "learned":
         signs = markers.bits.reshape(len(markers.ids) * 4, -1).astype(np.float64) * 2 - 1
         flat = bits.reshape(len(bits), markers.size * markers.size).astype(np.float64)
-        return (flat @ signs.T / signs.shape[1]).reshape(len(bits), len(markers.ids), 4)
+        norm = np.linalg.norm(flat, axis=1, keepdims=True) * np.sqrt(signs.shape[1])
+        return (flat @ signs.T / np.where(norm > 1e-9, norm, 1.0)).reshape(len(bits), len(markers.ids), 4)
     expected = _normalised(markers.bits.reshape(len(markers.ids) * 4, -1).astype(np.float64))
     read = _normalised(bits.reshape(len(bits), markers.size * markers.size).astype(np.float64))
     return (read @ expected.T).reshape(len(bits), len(markers.ids), 4)

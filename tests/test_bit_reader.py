@@ -1,5 +1,7 @@
 """The learned marker reader: its patches, its training data, its weights and its place in the marker decoding."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -12,10 +14,10 @@ from deepcharuco.models.bit_reader import (
     MARGIN_BITS, SAMPLES_PER_BIT, BitReader, load_bit_reader, patch_side, save_bit_reader,
 )
 from deepcharuco.synthetic import look_at_pose, render_board_view
-from train.bit_reader import FAMILIES, Degradation, family_bits, render_cell, train
+from train.bit_reader import FAMILIES, Degradation, candidate_signs, family_bits, match_scores, render_cell, train
 
 # Close to ideal: big squares, no blur, no darkness, corners almost exact (JPEG and light gradients remain).
-CLEAN = Degradation(square_px=(28.0, 36.0), max_motion_px=1.0, max_defocus_sigma=0.31, max_darkness_k=0.0,
+CLEAN = Degradation(bit_px=(4.0, 5.0), max_motion_px=1.0, max_defocus_sigma=0.31, max_darkness_k=0.0,
                     max_read_noise=0.5, corner_noise_px=(0.0, 0.05), corner_noise_fraction=0.0)
 shipped = pytest.mark.skipif(not BIT_READER_WEIGHTS.is_file(), reason="no shipped bit reader weights")
 
@@ -90,6 +92,20 @@ def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path):
     assert log[0].startswith("step,loss") and len(log) == 5
     again = train(tmp_path / "longer", steps=40, batch=24, seed=3, validate_every=10, quiet=True)  # already done
     assert again == pytest.approx(longer)
+
+
+def test_match_candidates_hold_the_true_marker_first_and_the_score_ranks_it_first():
+    rng = np.random.default_rng(2)
+    bits = family_bits("DICT_5X5_1000")[[3, 40], 1:-1, 1:-1].astype(np.float32)
+    signs = candidate_signs(rng, 5, bits, negatives=7)
+    assert signs.shape == (2, 32, 25)
+    assert np.array_equal(signs[:, 0], bits.reshape(2, -1) * 2 - 1)
+    assert np.array_equal(signs[:, 1].reshape(2, 5, 5), np.rot90(bits * 2 - 1, 1, axes=(1, 2)))  # turn 1 next
+    confident = torch.from_numpy((bits * 2 - 1) * 8.0)  # logits of a sharp read
+    scores = match_scores(confident, torch.from_numpy(signs))
+    assert scores.argmax(dim=1).tolist() == [0, 0] and torch.all(scores < 1.0 + 1e-6)
+    with pytest.raises(ValueError, match="objective must be one of"):
+        train(Path("unused"), steps=1, objective="guess")
 
 
 def test_weights_round_trip_and_clear_errors(tmp_path):

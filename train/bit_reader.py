@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepcharuco.marker_reader import rectify_squares
+from deepcharuco.marker_reader import MAX_BIT_LOGIT, rectify_squares
 from deepcharuco.models.bit_reader import SIZES, BitReader, BitReaderConfig, normalise_patches, save_bit_reader
 
 # Families per inner size: the _1000 dictionaries hold the _50/_100/_250 ones as prefixes.
@@ -50,19 +50,26 @@ TEXTURE_SQUARE = 48  # texture pixels per square: >= the supersampled image's, s
 SUPERSAMPLE = 2
 NEIGHBOURHOOD = 5  # squares per side drawn around the marker square (its blur context)
 CELL_OFFSETS = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
+OBJECTIVES = ("bits", "match")
+MATCH_NEGATIVES = 63  # other markers of the family per read ("match"), each in 4 turns
+MATCH_SCALE = 10.0  # cosine -> softmax logit: a cosine margin of 0.3 is a factor e^3 in probability
 
 
 @dataclass(frozen=True)
 class Degradation:
     """The ranges the samples are drawn from (the paper's protocols reach blur k = 10 and darkness k = 10)."""
 
-    square_px: tuple[float, float] = (7.0, 36.0)
+    # Pixels per marker bit, log-uniform: below 1 no reader can tell bits apart; the unseen 11x8 board at
+    # 320x240 has ~2, its squares 11-25 px. The square follows from the bit, the marker size and the ratio.
+    bit_px: tuple[float, float] = (1.0, 5.0)
     max_motion_px: float = 12.0
     max_defocus_sigma: float = 1.5
     max_darkness_k: float = 10.5
-    max_read_noise: float = 4.0
-    corner_noise_px: tuple[float, float] = (0.15, 1.0)
-    corner_noise_fraction: float = 0.04  # ... plus this fraction of the square side (coarse-level corners)
+    max_read_noise: float = 3.0
+    max_shot_gain: float = 0.5  # grey levels per photo-electron
+    # The point head's corners are whole pixels (an 8x8 cell's argmax), about half a pixel off.
+    corner_noise_px: tuple[float, float] = (0.1, 0.6)
+    corner_noise_fraction: float = 0.02  # ... plus this fraction of the square side (coarse-level corners)
 
 
 @cache
@@ -151,8 +158,8 @@ def render_cell(rng: np.random.Generator, size: int, degradation: Degradation = 
     inverted = rng.random() < 0.25
     if inverted:  # white squares and markers printed on black paper
         texture = 1.0 - texture
-    low, high = degradation.square_px
-    side_px = math.exp(rng.uniform(math.log(low), math.log(high)))
+    low, high = degradation.bit_px
+    side_px = max(6.0, math.exp(rng.uniform(math.log(low), math.log(high))) * (size + 2) / ratio)
     # The patch spans at most 1.45 squares (4x4 markers at ratio 0.85 with their margin): 2.6 squares hold it
     # turned and foreshortened, plus what a blur smears in.
     canvas = int(math.ceil(side_px * 2.6 + 2 * degradation.max_motion_px)) + 4
@@ -171,22 +178,22 @@ def render_cell(rng: np.random.Generator, size: int, degradation: Degradation = 
     image = cv2.resize(fine, (canvas, canvas), interpolation=cv2.INTER_AREA)
     # Light: paper level, ink as a fraction of it (matte ink reflects 5-50 %), a gradient across the cell.
     paper = rng.uniform(60, 250)
-    ink = paper * rng.uniform(0.04, 0.5)
+    ink = paper * rng.uniform(0.04, 0.4)
     yy, xx = np.mgrid[0:canvas, 0:canvas].astype(np.float32) / canvas - 0.5
-    shade = 1 + rng.normal(0, 0.25) * xx + rng.normal(0, 0.25) * yy
+    shade = 1 + rng.normal(0, 0.15) * xx + rng.normal(0, 0.15) * yy
     image = (ink + (paper - ink) * image) * np.clip(shade, 0.3, 2.0)
     if rng.random() < 0.4:
         image = cv2.GaussianBlur(image, (0, 0), rng.uniform(0.3, degradation.max_defocus_sigma))
-    motion = rng.uniform(1, degradation.max_motion_px) if rng.random() < 0.6 else 0.0
+    motion = rng.uniform(1, degradation.max_motion_px) if rng.random() < 0.5 else 0.0
     motion_first = rng.random() < 0.5  # real motion smears light before the sensor; the paper's blur the frame
     if motion and motion_first:
         image = cv2.filter2D(image, -1, _motion_kernel(rng, motion), borderType=cv2.BORDER_REPLICATE)
-    # One kind of darkness at most (both at once leave nothing a 12 px blur has not already taken): low
-    # light at capture (few photons, the same read noise), or the paper's protocol on the uint8 frame.
-    darkness = rng.choice(3, p=[0.4, 0.25, 0.35])
+    # Darkness: none, low light at capture (few photons, the same read noise), or the paper's protocol on the
+    # uint8 frame; rarely on top of motion (the protocols test each alone; both at once leave little to learn).
+    darkness = rng.choice(3, p=[0.7, 0.15, 0.15] if motion else [0.3, 0.3, 0.4])
     if darkness == 1:
         image = image * 0.6 ** rng.uniform(0, degradation.max_darkness_k)
-    gain = rng.uniform(0.0, 1.0)  # grey levels per photo-electron: shot noise variance = gain * signal
+    gain = rng.uniform(0.0, degradation.max_shot_gain)  # shot noise variance = gain * signal
     read_noise = rng.uniform(0, degradation.max_read_noise)
     image = image + rng.standard_normal(image.shape, np.float32) * np.sqrt(gain * np.maximum(image, 0) + read_noise ** 2)
     image = np.clip(np.round(image), 0, 255).astype(np.uint8)
@@ -225,22 +232,46 @@ def make_batch(seed: int, step: int, batch: int, degradation: Degradation = Degr
     return size, patches, np.stack([t for _, t in samples]).astype(np.float32)
 
 
-def _validation_set(seed: int, batches: int, batch: int) -> list[tuple[int, torch.Tensor, torch.Tensor]]:
-    """Fixed batches (seed + 1: never a training batch's seed) -> [(n, patches (B, 1, P, P), bits (B, n, n))]."""
+def candidate_signs(rng: np.random.Generator, size: int, bits: np.ndarray, negatives: int = MATCH_NEGATIVES
+                    ) -> np.ndarray:
+    """(B, n, n) true bits -> (B, 4 (1 + negatives), n * n) float32 signs (+1 white) of the candidates a read is
+    matched against: the true marker in its 4 quarter turns (index 0: as read), then ``negatives`` other
+    markers of the family in 4 turns each (as `marker_reader` matches a board's markers in 4 turns)."""
+    family = family_bits(FAMILIES[size][0])[:, 1:-1, 1:-1]
+    others = family[rng.integers(len(family), size=(len(bits), negatives))]  # (B, K, n, n)
+    markers = np.concatenate([bits[:, None] > 0.5, others], axis=1)
+    turned = np.stack([np.rot90(markers, k, axes=(2, 3)) for k in range(4)], axis=2)  # (B, K + 1, 4, n, n)
+    return (turned.reshape(len(bits), -1, size * size).astype(np.float32) * 2 - 1)
+
+
+def match_scores(logits: torch.Tensor, signs: torch.Tensor) -> torch.Tensor:
+    """(B, n, n) bit logits, (B, C, n * n) candidate signs -> (B, C) the runtime's score (`marker_reader.correlate`,
+    reader "learned"): the cosine of tanh(logit / MAX_BIT_LOGIT) with each candidate's signs."""
+    bounded = torch.tanh(logits.flatten(1) / MAX_BIT_LOGIT)
+    norm = bounded.norm(dim=1, keepdim=True).clamp_min(1e-6) * math.sqrt(signs.shape[2])
+    return torch.einsum("bcn,bn->bc", signs, bounded) / norm
+
+
+def _validation_set(seed: int, batches: int, batch: int) -> list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Fixed batches (seed + 1: never a training batch's seed) -> [(n, patches (B, 1, P, P), bits (B, n, n),
+    candidate signs (B, C, n * n))]."""
     out = []
     for step in range(batches):
         size, patches, bits = make_batch(seed + 1, step, batch)
-        out.append((size, torch.from_numpy(patches)[:, None], torch.from_numpy(bits)))
+        signs = candidate_signs(np.random.default_rng([seed + 1, step, 1]), size, bits)
+        out.append((size, torch.from_numpy(patches)[:, None], torch.from_numpy(bits), torch.from_numpy(signs)))
     return out
 
 
 @torch.no_grad()
 def evaluate(model: BitReader, validation: list) -> dict[str, float]:
-    """Mean per-bit BCE, bit accuracy and whole-marker accuracy (every bit right) on the validation batches."""
+    """Mean per-bit BCE, bit accuracy, whole-marker accuracy (every bit right) and match accuracy (the true
+    marker in its turn scores best among 64 markers x 4 turns, `match_scores`) on the validation batches."""
     model.eval()
-    loss, bit_ok, marker_ok, bits_total, markers_total = 0.0, 0.0, 0.0, 0, 0
-    for size, patches, bits in validation:
+    loss, bit_ok, marker_ok, match_ok, bits_total, markers_total = 0.0, 0.0, 0.0, 0.0, 0, 0
+    for size, patches, bits, signs in validation:
         logits = model(patches, size)
+        match_ok += float((match_scores(logits, signs).argmax(dim=1) == 0).sum())
         loss += float(F.binary_cross_entropy_with_logits(logits, bits, reduction="sum"))
         right = (logits > 0) == (bits > 0.5)
         bit_ok += float(right.sum())
@@ -248,18 +279,27 @@ def evaluate(model: BitReader, validation: list) -> dict[str, float]:
         bits_total += bits.numel()
         markers_total += len(bits)
     model.train()
-    return {"val_loss": loss / bits_total, "val_bit_acc": bit_ok / bits_total, "val_marker_acc": marker_ok / markers_total}
+    return {"val_loss": loss / bits_total, "val_bit_acc": bit_ok / bits_total, "val_marker_acc": marker_ok / markers_total,
+            "val_match_acc": match_ok / markers_total}
 
 
 def train(out: Path, steps: int, batch: int = 128, seed: int = 0, lr: float = 3e-3, config: BitReaderConfig = BitReaderConfig(),
-          validate_every: int = 250, quiet: bool = False) -> dict:
+          validate_every: int = 250, quiet: bool = False, objective: str = "bits", init: Path | None = None) -> dict:
     """Train (or resume from ``out``/last.pt) to ``steps``; -> the last validation metrics.
 
+    ``objective``: "bits" (per-bit BCE: logits are log-likelihood ratios) or "match" (softmax over the
+    runtime's scores of the true marker against 63 others in 4 turns each, `match_scores`: under a blur the
+    bits' marginals lose what the bits' joint says, e.g. a row's sum; this trains the score that is used).
+    ``init``: a run folder whose last.pt starts the model (e.g. "match" after "bits").
     Writes ``out``/last.pt (model, optimiser, step, seed) every ``validate_every`` steps and at the end, and
     ``out``/log.csv (step, loss, validation metrics)."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)
     model = BitReader(config)
+    if init is not None:
+        model.load_state_dict(torch.load(Path(init) / "last.pt", map_location="cpu", weights_only=False)["model"])
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)
     # Cosine decay to 5 % over the run: the plain rate plateaus on the noisiest samples.
     schedule = torch.optim.lr_scheduler.LambdaLR(
@@ -268,9 +308,11 @@ def train(out: Path, steps: int, batch: int = 128, seed: int = 0, lr: float = 3e
     checkpoint = out / "last.pt"
     if checkpoint.is_file():
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        if state["seed"] != seed or state["config"] != config.to_dict() or state["steps"] != steps:
+        if state["seed"] != seed or state["config"] != config.to_dict() or state["steps"] != steps \
+                or state.get("objective", "bits") != objective:
             raise SystemExit(f"error: {checkpoint} was trained with seed {state['seed']}, {state['steps']} steps, "
-                             f"config {state['config']}: resume with the same, or use another --out")
+                             f"objective {state.get('objective', 'bits')}, config {state['config']}: resume with "
+                             f"the same, or use another --out")
         model.load_state_dict(state["model"])
         optimiser.load_state_dict(state["optimiser"])
         schedule.load_state_dict(state["schedule"])
@@ -278,14 +320,19 @@ def train(out: Path, steps: int, batch: int = 128, seed: int = 0, lr: float = 3e
     validation = _validation_set(seed, batches=8, batch=128)
     log = out / "log.csv"
     if start == 0 or not log.is_file():
-        log.write_text("step,loss,val_loss,val_bit_acc,val_marker_acc,seconds\n")
+        log.write_text("step,loss,val_loss,val_bit_acc,val_marker_acc,val_match_acc,seconds\n")
     metrics = evaluate(model, validation) if start >= steps else {}
     running, began = [], time.time()
     with tqdm(total=steps, initial=start, unit="step", disable=quiet, desc="bit reader") as bar:
         for step in range(start, steps):
             size, patches, bits = make_batch(seed, step, batch)
             logits = model(torch.from_numpy(patches)[:, None], size)
-            loss = F.binary_cross_entropy_with_logits(logits, torch.from_numpy(bits))
+            if objective == "bits":
+                loss = F.binary_cross_entropy_with_logits(logits, torch.from_numpy(bits))
+            else:
+                signs = torch.from_numpy(candidate_signs(np.random.default_rng([seed, step, 1]), size, bits))
+                scores = MATCH_SCALE * match_scores(logits, signs)
+                loss = F.cross_entropy(scores, torch.zeros(len(scores), dtype=torch.long))
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
@@ -298,11 +345,12 @@ def train(out: Path, steps: int, batch: int = 128, seed: int = 0, lr: float = 3e
                 metrics = evaluate(model, validation)
                 with log.open("a") as handle:
                     handle.write(f"{done},{np.mean(running[-validate_every:]):.5f},{metrics['val_loss']:.5f},"
-                                 f"{metrics['val_bit_acc']:.5f},{metrics['val_marker_acc']:.5f},{time.time() - began:.1f}\n")
+                                 f"{metrics['val_bit_acc']:.5f},{metrics['val_marker_acc']:.5f},"
+                                 f"{metrics['val_match_acc']:.5f},{time.time() - began:.1f}\n")
                 temporary = out / "last.pt.tmp"
                 torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(),
                             "schedule": schedule.state_dict(), "step": done, "seed": seed, "steps": steps,
-                            "config": config.to_dict(), "metrics": metrics}, temporary)
+                            "config": config.to_dict(), "metrics": metrics, "objective": objective}, temporary)
                 temporary.replace(checkpoint)
                 bar.write(f"step {done}: " + ", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
     return metrics
@@ -399,6 +447,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=128)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--lr", type=float, default=3e-3)
+    parser.add_argument("--objective", choices=OBJECTIVES, default="bits", help="per-bit BCE, or the runtime's "
+                        "marker score against other markers (see train())")
+    parser.add_argument("--init", default=None, help="start from this run folder's last.pt (e.g. --objective "
+                        "match after a bits run)")
     parser.add_argument("--width", type=int, default=BitReaderConfig.width, help="channels per bit cell")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared)")
     parser.add_argument("--export", default=None, help="after training, write the weights here (e.g. "
@@ -417,7 +469,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{reader}: " + ", ".join(f"{name} {value:.3f}" for name, value in row.items()))
         return 0
     out = Path(args.out)
-    metrics = train(out, args.steps, args.batch, args.seed, args.lr, BitReaderConfig(width=args.width), quiet=args.quiet)
+    metrics = train(out, args.steps, args.batch, args.seed, args.lr, BitReaderConfig(width=args.width), quiet=args.quiet,
+                    objective=args.objective, init=Path(args.init) if args.init else None)
     print(", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
     if args.export:
         print(f"wrote {export(out, Path(args.export))}")
