@@ -6,7 +6,6 @@ Every function returns (H, W) or (H, W, 3) uint8 with row 0 at the top (image co
 
 from __future__ import annotations
 
-import math
 import re
 from functools import lru_cache
 
@@ -25,12 +24,6 @@ def board_texture(board: BoardSpec, margin_m: float) -> BoardTexture:
     """The target board with ``margin_m`` of white paper around its grid."""
     margin_m = round(margin_m, 6)
     px_per_m = min(BOARD_PX_PER_M, 4096.0 / (max(board.size_m) + 2 * margin_m))
-    if board.mirrored:
-        # BoardTexture mirrors the image about its middle column, which is the grid's middle only when the
-        # sheet is a whole number of pixels wide (else the partial last pixel moves to the other side:
-        # measured 0.3 px in renders). Shrink the density a hair so that it is.
-        width_m = board.size_m[0] + 2 * margin_m
-        px_per_m = math.floor(width_m * px_per_m) / width_m
     return board.render_texture(px_per_m, margin_m)
 
 

@@ -373,8 +373,12 @@ class BoardTexture:
             )
         ink = np.zeros((height, width), dtype=np.float64)
 
+        grid_width = board.size_m[0]
+
         def add(x0: float, y0: float, x1: float, y1: float, sign: float) -> None:
             """Add ``sign`` x the coverage of the board rectangle [x0, x1) x [y0, y1) (metres)."""
+            if board.mirrored:  # the face seen from behind: drawn mirrored about the grid's middle, X -> W - X
+                x0, x1 = grid_width - x1, grid_width - x0
             cx0, cov_x = _coverage_1d(width, (x0 + margin) * px_per_m, (x1 + margin) * px_per_m)
             cy0, cov_y = _coverage_1d(height, (y0 + margin) * px_per_m, (y1 + margin) * px_per_m)
             ink[cy0 : cy0 + cov_y.size, cx0 : cx0 + cov_x.size] += sign * np.outer(cov_y, cov_x)
@@ -403,12 +407,12 @@ class BoardTexture:
                 add(x0 + c * cell, y0 + r * cell, x0 + (c + 1) * cell, y0 + (r + 1) * cell, -1.0)
 
         image = np.round(255.0 * (1.0 - np.clip(ink, 0.0, 1.0))).astype(np.uint8)
-        # The printed face as the camera sees it; the margins are symmetric, so the flipped image keeps
-        # the map to board metres (which for a mirrored board is `BoardSpec.object_points`' frame).
+        # The printed face as the camera sees it. A mirrored face is drawn mirrored (above) rather than
+        # flipped as an image: a flip is about the image's middle, which is the grid's only when the sheet
+        # is a whole number of pixels wide (renders were 0.3 px off their labels). The map to board metres
+        # is `BoardSpec.object_points`' frame for a mirrored board.
         if board.inverted:
             image = 255 - image
-        if board.mirrored:
-            image = np.ascontiguousarray(image[:, ::-1])
         return cls(board=board, image=image, px_per_m=float(px_per_m), margin=float(margin))
 
     @property

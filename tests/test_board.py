@@ -128,6 +128,22 @@ def test_inverted_and_mirrored_textures_and_object_points():
     plain = board.render_texture(1000.0, margin=0.01).image
     assert np.array_equal(BoardSpec(inverted=True).render_texture(1000.0, margin=0.01).image, 255 - plain)
     assert np.array_equal(BoardSpec(mirrored=True).render_texture(1000.0, margin=0.01).image, plain[:, ::-1])
+
+
+def test_a_mirrored_texture_is_mirrored_about_the_grid_not_the_image_edge():
+    """At a density that leaves the sheet a fractional number of pixels wide, the ink of a mirrored board still
+    lies where `object_points` (X -> W - X) puts it: its ink centroid is the plain board's, mirrored."""
+    board, px_per_m = BoardSpec(), 1003.3  # (0.2 + 0.02) m x 1003.3 = 220.7 px: not a whole number
+
+    def ink_centroid_x(texture) -> float:
+        ink = 255.0 - texture.image.astype(np.float64)
+        columns = np.arange(ink.shape[1], dtype=np.float64)
+        u = (ink.sum(axis=0) * columns).sum() / ink.sum()
+        return float(texture.texture_to_board(np.array([u, 0.0]))[0])
+
+    plain = ink_centroid_x(board.render_texture(px_per_m, margin=0.01))
+    mirrored = ink_centroid_x(BoardSpec(mirrored=True).render_texture(px_per_m, margin=0.01))
+    assert abs(mirrored - (board.size_m[0] - plain)) < 0.02 / px_per_m  # 1/50 px; an image flip was 0.3 px off
     mirrored = BoardSpec(mirrored=True).object_points()
     assert np.allclose(mirrored[:, 0], board.size_m[0] - board.corner_points()[:, 0])
     assert np.allclose(mirrored[:, 1:], board.corner_points()[:, 1:])
