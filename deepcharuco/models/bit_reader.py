@@ -15,9 +15,10 @@ row = the square frame's y (down), column = its x (right).
          (a 12 px blur at 2 px per bit spans 6)
       -> conv1x1 W -> 1 -> the inner n x n cells: logits (B, n, n), > 0 = white
 
-A logit is the log-likelihood ratio log p(white) / p(black) the network was trained to give
-(binary cross-entropy), so a marker's log-likelihood given a read is, up to a constant,
-sum_i (2 b_i - 1) * logit_i / 2 (`marker_reader` scores candidate markers with it).
+Training (train/bit_reader.py) first fits each logit as the log-likelihood ratio
+log p(white) / p(black) (binary cross-entropy: a marker's log-likelihood is then, up to a constant,
+sum_i (2 b_i - 1) * logit_i / 2), then fine-tunes on the score `marker_reader` uses: the cosine of
+tanh(logit / 4) with the candidate's bit signs, softmax over the true marker and others.
 """
 
 from __future__ import annotations
