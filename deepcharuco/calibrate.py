@@ -23,7 +23,9 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.calibration import MODELS, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, calibrate, sharpness
+from deepcharuco.calibration import (
+    MODELS, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, border_margin, calibrate, sharpness,
+)
 from deepcharuco.camera import write_camera
 from deepcharuco.detect import make_detector, open_source
 from deepcharuco.errors import DeepCharucoError
@@ -69,7 +71,9 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
 
 def write_calibration(path: str | Path, result: CalibrationResult, board: BoardSpec, detector: str) -> Path:
     """The camera file: `write_camera`'s four nodes (what `read_camera` and OpenCV's samples read), then
-    the model, the RMS, the standard deviations and the views, appended as a second YAML document."""
+    the model, the RMS, the standard deviations, the views, and the per-corner uncertainty
+    (``corner_sigma_px``, `CalibrationResult.corner_sigma`) with every corner's residual
+    (``corner_residuals``: frame, ID, dx, dy), appended as a second YAML document."""
     path = Path(path)
     write_camera(path, result.camera)
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_APPEND)
@@ -82,6 +86,11 @@ def write_calibration(path: str | Path, result: CalibrationResult, board: BoardS
             storage.write("std_intrinsics_names", " ".join(result.std))
             storage.write("std_intrinsics", np.array(list(result.std.values()), np.float64).reshape(-1, 1))
         storage.write("per_view_reprojection_errors", np.asarray(result.per_view_rms, np.float64).reshape(-1, 1))
+        storage.write("corner_sigma_px", float(result.corner_sigma))
+        # One row per corner used: frame, corner ID, residual x and y (px; detected minus reprojected).
+        storage.write("corner_residuals", np.concatenate(
+            [np.column_stack([np.full(len(v.ids), v.index), v.ids, r]) for v, r in zip(result.views, result.residuals)]
+        ).astype(np.float64))
         storage.write("view_frames", np.array([v.index for v in result.views], np.int32).reshape(-1, 1))
         storage.write("detector", detector)
         storage.write("board", json.dumps(board.to_dict()))
@@ -114,7 +123,8 @@ def run(args: argparse.Namespace) -> CalibrationResult:
     if size is None:
         raise CalibrationError(f"no frames could be read from {args.source}: give a video, a folder of images or a "
                                f"camera index that delivers frames")
-    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views)
+    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
+                               border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin)
     result = calibrate(frames, board, size, args.model, options, fix_k3=args.fix_k3)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -132,7 +142,8 @@ def run(args: argparse.Namespace) -> CalibrationResult:
     deviation = (lambda name: f" +- {std[name]:.2f}" if name in std else "")  # noqa: E731
     print(f"{len(result.views)} views of {result.frames} frames ({sum(d.corners > 0 for d in result.decisions)} with "
           f"corners): RMS {result.rms:.3f} px, fx {K[0, 0]:.2f}{deviation('fx')}, fy {K[1, 1]:.2f}{deviation('fy')}, "
-          f"cx {K[0, 2]:.2f}{deviation('cx')}, cy {K[1, 2]:.2f}{deviation('cy')}, dist "
+          f"cx {K[0, 2]:.2f}{deviation('cx')}, cy {K[1, 2]:.2f}{deviation('cy')}, corner sigma "
+          f"{result.corner_sigma:.3f} px, dist "
           f"{np.array2string(result.camera.dist, precision=4, separator=' ')} -> {out}"
           + (f", {report}" if report is not None else ""))
     for note in result.notes:
@@ -165,6 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-views", type=int, default=80, help="at most this many views are calibrated")
     parser.add_argument("--min-views", type=int, default=6, help="fewer usable views is an error")
     parser.add_argument("--min-corners", type=int, default=6, help="a view needs this many corners")
+    parser.add_argument("--border-margin", type=float, default=None,
+                        help="corners nearer the image's border than this (px) are not used (default: 12 for "
+                             "--refine refinenet, whose 24 px patch would reach past the border, else 0)")
     parser.add_argument("--step", type=int, default=1, help="look at every n-th frame only")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (a camera: required)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -180,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
                 for name, low in (("max_views", 4), ("min_views", 4), ("min_corners", 4), ("step", 1))
                 if getattr(args, name) < low]
+    if args.border_margin is not None and args.border_margin < 0:
+        problems.append(f"--border-margin must be >= 0, got {args.border_margin:g}")
     if args.source.isdigit() and not Path(args.source).exists() and args.max_frames is None:
         problems.append("a live camera needs --max-frames (how many frames to capture)")
     if args.fix_k3 and args.model == "fisheye":

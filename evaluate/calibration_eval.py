@@ -26,7 +26,7 @@ from datagen.lens import pixels_to_rays
 from datagen.shards import ShardReader, list_shards
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibrate import detect_frames
-from deepcharuco.calibration import CalibrationError, CalibrationResult, calibrate
+from deepcharuco.calibration import CalibrationError, CalibrationResult, SelectionOptions, border_margin, calibrate
 from evaluate.calibration_sequences import read_truth
 
 GOOD_FOCAL_PCT, GOOD_CENTRE_PX, RMS_RATIO = 0.3, 1.0, 1.1
@@ -69,21 +69,41 @@ def intrinsics_errors(result: CalibrationResult, K: np.ndarray, dist: np.ndarray
 
 
 def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True) -> dict:
-    """One detector on one sequence: its calibration's errors, or the reason it gave none."""
+    """One detector on one sequence: its calibration's errors, or the reason it gave none. Calibrated as
+    ``python -m deepcharuco.calibrate`` does with its defaults (the border margin of the detector's refinement)."""
     reader = ShardReader(path)
     try:
         frames = ((str(i), reader[i].image) for i in range(len(reader)))
         detections, size = detect_frames(frames, detector, total=len(reader), quiet=quiet)
+        labels = [(reader[i].corners.astype(np.float64), reader[i].visible) for i in range(len(reader))]
     finally:
         reader.close()
     K, dist, _ = read_truth(path)
     row = {"frames": len(detections), "frames_with_corners": sum(len(d.ids) > 0 for d in detections)}
     try:
-        result = calibrate(detections, board, size)
+        result = calibrate(detections, board, size, options=SelectionOptions(border_px=border_margin(_refine(detector))))
     except CalibrationError as error:
         return {**row, "calibrated": False, "reason": str(error)}
     return {**row, "calibrated": True, "views": len(result.views), "rms_px": result.rms,
-            "std_fx": result.std.get("fx"), **intrinsics_errors(result, K, dist)}
+            "std_fx": result.std.get("fx"), "std_cx": result.std.get("cx"), "corner_sigma_px": result.corner_sigma,
+            "corner_error_px": corner_error(result, labels), **intrinsics_errors(result, K, dist)}
+
+
+def _refine(detector) -> str:
+    """How ``detector`` refines its corners: a deep `Detector`'s ``refine``; OpenCV's detector uses cornerSubPix."""
+    return str(getattr(detector, "refine", "subpix"))
+
+
+def corner_error(result: CalibrationResult, labels: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The truth `CalibrationResult.corner_sigma` estimates: the RMS per axis (px) of the used corners' distance
+    from their labels (frame i's labels: (corners (C, 2), visible (C,)); views are numbered by frame)."""
+    errors = []
+    for view in result.views:
+        corners, visible = labels[view.index]
+        seen = visible[view.ids]
+        errors.append(view.corners[seen] - corners[view.ids[seen]])
+    errors = np.concatenate(errors) if errors else np.zeros((0, 2))
+    return float(np.sqrt(np.mean(errors ** 2))) if len(errors) else math.nan
 
 
 def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec, quiet: bool = False) -> dict:
@@ -143,18 +163,20 @@ def calibration_sections(calibration: dict, labels: dict | None = None) -> list[
     """The report's section(s) for `calibration_experiment`'s results."""
     labels = labels or {}
     rows = [["sequence", "detector", "views / frames with corners", "RMS px", "fx %", "fy %", "cx px", "cy px",
-             "distortion at corners: true / error px", "mapping error px"]]
+             "distortion at corners: true / error px", "mapping error px", "corner sigma: estimated / true px"]]
     for row in calibration["table"]:
         for name in calibration["detectors"]:
             cell = row[name]
             label = labels.get(name, name)
             if not cell["calibrated"]:
-                rows.append([row["sequence"], label, f"0 / {cell['frames_with_corners']}", "none", "", "", "", "", "", ""])
+                rows.append([row["sequence"], label, f"0 / {cell['frames_with_corners']}", "none", "", "", "", "", "", "",
+                             ""])
                 continue
             rows.append([row["sequence"], label, f"{cell['views']} / {cell['frames_with_corners']}", f"{cell['rms_px']:.3f}",
                          f"{cell['fx_pct']:+.2f}", f"{cell['fy_pct']:+.2f}", f"{cell['cx_px']:+.2f}", f"{cell['cy_px']:+.2f}",
                          f"{cell['true_corner_distortion_px']:.1f} / {cell['corner_distortion_error_px']:.2f}",
-                         f"{cell['mapping_error_px']:.2f}"])
+                         f"{cell['mapping_error_px']:.2f}",
+                         f"{cell.get('corner_sigma_px', math.nan):.3f} / {cell.get('corner_error_px', math.nan):.3f}"])
     applicable = [t for t in calibration["targets"] if t["met"] is not None]
     met = [t for t in applicable if t["met"]]
     text = ("Each detector calibrates (python -m deepcharuco.calibrate's pipeline, pinhole model) each rendered "
@@ -162,7 +184,8 @@ def calibration_sections(calibration: dict, labels: dict | None = None) -> list[
             "distorted camera, k1 from -0.4 to +0.1; good light, 1 lux, shake). Errors against the true camera; "
             "'distortion at corners': how far the true distortion moves the image's corner pixels, and the solved "
             "model's error there (worst corner); 'mapping error': worst pixel of a grid, true ray through the solved "
-            f"camera. **Targets met: {len(met)} of {len(applicable)}**"
+            "camera; 'corner sigma': the per-corner uncertainty calibrate reports (one corner's standard deviation "
+            f"per axis, from the residuals) against the used corners' true error. **Targets met: {len(met)} of {len(applicable)}**"
             + (" (missed: " + "; ".join(f"{t['sequence']} {labels.get(t['detector'], t['detector'])}" for t in
                                         applicable if not t["met"]) + ")" if len(met) < len(applicable) else "")
             + f"; {len(calibration['targets']) - len(applicable)} not applicable (OpenCV calibrated within "

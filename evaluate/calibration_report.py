@@ -142,7 +142,9 @@ def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[s
     kept = len(result.views)
     with_corners = sum(d.corners > 0 for d in result.decisions)
     summary = (f"**RMS reprojection error {result.rms:.3f} px** over {sum(len(v.ids) for v in result.views)} corners of "
-               f"{kept} views, {result.model} model, {width}x{height} images. {result.frames} frames read, {with_corners} "
+               f"{kept} views, {result.model} model, {width}x{height} images; per-corner uncertainty (one corner's "
+               f"standard deviation per axis, the fit's degrees of freedom taken out) {result.corner_sigma:.3f} px. "
+               f"{result.frames} frames read, {with_corners} "
                f"with board corners; " + (f"solved {result.rounds} times, outliers rejected in between. " if result.rounds > 1
                                           else "solved once (no outliers). ") + "Board: "
                f"{board.squares_x}x{board.squares_y} {board.dictionary}, {board.num_corners} corners."
