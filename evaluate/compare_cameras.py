@@ -4,7 +4,8 @@ For real captures there is no true camera, only calibrations to compare (e.g. th
 `deepcharuco.calibrate` with each detector against another tool's file). Each row: the intrinsics,
 the RMS the file states (``avg_reprojection_error``, or a "reproj error X" in its ``note``), the
 views used, and how far the file's camera puts the REFERENCE camera's rays: at the image's four
-corners (worst) and at its centre, in pixels. Pinhole models (4-14 coefficients) only.
+corners (worst) and at its centre, in pixels. OpenCV's standard model (4-14 coefficients) and its fisheye
+model (a fisheye file's k1..k4 are listed under k1 k2 p1 p2, its name marked "(fisheye)").
 """
 
 from __future__ import annotations
@@ -52,10 +53,12 @@ def ray_disagreement(reference: Camera, other: Camera) -> tuple[float, float]:
     other = other.for_image_size(width, height)
     pixels = np.array([[0.0, 0.0], [width - 1.0, 0.0], [0.0, height - 1.0], [width - 1.0, height - 1.0],
                        [reference.K[0, 2], reference.K[1, 2]]])
-    rays = pixels_to_rays(pixels, reference.K, reference.dist)
-    mapped, _ = cv2.projectPoints(np.column_stack([rays, np.ones(len(rays))]), np.zeros(3), np.zeros(3),
-                                  other.K, other.dist)
-    distance = np.linalg.norm(mapped.reshape(-1, 2) - pixels, axis=1)
+    if reference.model == "fisheye":
+        rays = (reference.undistort_points(pixels) - reference.K[:2, 2]) / reference.K[[0, 1], [0, 1]]
+    else:
+        rays = pixels_to_rays(pixels, reference.K, reference.dist)  # Newton, and refuses a lens that folds
+    mapped = other.project(np.column_stack([rays, np.ones(len(rays))]), np.zeros(3), np.zeros(3))
+    distance = np.linalg.norm(mapped - pixels, axis=1)
     return float(distance[:4].max()), float(distance[4])
 
 
@@ -73,7 +76,7 @@ def comparison_rows(paths: list[str | Path], names: list[str] | None = None) -> 
             spread = [f"{corners:.1f}", f"{centre:.1f}"]
         except (LensError, DeepCharucoError) as error:
             spread = [f"n/a ({error.__class__.__name__})", ""]
-        rows.append([name, *(f"{v:.1f}" for v in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2])),
+        rows.append([name + (" (fisheye)" if camera.model == "fisheye" else ""), *(f"{v:.1f}" for v in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2])),
                      *(f"{v:.4f}" for v in dist), "" if rms is None else f"{rms:.3f}",
                      "" if views is None else str(views), *spread])
     return rows

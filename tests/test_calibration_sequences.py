@@ -91,3 +91,17 @@ def test_opencv_finds_the_corners_where_the_labels_are(rendered):
         errors += [np.linalg.norm(c - frame.corners[i]) for i, c in zip(detection.ids, detection.corners)]
     assert len(errors) >= 8, "OpenCV should find most corners of good-light frames"
     assert np.median(errors) < 0.3
+
+
+def test_conditions_choose_the_shards_and_the_renders():
+    from evaluate.calibration_sequences import CONDITIONS, CalibrationJob, renders_per_camera
+
+    common = dict(out="x", seed=0, frames=10, board=BOARD, width=320, height=240, samples=2, device="cpu", threads=1)
+    full, still = CalibrationJob(**common), CalibrationJob(**common, conditions=("good", "1lux"))
+    assert full.numbers([0, 2]) == [0, 1, 2, 6, 7, 8] and still.numbers([0, 2]) == [0, 1, 6, 7]
+    # good light and 1 lux share their renders; shake doubles them.
+    assert renders_per_camera(full) == 20 and renders_per_camera(still) == 10
+    assert renders_per_camera(CalibrationJob(**common, conditions=("shake",))) == 10
+    # A full run's arguments are those of runs made before the option: their shards still resume.
+    assert "conditions" not in full.content() and still.content()["conditions"] == ["good", "1lux"]
+    assert full.conditions == CONDITIONS

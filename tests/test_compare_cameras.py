@@ -24,3 +24,15 @@ def test_rows_and_stated_rms(tmp_path, capsys):
     assert rows[2][0] == "second" and rows[2][10] == "0.541" and rows[2][-2:] == ["0.0", "0.0"]
     assert main([str(tmp_path / "a.yaml"), str(tmp_path / "missing.yaml")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_fisheye_file_is_compared_through_its_own_model(tmp_path):
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    fisheye = Camera(K=K, dist=np.array([0.05, -0.01, 0.002, 0.0]), image_size=(640, 480), model="fisheye")
+    assert max(ray_disagreement(fisheye, fisheye)) < 1e-6
+    # Read as k1 k2 p1 p2 of the standard model, the same numbers are another camera.
+    misread = Camera(K=K, dist=fisheye.dist, image_size=(640, 480))
+    assert ray_disagreement(fisheye, misread)[0] > 5.0
+    write_camera(tmp_path / "f.yaml", fisheye)
+    rows = comparison_rows([tmp_path / "f.yaml", tmp_path / "f.yaml"], ["a", "b"])
+    assert rows[1][0] == "a (fisheye)" and rows[2][-2:] == ["0.0", "0.0"]
