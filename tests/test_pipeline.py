@@ -284,3 +284,28 @@ def test_match_points_pairs_each_truth_once():
     assert match_points(np.array([[10.5, 10.0], [11.0, 10.0], [40.0, 40.0]]), truth) == 1
     assert match_points(np.array([[10.0, 12.9], [19.0, 10.0]]), truth) == 2
     assert match_points(np.zeros((0, 2)), truth) == 0
+
+
+def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unseen_boards(tmp_path):
+    plan = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "run"), "--budget", "2h"])
+    plan.sizes, plan.rates = pipeline.FULL["points"], {**pipeline.ASSUMED_RATES, **RECORDED}
+    stages = {stage.name: stage for stage in plan.stages()}
+    assert list(plan.eval_boards) == ["4x5 DICT_4X4_1000 inverted"]
+    render, charuconet = " ".join(stages["render"].command), " ".join(stages["charuconet"].command)
+    assert "--family DICT_4X4" in render and "--n 5000" in render and "--board" not in render
+    assert "--heads points" in charuconet and "--id-positive-weight" not in charuconet and str(SHIPPED) in charuconet
+    assert "eval-data 4x5 DICT_4X4_1000 inverted" in stages
+    assert "--family DICT_4X4" in plan.reproduce_command() and "--budget" not in plan.reproduce_command()
+    five = make_pipeline(["--family", "DICT_5X5", "--out", str(tmp_path / "five")])
+    assert "5x5 DICT_5X5_50 (the paper's)" in five.eval_boards and "11x8 DICT_5X5_1000" in five.eval_boards
+    scratch = make_pipeline(["--board", str(SMALL_BOARD.save(tmp_path / "b.yaml")), "--out", str(tmp_path / "s"),
+                             "--init", "none"])
+    scratch.sizes, scratch.rates = pipeline.FULL["all"], plan.rates
+    names = [stage.name for stage in scratch.stages()]
+    assert names[2:4] == ["charuconet-a", "charuconet-b"]  # the shipped recipe: plain loss, then the ID term weighted
+
+
+def test_rate_probes_time_real_steps():
+    assert 0 < pipeline.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu") < 60
+    assert 0 < pipeline.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu") < 60
+    assert 0 < pipeline.probe_patches() < 1

@@ -522,6 +522,7 @@ class Pipeline:
         """The --board board, saved in the run folder (the run does not depend on the user's file staying put)."""
         path = self.run / "board.yaml"
         if not path.is_file():
+            path.parent.mkdir(parents=True, exist_ok=True)
             self.target.board.save(path)
         return path
 
@@ -946,8 +947,10 @@ def write_cluster_scripts(pipeline: Pipeline, kind: str, num_shards: int) -> lis
     pipeline_command = pipeline.reproduce_command()
     gpus = max(1, pipeline.args.nproc_per_node)
     ddp_note = ("# Training: train/loop.py supports torchrun (DDP): each rank takes every world-size-th sample of a\n"
-                "# batch, rank 0 writes checkpoints and logs. Tested here on CPU only (gloo); one node, one process per\n"
-                "# GPU (--device auto gives rank r the GPU LOCAL_RANK). A SIGTERM must reach every rank together.\n")
+                "# batch, rank 0 writes checkpoints and logs; one node, one process per GPU (--device auto gives rank r\n"
+                "# the GPU LOCAL_RANK). Run with 2 CPU processes (gloo) only, never on several GPUs yet. Stop the job as\n"
+                "# a whole (a rank stopped alone leaves the others waiting), then resume it.\n"
+                f"# Paths are those of the checkout that wrote this ({ROOT}): edit them for the cluster's mounts.\n")
     if kind == "slurm":
         render_path, train_path = folder / "render.slurm", folder / "train.slurm"
         render_path.write_text(
