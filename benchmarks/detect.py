@@ -16,12 +16,17 @@ on the machine hits all alike, and the table gives fps, the ratio to OpenCV's fp
 the same run, the fraction of true corners found within 3 px (the paper's accuracy: speed is never
 bought with missed boards) and their mean distance to the truth in px (the sub-pixel error at full
 resolution, next to OpenCV's).
+
+A second table times video: the first frame drifting 2 px a frame for 30 frames, searched whole
+every frame (OpenCV, the deep detector) or tracked (`deepcharuco.tracking.BoardTracker`: only
+around the last board, the whole frame every 30), in good light and dark.
 """
 
 from __future__ import annotations
 
 import argparse
 import platform
+import time
 from dataclasses import replace
 
 import cv2
@@ -32,6 +37,7 @@ from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
 from deepcharuco.runtime import int8_model, onnxruntime_available
 from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.tracking import BoardTracker
 from evaluate.data import TestSetError, load_frames, select_well_lit
 from evaluate.protocols import TestFrame, darken, score_corners, time_pipelines
 
@@ -73,6 +79,26 @@ def drawn_frames(board: BoardSpec, count: int, seed: int = 0) -> list[TestFrame]
         corners = projected.reshape(-1, 2).astype(np.float32)
         frames.append(TestFrame(image, corners, np.ones(len(corners), bool), K, rvec, tvec, f"drawn#{i}"))
     return frames
+
+
+def drifting_clip(frame: TestFrame, length: int = 30, step_px: float = 2.0) -> list[np.ndarray]:
+    """``length`` images of ``frame`` moving right by ``step_px`` a frame (a board waved slowly in a video)."""
+    height, width = frame.image.shape
+    border = int(np.median(frame.image))
+    return [cv2.warpAffine(frame.image, np.float32([[1, 0, i * step_px], [0, 1, 0]]), (width, height),
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=border) for i in range(length)]
+
+
+def clip_fps(detector, clip: list[np.ndarray], rounds: int = 3) -> tuple[float, float]:
+    """(fps, fraction of frames with >= 4 corners) of ``detector`` over ``clip`` in order, median of rounds."""
+    rates, found = [], 0
+    for _ in range(rounds):
+        if isinstance(detector, BoardTracker):
+            detector.reset()
+        started = time.perf_counter()
+        found = sum(len(detector.detect(image)) >= 4 for image in clip)
+        rates.append(len(clip) / (time.perf_counter() - started))
+    return float(np.median(rates)), found / len(clip)
 
 
 def accuracy(detector, frames: list[TestFrame]) -> tuple[float, float]:
@@ -145,6 +171,19 @@ def main() -> None:
             right, error = accuracy(configurations[name], frames)
             cells.append(f"{fps[name]:7.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:5.2f} {error:5.2f}")
         print(f"{label:28s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
+
+    # Video: the first frame drifting 2 px a frame, searched whole each frame or tracked (BoardTracker).
+    print("\nvideo, 30 frames drifting 2 px/frame: fps (frames with >= 4 corners)")
+    video = {"opencv": configurations["opencv"], "deep": deep, "deep tracked": BoardTracker(deep),
+             "hybrid tracked": BoardTracker(configurations["hybrid"])}
+    print(f"{'frames':28s} " + " ".join(f"{n:>18s}" for n in video))
+    for text in args.sizes.split(","):
+        size = parse_size(text)
+        for label, frame in ((f"{text}", letterboxed(base[0], size)),
+                             (f"{text} dark k={DARK_K}", darkened(letterboxed(base[0], size)))):
+            clip = drifting_clip(frame)
+            cells = [clip_fps(detector, clip) for detector in video.values()]
+            print(f"{label:28s} " + " ".join(f"{f:9.1f} ({r:4.2f})".rjust(18) for f, r in cells), flush=True)
 
 
 if __name__ == "__main__":
