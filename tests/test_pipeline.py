@@ -309,3 +309,28 @@ def test_rate_probes_time_real_steps():
     assert 0 < pipeline.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu") < 60
     assert 0 < pipeline.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu") < 60
     assert 0 < pipeline.probe_patches() < 1
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="parent-death signal is Linux's")
+def test_a_stage_dies_with_a_killed_pipeline(tmp_path):
+    """A SIGKILLed pipeline cannot pass the signal on: its stage must still stop (not train on, orphaned)."""
+    script = (
+        "import subprocess, sys, time\n"
+        "from train.pipeline import stop_with_parent\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], preexec_fn=stop_with_parent)\n"
+        "print(child.pid, flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    child_pid = int(parent.stdout.readline())
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child_pid, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.2)
+    os.kill(child_pid, signal.SIGKILL)
+    pytest.fail("the stage outlived its killed pipeline")

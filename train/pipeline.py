@@ -155,6 +155,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def stop_with_parent() -> None:
+    """Run in a stage's child process before it starts (Linux): the child gets SIGTERM when the pipeline dies,
+    even by SIGKILL, which no handler can pass on. A stage that outlived its pipeline kept training, and the
+    rerun that resumes the run started a second trainer on the same folder."""
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 @dataclass
 class Target:
     """What the run makes: a family model or one board's."""
@@ -720,7 +730,7 @@ class Pipeline:
                     (stage.folder / leftover).unlink(missing_ok=True)
         before = self.progress(stage)
         print("$ " + shlex.join(command), flush=True)
-        process = subprocess.Popen(command, cwd=ROOT)
+        process = subprocess.Popen(command, cwd=ROOT, preexec_fn=stop_with_parent if sys.platform == "linux" else None)
         forwarded = []
 
         def forward(signum, frame):
