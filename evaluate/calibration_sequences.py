@@ -11,6 +11,9 @@ of horizontal field of view), and three videos of it, one shard each (shard inde
   `evaluate.sequences`' motion videos), each frame rendered with real motion blur over its
   exposure, at 60-200 lux; labelled at the shutter centre.
 
+``--conditions`` renders some of them (good light and 1 lux share their renders; shake needs its own):
+the still frames are the same with or without the shake video.
+
 The waving (`hand_waved_pose`): the board's centre follows a 3:2 Lissajous figure over the whole
 image (so parts of it leave the frame at the edges and corners, where distortion is strongest),
 its tilt towards the camera sweeps +-40 degrees about both axes, it rolls and comes nearer and

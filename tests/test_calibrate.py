@@ -344,3 +344,25 @@ def test_one_pose_over_and_over_says_move_the_board(tmp_path, capsys, waved):
     message = _fail(tmp_path, capsys, [waved[0][5]] * 10)
     assert "only 1 usable view(s)" in message and "repeat a pose already kept" in message
     assert "move and tilt the board" in message
+
+
+def test_camera_files_name_their_model(tmp_path):
+    from deepcharuco.errors import CameraFileError
+
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    for model, count, expected in (("rational", 8, "pinhole"), ("pinhole", 5, "pinhole"), ("fisheye", 4, "fisheye")):
+        storage = cv2.FileStorage(str(tmp_path / f"{model}.yaml"), cv2.FILE_STORAGE_WRITE)
+        for name, value in (("image_width", 320), ("image_height", 240), ("camera_matrix", K),
+                            ("distortion_coefficients", np.full((count, 1), 0.01)), ("distortion_model", model)):
+            storage.write(name, value)
+        storage.release()
+        camera = read_camera(tmp_path / f"{model}.yaml")
+        assert camera.model == expected and camera.dist.shape == (count,)
+    storage = cv2.FileStorage(str(tmp_path / "other.yaml"), cv2.FILE_STORAGE_WRITE)
+    for name, value in (("image_width", 320), ("image_height", 240), ("camera_matrix", K), ("distortion_model", "kb8")):
+        storage.write(name, value)
+    storage.release()
+    with pytest.raises(CameraFileError, match="distortion_model 'kb8'"):
+        read_camera(tmp_path / "other.yaml")
+    with pytest.raises(CameraFileError, match="fisheye camera has 4 distortion coefficients"):
+        Camera(K=K, dist=np.zeros(5), image_size=(320, 240), model="fisheye")
