@@ -2,6 +2,8 @@
 
 The steps (each a function, `calibrate` runs them in order):
 
+0. `within_border`: corners nearer the image's border than ``border_px`` are not used (RefineNet's,
+   `border_margin`: its patch reaches past the border there);
 1. `usable_reason`: a frame is a candidate view when it has at least ``min_corners`` corners
    that do not lie along one line of the board (one line leaves the tilt about it unobservable);
 2. `select_views`: candidates blurred well below the others (`sharpness`, less than
@@ -13,8 +15,8 @@ The steps (each a function, `calibrate` runs them in order):
 3. `solve`: ``cv2.calibrateCameraExtended`` on the corners (ID i at ``board.object_points()[i]``)
    for the ``pinhole`` (k1 k2 p1 p2 k3) and ``rational`` (+ k4 k5 k6) models, with the parameters'
    standard deviations; ``cv2.fisheye.calibrate`` for ``fisheye`` (k1..k4, no deviations);
-4. outliers: corners whose residual exceeds ``corner_outlier`` x the RMS (and 1 px) are dropped,
-   then views whose RMS exceeds ``view_outlier`` x the median view RMS (and `MIN_OUTLIER_PX`), and
+4. outliers: the worst corner of each view, when its residual exceeds ``corner_outlier`` x the
+   RMS (and 1 px), is dropped, then views whose RMS exceeds ``view_outlier`` x the median view RMS (and `MIN_OUTLIER_PX`), and
    it is solved again, until nothing changes (at most `MAX_ROUNDS`). The pinhole and rational
    models go through this twice: first with k3 (k4..k6) held at 0 (`STIFF`), then free, started
    from the first stage's solution.
@@ -116,7 +118,8 @@ class SelectionOptions:
 # border, part of that patch is padding. On the rendered validation sequences (seed 0) the deep detector's
 # corners within 8 px of the border were 3-4 x less accurate (0.32-0.51 px RMS against 0.12-0.15 px) and
 # dropping those within the patch's reach brought the good-light calibrations within 0.3 % / 1 px on all
-# three cameras (two of three with them), at no cost at 1 lux or under shake.
+# three cameras (two of three with them); at 1 lux and under shake fx/fy stayed within 1 % (the principal
+# point moved by up to 1.5 px either way: fewer corners where distortion is strongest).
 REFINENET_BORDER_PX = 12.0
 
 
