@@ -169,14 +169,15 @@ class Detector:
                 f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
 
     @torch.inference_mode()
-    def detect(self, image: np.ndarray) -> Detection:
+    def detect(self, image: np.ndarray, *, working_size: int | None = None) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
         that, up to full resolution, until a verified board is found whose squares are at least
         `MIN_SQUARE_PX` wide there (else the finest level that found one); each corner is refined again in
         the full-resolution image. Large boards are found where the network sees them best, and a large
-        image costs little when the board is found at a coarse level."""
+        image costs little when the board is found at a coarse level. ``working_size`` overrides the first
+        level's size for this call (`BoardTracker` searches a crop at the scale its whole frame was searched at)."""
         if self._opencv is not None:
             found = self._opencv.detect(image)
             if self._verified(found):
@@ -184,7 +185,7 @@ class Detector:
         full = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
         height, width = full.shape
         found = None
-        for gray in self._search_levels(full):
+        for gray in self._search_levels(full, working_size or self.working_size):
             ids, pixels, scores = self._find(gray, full)
             if len(ids):
                 found = (gray, ids, pixels, scores)
@@ -211,16 +212,16 @@ class Detector:
         view = fit_board_homography(self.board.object_points()[detection.ids, :2], detection.corners, tolerance)
         return view is not None and view.inliers.sum() >= 0.9 * len(detection.ids)
 
-    def _search_levels(self, full: np.ndarray):
+    def _search_levels(self, full: np.ndarray, working_size: int | None):
         """The images the board is searched in, coarse first: ``working_size``, then twice that, ... up to
         ``full`` itself (a board whose squares are too small for the coarse level is found at a finer one)."""
         height, width = full.shape
         longest = max(height, width)
-        size = self.working_size
+        size = None if working_size is None else max(working_size, 2 * CELL)
         while size is not None and size < longest and size < MAX_SEARCH_SIZE:
             yield _reduced(full, size / longest)
             size *= 2
-        if longest <= MAX_SEARCH_SIZE or self.working_size is None:
+        if longest <= MAX_SEARCH_SIZE or working_size is None:
             yield full
         else:  # the network never sees more than MAX_SEARCH_SIZE: memory and time stay bounded
             yield _reduced(full, MAX_SEARCH_SIZE / longest)

@@ -129,6 +129,9 @@ def _session(model: bytes, threads: int):
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # Idle workers sleep instead of spinning: as fast on an idle CPU (8.7 vs 8.5 ms at 320x240, 2 threads) and
+    # far faster beside other work (18 vs 28 ms with one other busy process on 2 cores).
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
 
 

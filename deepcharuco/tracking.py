@@ -70,7 +70,7 @@ class BoardTracker:
         self._since_full += 1
         if self._region is not None and self._since_full < self.refresh_every:
             x0, y0, x1, y1 = self._region
-            found = self.detector.detect(image[y0:y1, x0:x1])
+            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width))
             if len(found) >= MIN_CORNERS:
                 detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
                                       scores=found.scores)
@@ -82,6 +82,16 @@ class BoardTracker:
         self._follow(detection, (width, height))
         self.last_search = "full"
         return detection
+
+    def _detect_crop(self, crop: np.ndarray, frame_longest: int) -> Detection:
+        """The detector on ``crop``; a coarse-to-fine `Detector` searches it first at the scale its whole frame
+        is searched at (its own choice, by the crop's size alone, would look at a nearly square crop of a
+        board that fills the frame in more pixels than the whole frame)."""
+        working_size = getattr(self.detector, "working_size", None)
+        if working_size is None:
+            return self.detector.detect(crop)
+        scale = min(1.0, working_size / frame_longest)
+        return self.detector.detect(crop, working_size=max(1, round(scale * max(crop.shape[:2]))))
 
     def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
         self._region = search_region(detection.corners, image_size) if len(detection) >= MIN_CORNERS else None

@@ -89,3 +89,28 @@ def test_a_crop_detection_with_too_few_corners_searches_the_whole_frame():
     found = tracker.detect(np.zeros((480, 640), np.uint8))
     assert len(found) == 4 and tracker.last_search == "full"
     assert scripted.calls[0] == (480, 640) and scripted.calls[1] != (480, 640) and scripted.calls[2] == (480, 640)
+
+
+def test_a_coarse_to_fine_detector_searches_the_crop_at_the_whole_frames_scale():
+    """A crop of a 1280x720 frame is searched first at 320/1280 of its size, as the whole frame would be,
+    not reduced to 320 px (a nearly square crop would then be seen in more pixels than the frame)."""
+    class CoarseToFine:
+        working_size = 320
+
+        def __init__(self):
+            self.calls = []
+
+        def detect(self, image, working_size=None):
+            self.calls.append((image.shape, working_size))
+            corners = np.array([[500, 200], [540, 200], [500, 240], [540, 240], [580, 240]], np.float32)
+            if image.shape != (720, 1280):
+                corners -= np.array([tracker._region[0], tracker._region[1]], np.float32)
+            return Detection(np.arange(5), corners, np.ones(5))
+
+    detector = CoarseToFine()
+    tracker = BoardTracker(detector)
+    tracker.detect(np.zeros((720, 1280), np.uint8))
+    tracker.detect(np.zeros((720, 1280), np.uint8))
+    (_, whole), (crop_shape, crop_size) = detector.calls
+    assert whole is None and tracker.last_search == "crop"
+    assert crop_size == round(max(crop_shape) * 320 / 1280)
