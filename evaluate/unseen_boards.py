@@ -67,6 +67,25 @@ def available(root: Path = DEFAULT_ROOT) -> list[str]:
     return [name for name in UNSEEN_BOARDS if any(folder_of(root, name).glob("shard-*.h5"))]
 
 
+def board_summary(detectors: list[str], synthetic: dict, sequences: dict) -> dict:
+    """Each detector's numbers the any-board targets are judged on, from `experiments.synthetic_experiment` and
+    `experiments.sequence_experiment` results: accuracy at k=0, blur k=10, darkness k=9, pose accuracy,
+    confidently wrong poses, mean eps_re over the well-lit (>= 100 lux) sequences."""
+    levels = synthetic["levels"]
+    summary = {}
+    for detector in detectors:
+        blur, dark = synthetic["blur"][detector]["accuracy"], synthetic["darkness"][detector]["accuracy"]
+        overall = sequences["overall"][detector]
+        good = [row[detector]["mean_eps_re"] for row in sequences["table"]
+                if (row.get("lux") or 0) >= 100 and row[detector]["mean_eps_re"] is not None]
+        summary[detector] = {
+            "k0": dark[levels.index(0)], "blur10": blur[levels.index(10)], "dark9": dark[levels.index(9)],
+            "pose_accuracy": overall["pose_accuracy"], "confidently_wrong": overall["confidently_wrong"],
+            "mean_eps_re_good_light": sum(good) / len(good) if good else None,
+        }
+    return summary
+
+
 def unseen_boards_experiment(root: Path = DEFAULT_ROOT, weights: str | None = None, refine_weights: str | None = None,
                              device: str = "cpu", synthetic_images: int = 20, every: int = 1, seed: int = 0,
                              quiet: bool = False) -> dict:
@@ -85,18 +104,7 @@ def unseen_boards_experiment(root: Path = DEFAULT_ROOT, weights: str | None = No
         synthetic = experiments.synthetic_experiment(detectors, well_lit, LEVELS, quiet)
         kept = [f for f in frames if int(f.meta.get("sequence_frame", 0)) % every == 0]
         sequences = experiments.sequence_experiment(detectors, kept, f"sequences {name}", quiet)
-        levels = synthetic["levels"]
-        summary = {}
-        for detector in detectors:
-            blur, dark = synthetic["blur"][detector]["accuracy"], synthetic["darkness"][detector]["accuracy"]
-            overall = sequences["overall"][detector]
-            good = [row[detector]["mean_eps_re"] for row in sequences["table"]
-                    if (row.get("lux") or 0) >= 100 and row[detector]["mean_eps_re"] is not None]
-            summary[detector] = {
-                "k0": dark[levels.index(0)], "blur10": blur[levels.index(10)], "dark9": dark[levels.index(9)],
-                "pose_accuracy": overall["pose_accuracy"], "confidently_wrong": overall["confidently_wrong"],
-                "mean_eps_re_good_light": sum(good) / len(good) if good else None,
-            }
+        summary = board_summary(list(detectors), synthetic, sequences)
         boards[name] = {"board": board.to_dict(), "geometry": detectors["deep"].geometry,
                         "frames": len(kept), "summary": summary,
                         "synthetic": {k: v for k, v in synthetic.items() if not k.startswith("_")},

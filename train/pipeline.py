@@ -817,6 +817,7 @@ def evaluate_model(weights: Path, boards: dict[str, BoardSpec], root: Path, size
     from evaluate import experiments
     from evaluate.data import load_frames, select_well_lit
     from evaluate.protocols import LEVELS
+    from evaluate.unseen_boards import board_summary
 
     results = {}
     for name, board in boards.items():
@@ -825,16 +826,7 @@ def evaluate_model(weights: Path, boards: dict[str, BoardSpec], root: Path, size
         well_lit = select_well_lit(frames, min(sizes.eval_images, len({f.meta.get("sequence") for f in frames})))
         synthetic = experiments.synthetic_experiment(detectors, well_lit, LEVELS, quiet)
         sequences = experiments.sequence_experiment(detectors, frames, f"sequences {name}", quiet)
-        summary = {}
-        for detector in detectors:
-            blur, dark = synthetic["blur"][detector]["accuracy"], synthetic["darkness"][detector]["accuracy"]
-            overall = sequences["overall"][detector]
-            good = [row[detector]["mean_eps_re"] for row in sequences["table"]
-                    if (row.get("lux") or 0) >= 100 and row[detector]["mean_eps_re"] is not None]
-            summary[detector] = {"k0": dark[0], "blur10": blur[-1], "dark9": dark[9],
-                                 "pose_accuracy": overall["pose_accuracy"],
-                                 "confidently_wrong": overall["confidently_wrong"],
-                                 "mean_eps_re_good_light": sum(good) / len(good) if good else None}
+        summary = board_summary(list(detectors), synthetic, sequences)
         results[name] = {"board": board.to_dict(), "geometry": detectors["deep"].geometry, "frames": len(frames),
                          "synthetic_images": len(well_lit), "summary": summary,
                          "sequences": [{"sequence": row.get("sequence"), "lux": row.get("lux"),
