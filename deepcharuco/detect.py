@@ -164,6 +164,15 @@ def _csv_row(record: dict) -> dict:
     }
 
 
+def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
+    """The detector's pose through the camera's own model: a fisheye camera's corners are undistorted first
+    (``solvePnP`` knows only the pinhole model, and would read k1..k4 as k1 k2 p1 p2)."""
+    if camera.model == "fisheye":
+        undistorted = Detection(detection.ids, camera.undistort_points(detection.corners), detection.scores)
+        return detector.estimate_pose(undistorted, camera.K, None)
+    return detector.estimate_pose(detection, camera.K, camera.dist)
+
+
 def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
     return None if camera is None else camera.for_image_size(shape[1], shape[0])
 
@@ -200,7 +209,7 @@ def run(args: argparse.Namespace) -> dict:
                 detect_seconds = elapsed if detect_seconds is None else 0.9 * detect_seconds + 0.1 * elapsed
                 progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps", refresh=False)
                 frame_camera = _camera_for(camera, frame.shape)
-                pose = detector.estimate_pose(detection, frame_camera.K, frame_camera.dist) if frame_camera else None
+                pose = estimate_frame_pose(detector, detection, frame_camera) if frame_camera else None
                 record = frame_record(index, name, detection, pose)
                 records.append(record)
                 rows.writerow(_csv_row(record))

@@ -146,3 +146,25 @@ def test_hybrid_detector_and_tracking_options(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([str(EXAMPLES / "board_320x240.png"), "--refresh-every", "0", "--out", str(tmp_path / "x")])
     assert "--refresh-every must be >= 1" in capsys.readouterr().err
+
+
+def test_a_fisheye_camera_gives_the_true_pose(camera):
+    """A fisheye camera file's k1..k4 are not pinhole coefficients: the pose goes through its own model."""
+    from deepcharuco import OpenCVDetector
+    from deepcharuco.camera import Camera
+    from deepcharuco.detect import estimate_frame_pose
+
+    board = BoardSpec()
+    pinhole, rvec, tvec, _ = make_view(board, camera, distance=0.4, tilt_x_deg=20, offset=(0.04, 0.02))
+    fisheye = Camera(K=camera.K, dist=np.array([0.08, 0.02, 0.0, 0.0]), image_size=camera.image_size, model="fisheye")
+    # The fisheye image: each of its pixels shows what the pinhole view shows where that pixel undistorts to.
+    xs, ys = np.meshgrid(np.arange(320, dtype=np.float64), np.arange(240, dtype=np.float64))
+    source = fisheye.undistort_points(np.stack([xs.ravel(), ys.ravel()], axis=1)).astype(np.float32).reshape(240, 320, 2)
+    image = cv2.remap(pinhole, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderValue=90)
+    detector = OpenCVDetector(board, refine="subpix")
+    detection = detector.detect(image)
+    assert len(detection) >= 12
+    pose = estimate_frame_pose(detector, detection, fisheye)
+    assert np.linalg.norm(pose.tvec.ravel() - tvec.ravel()) < 0.005 * np.linalg.norm(tvec)
+    naive = detector.estimate_pose(detection, fisheye.K, fisheye.dist)  # k1..k4 read as k1 k2 p1 p2
+    assert naive is None or np.linalg.norm(naive.tvec.ravel() - tvec.ravel()) > 2 * np.linalg.norm(pose.tvec.ravel() - tvec.ravel())
