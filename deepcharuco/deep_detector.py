@@ -33,6 +33,7 @@ from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
 from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.marker_reader import READERS
 from deepcharuco.placement import corners_from_markers, marker_view_verified
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, corners_from_canonical
@@ -121,16 +122,20 @@ class Detector:
         backend: how the networks run (`deepcharuco.runtime`): "auto" (default: on CPU, ONNX Runtime with the
             weights' accepted int8 ChArUcoNet if they carry one, else float32 ONNX Runtime when installed, else
             PyTorch), "torch", "onnx" or "onnx-int8".
+        reader: how markers are read (`deepcharuco.marker_reader.READERS`): "sampled" (the default, 4 samples
+            per bit correlated with the board's markers) or "learned" (a 9.5k-parameter CNN's bit logits).
     """
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
-                 mode: str = "deep", backend: str = "auto"):
+                 mode: str = "deep", backend: str = "auto", reader: str | None = None):
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if reader is not None and reader not in READERS:
+            raise ValueError(f"reader must be one of {READERS}, got {reader!r}")
         if geometry is not None and geometry not in DECODINGS:
             raise ValueError(f"geometry must be one of {DECODINGS}, got {geometry!r}")
         if weights is None:
@@ -157,6 +162,7 @@ class Detector:
             raise ValueError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
         self.working_size = working_size
         self.mode = mode
+        self.reader = reader
         self._opencv = OpenCVDetector(self.board, refine="subpix") if mode == "hybrid" else None
         self._board_xy = self.board.corner_points()[:, :2]
         self.refinenet = None
@@ -235,7 +241,7 @@ class Detector:
         point_logits, id_logits = self.runner.charuconet((padded[None, None] / np.float32(255.0)))
         if self.geometry == "markers":
             candidates = _inside(cell_candidates(point_logits, None, self.threshold), (width, height))
-            return corners_from_markers(gray, self.board, candidates, read_gray=full)[0]
+            return corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader)[0]
         return self.decode(point_logits, id_logits, (width, height), gray, full)
 
     def _refine(self, gray: np.ndarray, pixels: np.ndarray, window_scale: float = 1.0) -> np.ndarray:
@@ -279,8 +285,8 @@ class Detector:
             return ids, pixels, scores
         if gray is not None:
             if view is None:  # too few corners to check, or IDs that fit no view: the markers may still tell
-                return corners_from_markers(gray, self.board, candidates, read_gray=read_gray)[0]
-            if not marker_view_verified(gray, self.board, view.homography, read_gray):
+                return corners_from_markers(gray, self.board, candidates, read_gray=read_gray, reader=self.reader)[0]
+            if not marker_view_verified(gray, self.board, view.homography, read_gray, reader=self.reader):
                 return no_corners()  # the corners fit the board's grid, its markers are not there
         elif view is None and len(ids) >= MIN_CONSENSUS:
             return no_corners()  # enough corners to check, and they fit no view

@@ -146,15 +146,25 @@ def test_learned_scores_are_the_log_likelihood_of_each_marker_in_each_turn():
 
 @shipped
 def test_the_learned_reader_decodes_an_unseen_board_blurred(monkeypatch):
-    monkeypatch.setattr(marker_reader, "DEFAULT_READER", "learned")
+    calls = []
+    learned_correlate = marker_reader.correlate
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("reader", args[2] if len(args) > 2 else None))
+        return learned_correlate(*args, **kwargs)
+
+    monkeypatch.setattr(marker_reader, "correlate", counted)
     board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
     camera = Camera.from_fov(320, 240, hfov_deg=60.0)
     rvec, tvec = look_at_pose(board, camera.K[0, 0] * max(board.size_m) / (0.8 * 240), tilt_x_deg=25, tilt_y_deg=-15,
                               roll_deg=10)
     image = render_board_view(board, camera.K, rvec, tvec, (320, 240))
     truth = project_corners(board, rvec, tvec, camera.K)
-    detector = Detector(board=board)
+    detector = Detector(board=board, reader="learned")
+    with pytest.raises(ValueError, match="reader must be one of"):
+        Detector(board=board, reader="magic")
     for degraded in (image, cv2.filter2D(image, -1, np.ones((1, 10)) / 10)):
         found = detector.detect(degraded)
         assert len(found.ids) >= 0.8 * board.num_corners
         assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 3.0
+    assert calls and set(calls) == {"learned"}  # the Detector's reader reached every read
