@@ -76,16 +76,21 @@ def validation_frames(camera=None):
 
 @needs_onnxruntime
 def test_quantize_stores_an_accepted_int8_model_and_refuses_a_worse_one(tmp_path, monkeypatch, validation_frames):
+    with pytest.raises(quantize_module.QuantizeError, match="--seed 2000"):
+        quantize_module.quantize(DEFAULT_WEIGHTS, tmp_path / "none", tmp_path / "x.pt", quiet=True)
+    monkeypatch.setattr(quantize_module, "list_shards", lambda folder: ["shard-00000.h5"])
     monkeypatch.setattr(quantize_module, "load_frames", lambda *args, **kwargs: validation_frames)
+    views = tmp_path / "views"
+    views.mkdir()
     out = tmp_path / "int8.pt"
     with pytest.raises(quantize_module.QuantizeError, match="not written"):
-        quantize_module.quantize(DEFAULT_WEIGHTS, "views", out, calibration_frames=2, max_drop=-1.0, quiet=True)
-    assert not out.exists() and not list(tmp_path.iterdir())  # a refused model leaves nothing behind
-    record = quantize_module.quantize(DEFAULT_WEIGHTS, "views", out, calibration_frames=2, max_drop=1.0, quiet=True)
+        quantize_module.quantize(DEFAULT_WEIGHTS, views, out, calibration_frames=2, max_drop=-1.0, quiet=True)
+    assert not out.exists() and list(tmp_path.iterdir()) == [views]  # a refused model leaves nothing behind
+    record = quantize_module.quantize(DEFAULT_WEIGHTS, views, out, calibration_frames=2, max_drop=1.0, quiet=True)
     assert set(record["int8"]) == {"blur", "darkness"} and len(record["int8"]["blur"]) == 11
     detector = Detector(weights=out)  # auto: the accepted int8 model
     assert detector.runner.name == "onnx-int8"
     found = detector.detect(EXAMPLE)
     assert len(found) >= 14
     with pytest.raises(quantize_module.QuantizeError, match="--force"):
-        quantize_module.quantize(DEFAULT_WEIGHTS, "views", out, calibration_frames=2, quiet=True)
+        quantize_module.quantize(DEFAULT_WEIGHTS, views, out, calibration_frames=2, quiet=True)

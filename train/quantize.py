@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from datagen.shards import list_shards
 from deepcharuco.cli import run_command
 from deepcharuco.deep_detector import Detector
 from deepcharuco.errors import DeepCharucoError
@@ -101,6 +102,9 @@ def quantize(weights: str | Path, frames_dir: str | Path, out: str | Path, *, ma
     read_checkpoint(weights, "charuconet")  # a clear error for a file that is not our checkpoint
     if bundle.get("kind") != "bundle":
         raise QuantizeError(f"{weights} holds one network: quantise a bundle (python -m train.bundle makes one)")
+    if not Path(frames_dir).is_dir() or not list_shards(frames_dir):
+        raise QuantizeError(f"no shard-*.h5 files in {frames_dir}: render validation frames with python -m "
+                            f"datagen.render --n 160 --seed 2000 --out {frames_dir} (a seed no training or test set uses)")
     float_detector = Detector(weights=weights, backend="onnx")
     frames = load_frames(frames_dir, float_detector.board, limit=max_frames)
     if len(frames) < calibration_frames:
