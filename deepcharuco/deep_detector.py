@@ -28,12 +28,12 @@ from deepcharuco.board_check import (
 from deepcharuco.detection import Detection, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
+from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidates
 from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
 from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.marker_reader import READERS
 from deepcharuco.placement import corners_from_markers, marker_view_verified
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, corners_from_canonical
