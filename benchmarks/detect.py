@@ -35,6 +35,7 @@ import torch
 
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
+from deepcharuco.pose import project_corners
 from deepcharuco.runtime import int8_model, onnxruntime_available
 from deepcharuco.synthetic import look_at_pose, render_board_view
 from deepcharuco.tracking import BoardTracker
@@ -54,8 +55,7 @@ def letterboxed(frame: TestFrame, size: tuple[int, int], scale: float | None = N
     left, top = (width - new_w) // 2, (height - new_h) // 2
     interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
     image = np.full((height, width), int(np.median(frame.image)), np.uint8)
-    image[top:top + new_h, left:left + new_w] = cv2.resize(frame.image, (new_w, new_h),
-                                                                                  interpolation=interpolation)
+    image[top:top + new_h, left:left + new_w] = cv2.resize(frame.image, (new_w, new_h), interpolation=interpolation)
     sx, sy = new_w / w, new_h / h
     to_new = np.array([[sx, 0, 0.5 * sx - 0.5 + left], [0, sy, 0.5 * sy - 0.5 + top], [0, 0, 1]])
     corners = (frame.corners + 0.5) * np.array([sx, sy], np.float32) - 0.5 + np.array([left, top], np.float32)
@@ -75,8 +75,7 @@ def drawn_frames(board: BoardSpec, count: int, seed: int = 0) -> list[TestFrame]
         rvec, tvec = look_at_pose(board, rng.uniform(0.35, 0.6), rng.uniform(-35, 35), rng.uniform(-35, 35),
                                   rng.uniform(-30, 30), tuple(rng.uniform(-0.03, 0.03, 2)))
         image = render_board_view(board, K, rvec, tvec, background=int(rng.integers(40, 160)))
-        projected, _ = cv2.projectPoints(board.object_points(), rvec, tvec, K, None)
-        corners = projected.reshape(-1, 2).astype(np.float32)
+        corners = project_corners(board, rvec, tvec, K).astype(np.float32)
         frames.append(TestFrame(image, corners, np.ones(len(corners), bool), K, rvec, tvec, f"drawn#{i}"))
     return frames
 

@@ -25,7 +25,7 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.board_check import (
     GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, assign_ids, fit_board_homography, id_hypotheses,
 )
-from deepcharuco.detection import Detection, no_corners
+from deepcharuco.detection import Detection, corner_spacing, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.marker_reader import READERS
@@ -59,19 +59,18 @@ MODES = ("deep", "hybrid")
 DECODINGS = (*GEOMETRY_MODES, "markers")
 
 
+def network_input(gray: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 -> ChArUcoNet's input (1, 1, H', W') float32 in [0, 1]: the network sees whole 8x8 cells,
+    so the image is padded right and bottom to multiples of 8 by replicating its border."""
+    height, width = gray.shape
+    padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
+    return padded[None, None] / np.float32(255.0)
+
+
 def _reduced(image: np.ndarray, scale: float) -> np.ndarray:
     """``image`` scaled by ``scale`` < 1 (area-averaged, as a sensor's larger pixels would see it)."""
     height, width = image.shape
     return cv2.resize(image, (max(1, round(width * scale)), max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
-
-
-def _corner_spacing(pixels: np.ndarray) -> float:
-    """Median distance from each corner to its nearest other corner (~ the square side), pixels; 0 for < 2."""
-    if len(pixels) < 2:
-        return 0.0
-    distance = np.linalg.norm(pixels[:, None].astype(np.float64) - pixels[None], axis=2)
-    np.fill_diagonal(distance, np.inf)
-    return float(np.median(distance.min(axis=1)))
 
 
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
@@ -195,7 +194,7 @@ class Detector:
             ids, pixels, scores = self._find(gray, full)
             if len(ids):
                 found = (gray, ids, pixels, scores)
-                if _corner_spacing(pixels) >= MIN_SQUARE_PX:
+                if corner_spacing(pixels) >= MIN_SQUARE_PX:
                     break  # squares large enough here: a finer level would cost more and find no more
         if found is None:
             return Detection.empty()
@@ -214,7 +213,7 @@ class Detector:
         homography by more than 3 px, and a wrong ID lands a whole square away."""
         if len(detection.ids) < MIN_CONSENSUS:
             return False
-        tolerance = max(TOLERANCE_PX, 0.25 * _corner_spacing(detection.corners))
+        tolerance = max(TOLERANCE_PX, 0.25 * corner_spacing(detection.corners))
         view = fit_board_homography(self.board.object_points()[detection.ids, :2], detection.corners, tolerance)
         return view is not None and view.inliers.sum() >= 0.9 * len(detection.ids)
 
@@ -236,9 +235,7 @@ class Detector:
         """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``;
         markers are read in ``full``, the same image at full resolution."""
         height, width = gray.shape
-        # The network sees whole 8x8 cells: pad right and bottom by replicating the border.
-        padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
-        point_logits, id_logits = self.runner.charuconet((padded[None, None] / np.float32(255.0)))
+        point_logits, id_logits = self.runner.charuconet(network_input(gray))
         if self.geometry == "markers":
             candidates = _inside(cell_candidates(point_logits, None, self.threshold), (width, height))
             return corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader)[0]

@@ -54,3 +54,13 @@ class Detection:
             "corners": self.corners.astype(float).round(4).tolist(),
             "scores": self.scores.astype(float).round(4).tolist(),
         }
+
+
+def corner_spacing(corners: np.ndarray) -> float:
+    """Median distance from each of (N, 2) corners to its nearest other corner (~ the square side), pixels;
+    0 for fewer than 2."""
+    if len(corners) < 2:
+        return 0.0
+    distance = np.linalg.norm(corners[:, None].astype(np.float64) - corners[None], axis=2)
+    np.fill_diagonal(distance, np.inf)
+    return float(np.median(distance.min(axis=1)))

@@ -5,7 +5,7 @@
     "onnx"      ONNX Runtime, float32                    ONNX Runtime, float32
     "onnx-int8" ONNX Runtime, int8 (the bundle's own,    ONNX Runtime, float32 (sub-pixel offsets
                 quantised and accepted by                stay float: the patches are few and the
-                `train.quantize`)                  refinement is what int8 would cost)
+                `train.quantize`)                        refinement is what int8 would cost)
     "auto"      "onnx-int8" when the weights carry an accepted int8 model, else "onnx" when ONNX
                 Runtime is installed, else "torch"; always "torch" on a GPU device
 

@@ -12,19 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepcharuco.detection import Detection
+from deepcharuco.detection import Detection, corner_spacing
 
 MARGIN = 0.5  # of the corners' bounding box, on each side
 MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
 MIN_CROP = 64  # px: smaller crops are widened to this
 MIN_CORNERS = 4  # a crop's detection with fewer corners falls back to the full frame
-
-
-def corner_spacing(corners: np.ndarray) -> float:
-    """Median distance from each corner to its nearest neighbour, px ((N, 2) corners, N >= 2)."""
-    distances = np.linalg.norm(corners[:, None] - corners[None], axis=-1)
-    np.fill_diagonal(distances, np.inf)
-    return float(np.median(distances.min(axis=1)))
 
 
 def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int, int, int, int]:

@@ -208,5 +208,5 @@ def test_a_failed_save_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatc
 
     monkeypatch.setattr(checkpoint.torch, "save", full_disk)
     with pytest.raises(OSError, match="No space left"):
-        checkpoint._save_atomically({"x": 1}, target)
+        checkpoint.save_atomically({"x": 1}, target)
     assert target.read_bytes() == b"old weights" and [p.name for p in tmp_path.iterdir()] == ["detector.pt"]

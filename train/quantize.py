@@ -21,7 +21,6 @@ shipped. Frame ``i`` of a render depends only on (seed, i), so the set is reprod
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 from pathlib import Path
@@ -32,10 +31,9 @@ from tqdm import tqdm
 
 from datagen.shards import list_shards
 from deepcharuco.cli import run_command
-from deepcharuco.deep_detector import Detector
+from deepcharuco.deep_detector import Detector, network_input
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.charuconet import CELL
-from deepcharuco.models.checkpoint import read_checkpoint
+from deepcharuco.models.checkpoint import read_checkpoint, save_atomically
 from deepcharuco.runtime import INT8_KEY, float_onnx, onnxruntime_available, weights_fingerprint
 from evaluate.data import load_frames
 from evaluate.protocols import LEVELS, TestFrame, apply_effect, synthetic_curve
@@ -46,15 +44,6 @@ CALIBRATION_EFFECTS = (("blur", 0), ("blur", 5), ("blur", 10), ("darkness", 3), 
 
 class QuantizeError(DeepCharucoError):
     """An int8 model that cannot be made or is not accurate enough."""
-
-
-def network_input(image: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 -> (1, 1, H', W') float32 in [0, 1], padded to multiples of 8 as `Detector` pads."""
-    import cv2
-
-    height, width = image.shape
-    padded = cv2.copyMakeBorder(image, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
-    return padded[None, None] / np.float32(255.0)
 
 
 def calibration_inputs(frames: list[TestFrame]) -> list[np.ndarray]:
@@ -119,23 +108,22 @@ def quantize(weights: str | Path, frames_dir: str | Path, out: str | Path, *, ma
     bundle["charuconet"][INT8_KEY] = entry
     temporary = out.with_name(out.name + ".tmp")
     try:
-        torch.save(bundle, temporary)  # checked as users will load it, moved into place only if accepted
+        torch.save(bundle, temporary)  # loaded as users will load it; written to --out only if accepted
         int8_detector = Detector(weights=temporary, backend="onnx-int8")
         with tqdm(total=2 * 2 * len(LEVELS) * len(frames), unit="image", disable=quiet, desc="float32 vs int8") as bar:
             reference = protocol_accuracy(float_detector, frames, bar)
             candidate = protocol_accuracy(int8_detector, frames, bar)
-        drops = {(effect, k): r - c for effect in reference
-                 for k, r, c in zip(LEVELS, reference[effect], candidate[effect])}
-        (effect, k), worst = max(drops.items(), key=lambda item: item[1])
+        drops = {(effect, level): reference[effect][level] - candidate[effect][level]
+                 for effect in reference for level in range(len(LEVELS))}
+        (effect, level), worst = max(drops.items(), key=lambda item: item[1])
         entry["validation"] = {"frames": str(frames_dir), "count": len(frames), "float32": reference,
                                "int8": candidate, "largest_drop": worst, "max_drop": max_drop}
         if worst > max_drop:
             raise QuantizeError(
-                f"int8 loses up to {worst:.3f} accuracy on {frames_dir} ({effect} k={k}: "
-                f"{reference[effect][k]:.3f} -> {candidate[effect][k]:.3f}; more than {max_drop}): not written; "
+                f"int8 loses up to {worst:.3f} accuracy on {frames_dir} ({effect} k={LEVELS[level]}: "
+                f"{reference[effect][level]:.3f} -> {candidate[effect][level]:.3f}; more than {max_drop}): not written; "
                 f"keep backend='onnx'")
-        torch.save(bundle, temporary)  # now with its validation record
-        os.replace(temporary, out)
+        save_atomically(bundle, out)  # now with its validation record
     finally:
         temporary.unlink(missing_ok=True)
     return entry["validation"]

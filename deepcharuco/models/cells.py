@@ -78,7 +78,7 @@ def point_candidates(point_logits: torch.Tensor | np.ndarray, min_confidence: fl
     cols = logits.shape[2]
     flat = logits.reshape(len(logits), -1)
     top = flat.max(axis=0)
-    dustbin = 1.0 / np.exp(flat - top).sum(axis=0) * np.exp(flat[-1] - top)  # P(dustbin) per cell
+    dustbin = np.exp(flat[-1] - top) / np.exp(flat - top).sum(axis=0)  # P(dustbin) per cell
     confidence = (1.0 - dustbin).astype(np.float32)
     cells = np.flatnonzero(confidence >= min_confidence)
     position = flat[:-1, cells].argmax(axis=0)  # 0..63 inside each cell

@@ -93,10 +93,10 @@ def id_head_trained(data: dict) -> bool:
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, **kwargs) -> Path:
     """Write a checkpoint atomically (temporary file + rename)."""
-    return _save_atomically(checkpoint_dict(model, **kwargs), path)
+    return save_atomically(checkpoint_dict(model, **kwargs), path)
 
 
-def _save_atomically(data: dict, path: str | Path) -> Path:
+def save_atomically(data: dict, path: str | Path) -> Path:
     """``torch.save`` to a temporary name, then rename: a reader never sees half a file, and a failed
     write (a full disk) leaves the previous file as it was and no temporary behind."""
     path = Path(path)
@@ -129,7 +129,7 @@ def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path,
         if not 0.0 < threshold < 1.0:
             raise CheckpointError(f"threshold {threshold} is not a score in (0, 1)")
         parts["charuconet"]["threshold"] = float(threshold)
-    return _save_atomically({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts,
+    return save_atomically({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts,
                              "note": note or {}}, path)
 
 
