@@ -208,7 +208,7 @@ def test_huge_images_are_never_searched_above_the_cap():
 
     detector = Detector()
     huge = np.zeros((6000, 8000), np.uint8)  # an 8000x6000 photo: the network at full size took 9.5 GB
-    levels = [level.shape for level in detector._search_levels(huge, detector.working_size)]
+    levels = [level.shape for level, _ in detector._search_levels(huge, detector.working_size)]
     assert levels[0] == (240, 320) and max(max(shape) for shape in levels) == MAX_SEARCH_SIZE
     assert [max(shape) for shape in levels] == sorted(max(shape) for shape in levels)
-    assert [level.shape for level in Detector(working_size=None)._search_levels(huge, None)] == [(6000, 8000)]
+    assert [level.shape for level, _ in Detector(working_size=None)._search_levels(huge, None)] == [(6000, 8000)]

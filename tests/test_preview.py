@@ -1,0 +1,67 @@
+"""The half-size preview of small images: kept only when it found the whole board in view, refined at full
+resolution; a partial or too-small preview leaves the result to the full image, exactly as without it."""
+
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, Camera, Detector, project_corners
+from deepcharuco.synthetic import look_at_pose, render_board_view
+
+BOARD = BoardSpec()  # the shipped weights' board: the preview serves its own decoding
+
+
+@pytest.fixture(scope="module")
+def camera() -> Camera:
+    return Camera.from_fov(320, 240, hfov_deg=60.0)
+
+
+def view(camera: Camera, distance: float, offset=(0.0, 0.0)):
+    rvec, tvec = look_at_pose(BOARD, distance, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=8, offset=offset)
+    image = render_board_view(BOARD, camera.K, rvec, tvec, camera.image_size)
+    return image, project_corners(BOARD, rvec, tvec, camera.K)
+
+
+def network_widths(detector: Detector, image: np.ndarray):
+    """The detection, and the widths of the images ChArUcoNet saw for it."""
+    widths, run = [], detector.runner.charuconet
+
+    def recording(batch):
+        widths.append(batch.shape[-1])
+        return run(batch)
+
+    detector.runner.charuconet = recording
+    try:
+        return detector.detect(image), widths
+    finally:
+        detector.runner.charuconet = run
+
+
+def test_a_whole_board_is_found_in_the_preview_and_refined_at_full_resolution(camera):
+    image, truth = view(camera, distance=0.30)  # the whole board, squares ~30 px
+    previewed, widths = network_widths(Detector(), image)
+    assert widths == [160]  # one network pass, at half size
+    full, full_widths = network_widths(Detector(preview=False), image)
+    assert full_widths == [320]
+    assert np.array_equal(np.sort(previewed.ids), np.sort(full.ids)) and len(full.ids) == BOARD.num_corners
+    error = np.linalg.norm(previewed.corners - truth[previewed.ids], axis=1)
+    full_error = np.linalg.norm(full.corners - truth[full.ids], axis=1)
+    assert np.median(error) < 0.3 and np.median(error) < np.median(full_error) + 0.1
+
+
+def test_a_partial_or_small_preview_leaves_the_full_image_to_decide(camera):
+    cut, _ = view(camera, distance=0.25, offset=(0.10, 0.0))  # the board runs off the right edge: 14 of 16 in view
+    far, _ = view(camera, distance=0.55)  # squares ~16 px: 8 px in the preview, too small to trust
+    for image in (cut, far):
+        previewed, widths = network_widths(Detector(), image)
+        full = Detector(preview=False).detect(image)
+        assert widths == [160, 320]
+        assert np.array_equal(previewed.ids, full.ids) and np.array_equal(previewed.corners, full.corners)
+        assert len(full.ids) >= 6
+
+
+def test_no_preview_for_images_larger_than_the_working_size_or_boards_read_by_markers(camera):
+    detector = Detector()
+    levels = [(level.shape, preview) for level, preview in detector._search_levels(np.zeros((480, 640), np.uint8), 320)]
+    assert levels == [((240, 320), False), ((480, 640), False)]
+    other = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    assert not Detector(board=other).preview and not Detector(preview=False).preview
