@@ -17,7 +17,10 @@ the same run, the fraction of true corners found within 3 px (the paper's accura
 bought with missed boards) and their mean distance to the truth in px (the sub-pixel error at full
 resolution, next to OpenCV's).
 
-A second table times video: the first frame drifting 2 px a frame for 30 frames, searched whole
+A board the shipped weights never saw (7x5 DICT_6X6_250, found by its markers: `geometry="markers"`)
+is timed on ``--count`` drawn 320x240 views of it, lit and dark, next to OpenCV and hybrid.
+
+A last table times video: the first frame drifting 2 px a frame for 30 frames, searched whole
 every frame (OpenCV, the deep detector) or tracked (`deepcharuco.tracking.BoardTracker`: only
 around the last board, the whole frame every 30), in good light and dark.
 """
@@ -169,6 +172,18 @@ def main() -> None:
         for name in names:
             right, error = accuracy(configurations[name], frames)
             cells.append(f"{fps[name]:7.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:5.2f} {error:5.2f}")
+        print(f"{label:28s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
+
+    # A board the weights never saw, found by its markers (geometry="markers"): drawn 320x240 views.
+    unseen = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    print(f"\nboard never seen in training (7x5 DICT_6X6_250), read by its markers: {args.count} drawn 320x240 views")
+    others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen),
+              "hybrid": Detector(unseen, mode="hybrid")}
+    drawn = drawn_frames(unseen, args.count)
+    for label, frames in (("320x240", drawn), (f"320x240 dark k={DARK_K}", [darkened(f) for f in drawn])):
+        fps = time_pipelines(others, frames, rounds=3, min_seconds=args.seconds)
+        cells = [f"{fps[n]:7.1f} ({fps[n] / fps['opencv']:5.2f}x) " + "{:5.2f} {:5.2f}".format(*accuracy(d, frames))
+                 for n, d in others.items()]
         print(f"{label:28s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
 
     # Video: the first frame drifting 2 px a frame, searched whole each frame or tracked (BoardTracker).
