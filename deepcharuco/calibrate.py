@@ -6,7 +6,7 @@ Frames are read one at a time (a video is never loaded whole) and the board is d
 only the corners are kept. Views are selected, calibrated with OpenCV, outliers rejected and the
 camera re-solved (`deepcharuco.calibration`). Writes an OpenCV FileStorage camera file that
 `read_camera` and OpenCV read (`write_camera`'s nodes, then ``distortion_model``, the RMS, the
-parameters' standard deviations and the views used), and an HTML report beside it. Exit code 0,
+parameters' standard deviations, the distortion terms solved and the views used), and an HTML report beside it. Exit code 0,
 or 2 with a one-line reason and nothing written.
 """
 
@@ -86,6 +86,11 @@ def write_calibration(path: str | Path, result: CalibrationResult, board: BoardS
             storage.write("std_intrinsics_names", " ".join(result.std))
             storage.write("std_intrinsics", np.array(list(result.std.values()), np.float64).reshape(-1, 1))
         storage.write("per_view_reprojection_errors", np.asarray(result.per_view_rms, np.float64).reshape(-1, 1))
+        storage.write("distortion_terms", result.terms)  # the terms solved; the others are held at 0
+        if result.held_out:
+            # calibration.select_terms: each choice's held-out views' RMS per axis (px), the lowest chosen.
+            storage.write("held_out_terms", " | ".join(result.held_out))
+            storage.write("held_out_rms_px", np.array(list(result.held_out.values()), np.float64).reshape(-1, 1))
         storage.write("corner_sigma_px", float(result.corner_sigma))
         # One row per corner used: frame, corner ID, residual x and y (px; detected minus reprojected).
         storage.write("corner_residuals", np.concatenate(
@@ -124,7 +129,8 @@ def run(args: argparse.Namespace) -> CalibrationResult:
         raise CalibrationError(f"no frames could be read from {args.source}: give a video, a folder of images or a "
                                f"camera index that delivers frames")
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
-                               border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin)
+                               border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin,
+                               select_terms=not args.all_terms)
     result = calibrate(frames, board, size, args.model, options, fix_k3=args.fix_k3)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -168,6 +174,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--fix-k3", action="store_true",
                         help="keep k3 at 0 (pinhole/rational): for few views or a small board, where a free k3 bends "
                              "the model beyond the corners seen")
+    parser.add_argument("--all-terms", action="store_true",
+                        help="solve the tangential terms p1 p2 always; by default (pinhole/rational, 10 views or more) "
+                             "they are held at 0 when that predicts held-out views as well (5-fold cross-validation "
+                             "over the views): free p1 p2 trade against the principal point and add noise to it")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid)")
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")

@@ -84,7 +84,7 @@ def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True) 
         result = calibrate(detections, board, size, options=SelectionOptions(border_px=border_margin(_refine(detector))))
     except CalibrationError as error:
         return {**row, "calibrated": False, "reason": str(error)}
-    return {**row, "calibrated": True, "views": len(result.views), "rms_px": result.rms,
+    return {**row, "calibrated": True, "views": len(result.views), "rms_px": result.rms, "terms": result.terms,
             "std_fx": result.std.get("fx"), "std_cx": result.std.get("cx"), "corner_sigma_px": result.corner_sigma,
             "corner_error_px": corner_error(result, labels), **intrinsics_errors(result, K, dist)}
 
@@ -125,7 +125,8 @@ def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec
 def _brief(name: str, cell: dict) -> str:
     if not cell["calibrated"]:
         return f"{name}: none"
-    return f"{name}: fx {cell['fx_pct']:+.2f}% cx {cell['cx_px']:+.2f}px RMS {cell['rms_px']:.3f} ({cell['views']} views)"
+    return (f"{name}: fx {cell['fx_pct']:+.2f}% cx {cell['cx_px']:+.2f}px RMS {cell['rms_px']:.3f} ({cell['views']} views, "
+            f"{cell.get('terms', '')})")
 
 
 def _focal(cell: dict) -> float:

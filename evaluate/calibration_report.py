@@ -149,9 +149,17 @@ def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[s
                                           else "solved once (no outliers). ") + "Board: "
                f"{board.squares_x}x{board.squares_y} {board.dictionary}, {board.num_corners} corners."
                + "".join(f" {note[0].upper()}{note[1:]}." for note in result.notes))
+    terms = ""
+    if result.terms:
+        held = [name for name in ("p1", "p2", "k3") if name not in result.terms.split()]
+        terms = f" Distortion terms solved: {result.terms}" + (f" ({' '.join(held)} held at 0)" if held else "") + "."
+    if result.held_out:
+        terms += (" Chosen by 5-fold cross-validation over the views (held-out views' RMS per axis, their poses' "
+                  "6 degrees of freedom taken out): " + "; ".join(f"{name}: {score:.4f} px" for name, score in
+                                                                  result.held_out.items()) + ".")
     out = [("Summary", summary, None, []),
            ("Parameters", "Values and standard deviations (OpenCV's calibrateCameraExtended; the fisheye solver gives "
-                          "none).", parameter_rows(result), ["distortion"]),
+                          "none; n/a: held at 0 or not solved)." + terms, parameter_rows(result), ["distortion"]),
            ("Coverage and residuals", "Where the kept views' corners fall in the image (a calibration is trustworthy "
             "where it has corners, most of all for distortion near the edges and corners), and each corner's residual "
             "magnified: a pattern in the arrows means the model does not fit.", None, ["coverage", "residuals"]),

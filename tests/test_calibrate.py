@@ -78,7 +78,11 @@ def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
     assert abs(camera.K[0, 0] / K[0, 0] - 1) < 0.01
     storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     assert storage.getNode("distortion_model").string() == "pinhole"
-    assert storage.getNode("std_intrinsics").mat().shape == (9, 1)
+    # One deviation per parameter solved: fx fy cx cy and the distortion terms chosen (p1 p2 may be held at 0).
+    terms = storage.getNode("distortion_terms").string().split()
+    assert terms[:2] == ["k1", "k2"] and storage.getNode("std_intrinsics").mat().shape == (4 + len(terms), 1)
+    assert storage.getNode("std_intrinsics_names").string().split() == ["fx", "fy", "cx", "cy", *terms]
+    assert storage.getNode("held_out_rms_px").mat().shape == (2, 1)
     assert storage.getNode("avg_reprojection_error").real() < 0.5
     storage.release()
     report = (tmp_path / "cams" / "camera_report.html").read_text()
