@@ -68,9 +68,10 @@ def intrinsics_errors(result: CalibrationResult, K: np.ndarray, dist: np.ndarray
             "mapping_error_px": float(np.linalg.norm(mapped - grid, axis=1).max())}
 
 
-def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True) -> dict:
+def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True, select_terms: bool = True) -> dict:
     """One detector on one sequence: its calibration's errors, or the reason it gave none. Calibrated as
-    ``python -m deepcharuco.calibrate`` does with its defaults (the border margin of the detector's refinement)."""
+    ``python -m deepcharuco.calibrate`` does with its defaults (the border margin of the detector's refinement;
+    ``select_terms`` False: as with ``--all-terms``)."""
     reader = ShardReader(path)
     try:
         frames = ((str(i), reader[i].image) for i in range(len(reader)))
@@ -81,7 +82,8 @@ def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True) 
     K, dist, _ = read_truth(path)
     row = {"frames": len(detections), "frames_with_corners": sum(len(d.ids) > 0 for d in detections)}
     try:
-        result = calibrate(detections, board, size, options=SelectionOptions(border_px=border_margin(_refine(detector))))
+        result = calibrate(detections, board, size, options=SelectionOptions(border_px=border_margin(_refine(detector)),
+                                                                             select_terms=select_terms))
     except CalibrationError as error:
         return {**row, "calibrated": False, "reason": str(error)}
     return {**row, "calibrated": True, "views": len(result.views), "rms_px": result.rms, "terms": result.terms,
@@ -106,8 +108,10 @@ def corner_error(result: CalibrationResult, labels: list[tuple[np.ndarray, np.nd
     return float(np.sqrt(np.mean(errors ** 2))) if len(errors) else math.nan
 
 
-def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec, quiet: bool = False) -> dict:
-    """Every detector (name -> detector) on every calibration sequence in ``folder``."""
+def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec, quiet: bool = False,
+                           select_terms: bool = True) -> dict:
+    """Every detector (name -> detector) on every calibration sequence in ``folder`` (``select_terms``: see
+    `calibrate_shard`)."""
     rows = []
     for path in list_shards(folder):
         reader = ShardReader(path)
@@ -115,7 +119,8 @@ def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec
         reader.close()
         if shard_board != board:
             continue
-        row = {"sequence": name, **{n: calibrate_shard(path, d, board) for n, d in detectors.items()}}
+        row = {"sequence": name, **{n: calibrate_shard(path, d, board, select_terms=select_terms)
+                                    for n, d in detectors.items()}}
         rows.append(row)
         if not quiet:
             print(f"calibration {name}: " + "; ".join(_brief(n, row[n]) for n in detectors), file=sys.stderr, flush=True)
@@ -199,6 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", default="data/calibration", help="calibration sequence shards (default: %(default)s)")
     parser.add_argument("--detectors", nargs="+", default=["opencv", "deep"], choices=["opencv", "deep", "hybrid"])
     parser.add_argument("--out", default=None, help="write the results as JSON here")
+    parser.add_argument("--all-terms", action="store_true",
+                        help="solve p1 p2 always (calibrate --all-terms: the pipeline before held-out views chose them)")
     args = parser.parse_args(argv)
     if not available(args.data):
         print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
@@ -211,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     reader.close()
     detectors = {name: make_calibration_detector(name, board, "subpix" if name == "opencv" else "refinenet")
                  for name in args.detectors}
-    results = calibration_experiment(detectors, args.data, board)
+    results = calibration_experiment(detectors, args.data, board, select_terms=not args.all_terms)
     for title, text, rows, _ in calibration_sections(results):
         print(f"{title}\n{text}")
         for row in rows:

@@ -39,11 +39,11 @@ def _centre_error(result) -> np.ndarray:
 
 def test_a_lens_without_tangential_terms_gets_a_steadier_principal_point():
     # p1 p2 move the image much as a shift of (cx, cy) does: solved where the lens has none they only add noise
-    # to the principal point. Over 8 noise draws (and waving paths) the held-out views keep them at 0 in most,
-    # and the principal point's error shrinks (measured: RMS 0.76 -> 0.48 px over these 8 seeds; kept at 0 in 7).
+    # to the principal point. Over 6 noise draws (and waving paths) the held-out views keep them at 0 in most,
+    # and the principal point's error shrinks (measured: RMS 0.83 -> 0.53 px over these 6 seeds; at 0 in 5).
     dist = np.array([0.1, 0.01, 0.0, 0.0, 0.0])
     chosen, everything, zero_tangent = [], [], 0
-    for seed in range(8):
+    for seed in range(6):
         frames = _views(dist, seed)
         selected = calibrate(frames, BOARD, SIZE)
         full = calibrate(frames, BOARD, SIZE, options=SelectionOptions(select_terms=False))
@@ -56,7 +56,7 @@ def test_a_lens_without_tangential_terms_gets_a_steadier_principal_point():
         chosen.append(_centre_error(selected))
         everything.append(_centre_error(full))
     chosen_rms, full_rms = (float(np.sqrt(np.mean(np.square(e)))) for e in (chosen, everything))
-    assert zero_tangent >= 6
+    assert zero_tangent >= 5
     assert chosen_rms < 0.75 * full_rms, (chosen_rms, full_rms)
 
 
@@ -82,7 +82,7 @@ def test_few_views_solve_every_term_and_names_are_the_models():
 
 
 def test_fix_k3_and_the_rational_model_choose_the_tangential_terms_too():
-    frames = _views(np.array([0.1, 0.01, 0.0, 0.0, 0.0]), 3)
+    frames = _views(np.array([0.1, 0.01, 0.0, 0.0, 0.0]), 3, count=20)
     fixed = calibrate(frames, BOARD, SIZE, fix_k3=True)
     assert set(fixed.held_out) == {"k1 k2", "k1 k2 p1 p2"} and fixed.camera.dist[4] == 0.0
     rational = calibrate(frames, BOARD, SIZE, "rational")
