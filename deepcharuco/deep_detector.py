@@ -34,7 +34,7 @@ from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
 from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.placement import corners_from_markers, marker_view_verified
+from deepcharuco.placement import WEAK_CONFIDENCE, corners_from_markers, marker_view_verified
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, corners_from_canonical
 from deepcharuco.runtime import make_runner
@@ -277,8 +277,10 @@ class Detector:
         height, width = gray.shape
         point_logits, id_logits = self.runner.charuconet(network_input(gray))
         if self.geometry == "markers":
-            candidates = _inside(cell_candidates(point_logits, None, self.threshold), (width, height))
-            return corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader)[0]
+            # Weaker cells too: they may only fill in corners of the view the confident ones found (`placement`).
+            candidates = _inside(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE)), (width, height))
+            return corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
+                                        threshold=self.threshold)[0]
         return self.decode(point_logits, id_logits, (width, height), gray, full)
 
     def _refine(self, gray: np.ndarray, pixels: np.ndarray, window_scale: float = 1.0) -> np.ndarray:

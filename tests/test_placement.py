@@ -1,0 +1,105 @@
+"""The markers decoding (`deepcharuco.placement`): the final marker check's rank rule (blurred small markers that
+rarely read best as themselves still rank their own marker high; look-alikes rank it at chance) and the weak point
+candidates that fill in corners of a verified view."""
+
+import cv2
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, Camera, Detector, project_corners
+from deepcharuco import placement
+from deepcharuco.models.cells import CellCandidates
+from deepcharuco.synthetic import look_at_pose, paint_markers, render_board_view
+from evaluate.false_positives import look_alikes
+
+# 12x9 squares of DICT_4X4_1000 at ~15 px: at blur k = 10 few markers read best as themselves.
+SMALL_MARKERS = BoardSpec(squares_x=12, squares_y=9, square_length=0.02, marker_length=0.015,
+                          dictionary="DICT_4X4_1000")
+CAMERA = Camera.from_fov(320, 240, hfov_deg=60.0)
+
+
+def view(board: BoardSpec, fill: float = 0.9, paint=None, **pose):
+    distance = CAMERA.K[0, 0] * max(board.size_m) / (fill * 240)
+    rvec, tvec = look_at_pose(board, distance, **pose)
+    image = render_board_view(board, CAMERA.K, rvec, tvec, (320, 240), paint=paint)
+    rotation, _ = cv2.Rodrigues(rvec)
+    return image, project_corners(board, rvec, tvec, CAMERA.K), CAMERA.K @ np.c_[rotation[:, :2], tvec]
+
+
+def blur(image: np.ndarray, k: int = 10) -> np.ndarray:
+    return cv2.filter2D(image, -1, np.ones((1, k), np.float32) / k, borderType=cv2.BORDER_REFLECT)
+
+
+def test_rank_z_counts_standard_errors_above_chance():
+    assert placement.rank_z(np.zeros(0)) == 0.0
+    assert placement.rank_z(np.full(10, 0.5)) == pytest.approx(0.0)
+    assert placement.rank_z(np.ones(12)) == pytest.approx(6.0)  # (1 - 0.5) * sqrt(12 * 12)
+    assert placement.rank_z(np.zeros(12)) == pytest.approx(-6.0)
+
+
+@pytest.mark.parametrize("best, ranks, chosen_by, verified", [
+    (3, 0.95, None, True),         # 3 of 40 read best (the fraction rule refuses), all rank near the top
+    (3, 0.95, "all", False),       # ... but only the squares that chose the view say so
+    (3, "uniform", None, False),   # ranks at chance: a look-alike
+    (1, 0.95, None, False),        # fewer than MIN_MARKERS read best as themselves
+])
+def test_view_verified_by_ranks_beside_the_fraction_rule(monkeypatch, best, ranks, chosen_by, verified):
+    board = SMALL_MARKERS
+    readable = np.arange(40)
+    reads_best = np.arange(40) < best
+    rank = np.linspace(0, 1, 40) if ranks == "uniform" else np.full(40, ranks)
+    monkeypatch.setattr(placement, "_expected_ranks", lambda *args: (readable, reads_best, rank))
+    ids = placement.board_markers(board).ids if chosen_by == "all" else None
+    assert placement.view_is_verified(np.zeros((240, 320), np.uint8), board, np.eye(3), chosen_by=ids) is verified
+
+
+def test_blurred_small_markers_verified_by_rank(monkeypatch):
+    image, truth, homography = view(SMALL_MARKERS, tilt_x_deg=20, tilt_y_deg=-10, roll_deg=5)
+    blurred = blur(image)
+    agreeing, readable = placement.marker_agreement(blurred, SMALL_MARKERS, homography)
+    assert agreeing < placement.MIN_MARKER_AGREEMENT * readable  # the fraction rule alone refuses the right view
+    assert placement.view_is_verified(blurred, SMALL_MARKERS, homography)
+    detector = Detector(board=SMALL_MARKERS)
+    found = detector.detect(blurred)
+    moved = truth + np.array([0.5, 0.0])  # OpenCV's even kernel shifts the content by half a pixel
+    assert len(found.ids) >= 0.8 * SMALL_MARKERS.num_corners
+    assert np.linalg.norm(found.corners - moved[found.ids], axis=1).max() < 3.0
+    monkeypatch.setattr(placement, "MIN_RANK_Z", np.inf)  # without the rank rule: nothing
+    assert len(detector.detect(blurred).ids) == 0
+
+
+@pytest.mark.parametrize("name", ["other marker IDs", "mirrored", "other dictionary DICT_5X5_250"])
+def test_blurred_look_alikes_stay_refused(name):
+    board, paint = look_alikes(SMALL_MARKERS)[name]
+    painter = None if isinstance(paint, str) else (lambda texture: paint_markers(texture, paint))
+    detector = Detector(board=SMALL_MARKERS)
+    for pose in (dict(tilt_x_deg=20, tilt_y_deg=-10, roll_deg=5), dict(tilt_x_deg=-25, tilt_y_deg=15, roll_deg=190)):
+        image, _, homography = view(board, paint=painter, **pose)
+        for degraded in (image, blur(image)):
+            assert len(detector.detect(degraded).ids) == 0
+            assert not placement.view_is_verified(degraded, SMALL_MARKERS, homography)
+
+
+def test_weak_candidates_fill_in_corners_of_the_verified_view_only():
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    image, truth, _ = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
+    missing = 8  # an inner corner: its neighbours on the board are found
+    pixels = np.round(truth).astype(np.float32)
+    confidence = np.full(len(truth), 0.9, np.float32)
+    confidence[missing] = 0.1
+    spurious = np.array([[5.0, 5.0], [np.round((truth[0, 0] + truth[1, 0]) / 2), np.round(truth[0, 1]) + 40]],
+                        np.float32)  # weak points where the view puts no corner
+    candidates = CellCandidates(np.r_[pixels, spurious], np.r_[confidence, [0.1, 0.1]].astype(np.float32),
+                                np.zeros((len(truth) + 2, 0), np.float32))
+    (ids, found, scores), marker_view = placement.corners_from_markers(image, board, candidates, threshold=0.25)
+    assert marker_view is not None
+    assert sorted(ids.tolist()) == list(range(board.num_corners))  # the weak corner is in, the spurious points not
+    assert np.allclose(found[ids == missing], pixels[missing]) and scores[ids == missing] == pytest.approx(0.1)
+    assert list(scores) == sorted(scores, reverse=True)
+    strong = confidence >= 0.25
+    (ids, _, _), _ = placement.corners_from_markers(
+        image, board, CellCandidates(pixels[strong], confidence[strong], np.zeros((int(strong.sum()), 0), np.float32)))
+    assert missing not in ids.tolist()  # without the weak candidates the corner stays missing
+    # Weak candidates alone find no view: they only fill in.
+    weak_only = CellCandidates(pixels, np.full(len(truth), 0.1, np.float32), np.zeros((len(truth), 0), np.float32))
+    assert len(placement.corners_from_markers(image, board, weak_only, threshold=0.25)[0][0]) == 0
