@@ -59,9 +59,20 @@ def test_a_partial_or_small_preview_leaves_the_full_image_to_decide(camera):
         assert len(full.ids) >= 6
 
 
-def test_no_preview_for_images_larger_than_the_working_size_or_boards_read_by_markers(camera):
+def test_no_preview_for_images_larger_than_the_working_size():
     detector = Detector()
     levels = [(level.shape, preview) for level, preview in detector._search_levels(np.zeros((480, 640), np.uint8), 320)]
     assert levels == [((240, 320), False), ((480, 640), False)]
+    levels = [(level.shape, preview) for level, preview in detector._search_levels(np.zeros((240, 320), np.uint8), 320)]
+    assert levels == [((120, 160), True), ((240, 320), False)]
+    assert Detector(preview=False)._search_levels(np.zeros((240, 320), np.uint8), 320).__next__()[1] is False
+
+
+def test_a_board_read_by_its_markers_is_previewed_too(camera):
     other = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
-    assert not Detector(board=other).preview and not Detector(preview=False).preview
+    rvec, tvec = look_at_pose(other, 0.33, tilt_x_deg=15, tilt_y_deg=-10, roll_deg=5)  # squares ~32 px
+    image = render_board_view(other, camera.K, rvec, tvec, camera.image_size)
+    found, widths = network_widths(Detector(board=other), image)
+    assert widths == [160] and len(found.ids) == other.num_corners
+    truth = project_corners(other, rvec, tvec, camera.K)
+    assert np.median(np.linalg.norm(found.corners - truth[found.ids], axis=1)) < 0.3
