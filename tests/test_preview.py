@@ -3,6 +3,7 @@ resolution; a partial or too-small preview leaves the result to the full image, 
 
 import numpy as np
 import pytest
+import torch
 
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.synthetic import look_at_pose, render_board_view
@@ -76,3 +77,23 @@ def test_a_board_read_by_its_markers_is_previewed_too(camera):
     assert widths == [160] and len(found.ids) == other.num_corners
     truth = project_corners(other, rvec, tvec, camera.K)
     assert np.median(np.linalg.norm(found.corners - truth[found.ids], axis=1)) < 0.3
+
+
+def test_refinenet_may_move_a_corner_three_pixels_no_farther():
+    from deepcharuco.models.refinenet import GRID
+
+    detector = Detector()
+    gray = np.full((60, 60), 128, np.uint8)
+    pixels = np.array([[20.0, 20.0], [40.0, 30.0]], np.float32)
+
+    def peaked_at(cell_x: int, cell_y: int):
+        def refinenet(patches):
+            logits = np.full((len(patches), GRID * GRID), -20.0, np.float32)
+            logits[:, cell_y * GRID + cell_x] = 20.0
+            return torch.from_numpy(logits)
+        return refinenet
+
+    detector.runner.refinenet = peaked_at(36, 36)  # 7.5 + 36.5 / 8 = 12.06: 0.06 px from the pixel, kept
+    assert np.allclose(detector._refinenet(gray, pixels), pixels + 0.0625, atol=1e-4)
+    detector.runner.refinenet = peaked_at(0, 0)  # 7.56: 6.3 px away, onto noise: the pixel stays
+    assert np.array_equal(detector._refinenet(gray, pixels), pixels)
