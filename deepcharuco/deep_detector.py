@@ -293,7 +293,9 @@ class Detector:
         """(N, 2) corner pixels -> (N, 2) float32 refined in ``gray`` by ``self.refine``; ``window_scale``
         widens cornerSubPix's window when the pixels come from a reduced image."""
         if self.refine == "refinenet":
-            return self._refinenet(gray, pixels)
+            # The limit holds for the point head's own pixels; corners scaled up from a reduced level may be
+            # a few pixels off at full resolution, which is what RefineNet is there to correct.
+            return self._refinenet(gray, pixels, MAX_REFINE_MOVE_PX if window_scale == 1.0 else np.inf)
         if self.refine == "subpix":
             window = max(3, round(3 * window_scale))
             criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
@@ -337,16 +339,16 @@ class Detector:
             return no_corners()  # enough corners to check, and they fit no view
         return ids, pixels, scores
 
-    def _refinenet(self, gray: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    def _refinenet(self, gray: np.ndarray, pixels: np.ndarray, max_move: float = np.inf) -> np.ndarray:
         """Batched RefineNet over 24x24 patches whose pixel 12 is each candidate pixel; a corner it moves
-        more than `MAX_REFINE_MOVE_PX` keeps its candidate pixel."""
+        more than ``max_move`` px keeps its candidate pixel."""
         border = PATCH
         padded = cv2.copyMakeBorder(gray, border, border, border, border, cv2.BORDER_REPLICATE)
         origins = pixels.astype(np.int64) - PATCH_ORIGIN  # patch top-left in image pixels
         patches = np.stack([padded[y + border:y + border + PATCH, x + border:x + border + PATCH] for x, y in origins])
         offsets = decode_offsets(self.runner.refinenet(patches[:, None] / np.float32(255.0)), self.soft_radius).numpy()
         refined = (origins + offsets).astype(np.float32)
-        moved = np.linalg.norm(refined - pixels, axis=1) > MAX_REFINE_MOVE_PX
+        moved = np.linalg.norm(refined - pixels, axis=1) > max_move
         refined[moved] = pixels[moved]
         return refined
 
