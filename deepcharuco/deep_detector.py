@@ -52,9 +52,7 @@ MIN_SQUARE_PX = 16
 # An image no larger than the working size is previewed at half size first (a quarter of the network's
 # cost): the preview's corners stand when they are the whole board in view with squares of at least
 # MIN_PREVIEW_SQUARE_PX there; anything less and the full image is searched as without a preview.
-# Chosen on validation renders (datagen.render --n 160 --seed 2000): no protocol level lost more than 0.001,
-# with the weights' ID head or by markers; drawn views of 3 other boards (AprilTag mirrored, 4x4 inverted,
-# 7x7 legacy): equal or better at every level.
+# Chosen on validation renders (datagen.render --n 160 --seed 2000): no protocol level lost more than 0.001.
 MIN_PREVIEW_SQUARE_PX = 12
 # The finest level searched: an 8000x6000 photo at full resolution took 145 s and 9.5 GB in the network;
 # at 2048 px its squares need to be >= ~50 px (12 px at this level) to be found, and every corner is still
@@ -114,7 +112,7 @@ class Detector:
         preview: an image no longer than ``working_size`` is searched at half size first (a quarter of the
             network's cost) and those corners kept when they are the whole board in view (every corner their
             view puts in the image, squares >= 12 px there), refined at full resolution; else the full image
-            is searched as with ``preview=False``.
+            is searched as with ``preview=False``. The weights' own board only (not ``geometry="markers"``).
         mode: "deep" (default) or "hybrid": OpenCV's detector (+ cornerSubPix) runs first and its corners
             are returned when at least 6 of them, and nine in ten, fit one view of the board (to 3 px or a
             quarter of the corner spacing); the networks
@@ -176,7 +174,10 @@ class Detector:
             raise ValueError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
         self.working_size = working_size
         self.mode = mode
-        self.preview = bool(preview)
+        # Not for boards read by their markers: on the 4x5 inverted DICT_4X4 board's sequences the preview
+        # put 12 corners, 3 of them wrong, on two frames the full image found nothing in (a confidently wrong
+        # pose); its validation views had shown none.
+        self.preview = bool(preview) and geometry != "markers"
         self.reader = reader
         self._opencv = OpenCVDetector(self.board, refine="subpix") if mode == "hybrid" else None
         self._board_xy = self.board.corner_points()[:, :2]
