@@ -112,7 +112,7 @@ class Detector:
         preview: an image no longer than ``working_size`` is searched at half size first (a quarter of the
             network's cost) and those corners kept when they are the whole board in view (every corner their
             view puts in the image, squares >= 12 px there), refined at full resolution; else the full image
-            is searched as with ``preview=False``. The weights' own board only (not ``geometry="markers"``).
+            is searched as with ``preview=False``. Only with ``geometry`` "repair" or "filter".
         mode: "deep" (default) or "hybrid": OpenCV's detector (+ cornerSubPix) runs first and its corners
             are returned when at least 6 of them, and nine in ten, fit one view of the board (to 3 px or a
             quarter of the corner spacing); the networks
@@ -174,10 +174,11 @@ class Detector:
             raise ValueError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
         self.working_size = working_size
         self.mode = mode
-        # Not for boards read by their markers: on the 4x5 inverted DICT_4X4 board's sequences the preview
-        # put 12 corners, 3 of them wrong, on two frames the full image found nothing in (a confidently wrong
-        # pose); its validation views had shown none.
-        self.preview = bool(preview) and geometry != "markers"
+        # Only with the board-geometry check of the weights' own board. Not by markers: on the 4x5 inverted
+        # DICT_4X4 board's sequences the preview put 12 corners, 3 of them wrong, on two frames the full image
+        # found nothing in (a confidently wrong pose); its validation views had shown none. Not "none": the
+        # paper's decoding stays the paper's.
+        self.preview = bool(preview) and geometry in ("repair", "filter")
         self.reader = reader
         self._opencv = OpenCVDetector(self.board, refine="subpix") if mode == "hybrid" else None
         self._board_xy = self.board.corner_points()[:, :2]

@@ -75,6 +75,7 @@ def test_a_board_read_by_its_markers_is_not_previewed(camera):
     image = render_board_view(other, camera.K, rvec, tvec, camera.image_size)
     found, widths = network_widths(Detector(board=other), image)
     assert widths == [320] and len(found.ids) == other.num_corners
+    assert not Detector(geometry="none").preview and Detector(geometry="filter").preview
 
 
 def test_refinenet_may_move_a_corner_three_pixels_no_farther():
