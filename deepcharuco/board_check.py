@@ -57,11 +57,15 @@ def _apply(homography: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return mapped[:, :2] / mapped[:, 2:], mapped[:, 2]
 
 
-def id_hypotheses(candidates: CellCandidates, per_cell: int = HYPOTHESES_PER_CELL) -> tuple[np.ndarray, np.ndarray]:
-    """Each candidate cell with each of its ``per_cell`` most likely IDs -> (ids (M*k,), pixels (M*k, 2))."""
+def id_hypotheses(candidates: CellCandidates, per_cell: int = HYPOTHESES_PER_CELL,
+                  min_prob: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Each candidate cell with each of its ``per_cell`` most likely IDs -> (ids (P,), pixels (P, 2)), cell by
+    cell; an ID after the first only where the ID head gives it at least ``min_prob``."""
     per_cell = min(per_cell, candidates.id_prob.shape[1])
     top = np.argsort(-candidates.id_prob, axis=1, kind="stable")[:, :per_cell]
-    return top.ravel().astype(np.int64), np.repeat(candidates.pixels, per_cell, axis=0)
+    keep = np.take_along_axis(candidates.id_prob, top, axis=1) >= min_prob
+    keep[:, 0] = True
+    return top[keep].astype(np.int64), np.repeat(candidates.pixels, keep.sum(axis=1), axis=0)
 
 
 def fit_board_homography(board_xy: np.ndarray, pixels: np.ndarray, tolerance_px: float = TOLERANCE_PX,

@@ -27,6 +27,11 @@ def test_hypotheses_are_each_cells_likeliest_ids():
     ids, pixels = id_hypotheses(cells, per_cell=2)
     assert ids.tolist() == [3, 5, 7, 1]
     assert pixels.tolist() == [[10, 20], [10, 20], [30, 40], [30, 40]]
+    sure = CellCandidates(cells.pixels, cells.confidence, cells.id_prob.copy())
+    sure.id_prob[1] = 0.0005
+    sure.id_prob[1, 7] = 0.99  # the ID head is sure of the second cell: its second ID is not proposed
+    ids, pixels = id_hypotheses(sure, per_cell=2, min_prob=0.001)
+    assert ids.tolist() == [3, 5, 7] and pixels.tolist() == [[10, 20], [10, 20], [30, 40]]
 
 
 @pytest.mark.parametrize("view", range(5))
