@@ -51,7 +51,7 @@ class BoardView:
     inliers: np.ndarray
 
 
-def _apply(homography: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def apply_homography(homography: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(P, 2) board points -> (P, 2) image points and their (P,) homogeneous w."""
     mapped = np.c_[xy, np.ones(len(xy))] @ homography.T
     return mapped[:, :2] / mapped[:, 2:], mapped[:, 2]
@@ -86,7 +86,7 @@ def fit_board_homography(board_xy: np.ndarray, pixels: np.ndarray, tolerance_px:
     spread = np.linalg.svd(src[inliers] - src[inliers].mean(0), compute_uv=False)
     if spread[1] < MIN_SPREAD_RATIO * spread[0]:
         return None
-    _, w = _apply(homography, src[inliers])
+    _, w = apply_homography(homography, src[inliers])
     if np.any(w * w[0] <= 0):  # the board's line at infinity runs between the inliers: not a camera view
         return None
     homography = homography * np.sign(w[0])
@@ -110,7 +110,7 @@ def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates
         (ids (K,), pixels (K, 2) float32, scores (K,) float32), strongest first. A corner's score is
         its cell's point confidence: its ID comes from the board's geometry, not the ID head.
     """
-    predicted, w = _apply(view.homography, np.asarray(board_xy, np.float64))
+    predicted, w = apply_homography(view.homography, np.asarray(board_xy, np.float64))
     width, height = image_size
     in_view = (w > 0) & (predicted[:, 0] > -0.5) & (predicted[:, 1] > -0.5) \
         & (predicted[:, 0] < width - 0.5) & (predicted[:, 1] < height - 0.5)

@@ -23,7 +23,7 @@ import torch
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.board_check import (
-    GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, assign_ids, fit_board_homography, id_hypotheses,
+    GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, apply_homography, assign_ids, fit_board_homography, id_hypotheses,
 )
 from deepcharuco.detection import Detection, corner_spacing, no_corners
 from deepcharuco.errors import DeepCharucoError
@@ -90,8 +90,7 @@ def _reduced(image: np.ndarray, scale: float) -> np.ndarray:
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
     """The candidates inside the (width, height) image, not in the padding the network saw."""
     width, height = image_size
-    inside = (candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height)
-    return CellCandidates(candidates.pixels[inside], candidates.confidence[inside], candidates.id_prob[inside])
+    return candidates.subset((candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height))
 
 
 class Detector:
@@ -248,11 +247,10 @@ class Detector:
         homography, _ = cv2.findHomography(self._board_xy[ids].astype(np.float64), pixels.astype(np.float64), 0)
         if homography is None:
             return False
-        mapped = np.c_[self._board_xy, np.ones(len(self._board_xy))] @ homography.T
-        predicted = mapped[:, :2] / mapped[:, 2:]
+        predicted, w = apply_homography(homography, self._board_xy)
         height, width = shape
         margin = CELL / 2
-        inside = (mapped[:, 2] * mapped[ids[0], 2] > 0) & (predicted >= margin).all(axis=1) \
+        inside = (w * w[ids[0]] > 0) & (predicted >= margin).all(axis=1) \
             & (predicted[:, 0] <= width - 1 - margin) & (predicted[:, 1] <= height - 1 - margin)
         return bool(np.isin(np.flatnonzero(inside), ids).all())
 

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.board_check import BoardView, assign_ids
+from deepcharuco.board_check import BoardView, apply_homography, assign_ids
 from deepcharuco.detection import no_corners
 from deepcharuco.lattice import cell_homographies, find_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
@@ -241,10 +241,6 @@ def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return mapped[:, :2] / mapped[:, 2:]
 
 
-def _subset(candidates: CellCandidates, keep: np.ndarray) -> CellCandidates:
-    return CellCandidates(candidates.pixels[keep], candidates.confidence[keep], candidates.id_prob[keep])
-
-
 def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates, refits: int = 2,
                          read_gray: np.ndarray | None = None, reader: str | None = None,
                          threshold: float | None = None
@@ -264,7 +260,7 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     weak = None
     if threshold is not None:
         confident = candidates.confidence >= threshold
-        candidates, weak = _subset(candidates, confident), _subset(candidates, ~confident)
+        candidates, weak = candidates.subset(confident), candidates.subset(~confident)
     # The view is searched among the most confident corners only (an untrained or confused point head must
     # not cost seconds); every candidate may then take a corner the view predicts.
     strongest = np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]
@@ -315,15 +311,12 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
         local, _ = cv2.findHomography(board_xy[ids[near]], pixels[near].astype(np.float64), 0)
         if local is None:
             continue
-        fitted = np.c_[board_xy[ids[near]], np.ones(int(near.sum()))] @ local.T
         with np.errstate(divide="ignore", invalid="ignore"):
-            residual = np.linalg.norm(fitted[:, :2] / fitted[:, 2:] - pixels[near], axis=1)
-        if not np.all(residual <= LOCAL_FIT_PX):  # the found corners around it disagree: no ground to stand on
+            fitted, _ = apply_homography(local, board_xy[ids[near]])
+            (predicted,), (w,) = apply_homography(local, board_xy[corner][None])
+        residual = np.linalg.norm(fitted - pixels[near], axis=1)
+        if not np.all(residual <= LOCAL_FIT_PX) or w == 0:  # its neighbours disagree, or it maps to infinity
             continue
-        mapped = local @ np.r_[board_xy[corner], 1.0]
-        if mapped[2] == 0:
-            continue
-        predicted = mapped[:2] / mapped[2]
         gap = np.linalg.norm(candidates - predicted, axis=1)
         best = int(np.argmin(gap))
         if gap[best] <= WEAK_REACH_PX:

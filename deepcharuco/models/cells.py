@@ -57,6 +57,10 @@ class CellCandidates:
     def __len__(self) -> int:
         return len(self.confidence)
 
+    def subset(self, keep: np.ndarray) -> "CellCandidates":
+        """The cells selected by ``keep`` ((M,) bool mask or indices)."""
+        return CellCandidates(self.pixels[keep], self.confidence[keep], self.id_prob[keep])
+
 
 def _array(logits: torch.Tensor | np.ndarray) -> np.ndarray:
     return logits.detach().float().cpu().numpy() if isinstance(logits, torch.Tensor) else np.asarray(logits, np.float32)
