@@ -492,6 +492,17 @@ def reproject(object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: 
     return points.reshape(-1, 2)
 
 
+def _residuals(object_points: list[np.ndarray], image_points: list[np.ndarray], solution: _Solution, model: str
+               ) -> tuple[list[np.ndarray], list[np.ndarray], float, np.ndarray]:
+    """Each view's residuals (N_v, 2) (detected minus reprojected, px), their norms (N_v,), the RMS over all
+    corners and each view's RMS (V,)."""
+    residuals = [image - reproject(points, r, t, solution.K, solution.dist, model)
+                 for points, image, r, t in zip(object_points, image_points, solution.rvecs, solution.tvecs)]
+    norms = [np.linalg.norm(r, axis=1) for r in residuals]
+    rms = float(np.sqrt(np.mean(np.concatenate(norms) ** 2)))
+    return residuals, norms, rms, np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
+
+
 def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[int, int], model: str = "pinhole",
               options: SelectionOptions | None = None, *, fix_k3: bool = False) -> CalibrationResult:
     """Select views from ``frames``, solve, reject outliers and re-solve (module docstring). ``fix_k3``:
@@ -518,32 +529,21 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
         for stage_round in range(1, MAX_ROUNDS + 1):
             rounds += 1
             active = [v for v in views if v.index not in outliers]
-            solution = solve([board.object_points()[v.ids[masks[v.index]]] for v in active],
-                             [v.corners[masks[v.index]] for v in active], image_size, stage_model, stage_fix_k3,
-                             guess=solution)
-            residuals = [v.corners[masks[v.index]] - reproject(board.object_points()[v.ids[masks[v.index]]], r, t,
-                                                               solution.K, solution.dist, stage_model)
-                         for v, r, t in zip(active, solution.rvecs, solution.tvecs)]
-            norms = [np.linalg.norm(r, axis=1) for r in residuals]
-            rms = float(np.sqrt(np.mean(np.concatenate(norms) ** 2)))
-            view_rms = np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
+            objects = [board.object_points()[v.ids[masks[v.index]]] for v in active]
+            images = [v.corners[masks[v.index]] for v in active]
+            solution = solve(objects, images, image_size, stage_model, stage_fix_k3, guess=solution)
+            residuals, norms, rms, view_rms = _residuals(objects, images, solution, stage_model)
             if stage_round == MAX_ROUNDS or not _reject_outliers(active, norms, view_rms, rms, masks, outliers,
                                                                  dropped_corners, options):
                 break
     terms, held_out = terms_name(model, fix_k3, False), {}
     if model != "fisheye" and options.select_terms and len(active) >= MIN_SELECTION_VIEWS:
-        objects = [board.object_points()[v.ids[masks[v.index]]] for v in active]
-        images = [v.corners[masks[v.index]] for v in active]
         zero_tangent, scores = select_terms(objects, images, image_size, model, fix_k3, solution)
         held_out = {terms_name(model, fix_k3, zt): score for zt, score in scores.items()}
         if zero_tangent:
             terms = terms_name(model, fix_k3, True)
             solution = solve(objects, images, image_size, model, fix_k3, guess=solution, zero_tangent=True)
-            residuals = [image - reproject(points, r, t, solution.K, solution.dist, model)
-                         for points, image, r, t in zip(objects, images, solution.rvecs, solution.tvecs)]
-            norms = [np.linalg.norm(r, axis=1) for r in residuals]
-            rms = float(np.sqrt(np.mean(np.concatenate(norms) ** 2)))
-            view_rms = np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
+            residuals, norms, rms, view_rms = _residuals(objects, images, solution, model)
     _check_solution(solution, model, image_size)
     decisions = []
     kept_rms = dict(zip((v.index for v in active), view_rms))
