@@ -1,6 +1,7 @@
 """The half-size preview of small images: kept only when it found the whole board in view, refined at full
 resolution; a partial or too-small preview leaves the result to the full image, exactly as without it."""
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -8,6 +9,7 @@ import torch
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.synthetic import look_at_pose, render_board_view
 
+CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
 BOARD = BoardSpec()  # the shipped weights' board: the preview serves its own decoding
 
 
@@ -47,6 +49,37 @@ def test_a_whole_board_is_found_in_the_preview_and_refined_at_full_resolution(ca
     error = np.linalg.norm(previewed.corners - truth[previewed.ids], axis=1)
     full_error = np.linalg.norm(full.corners - truth[full.ids], axis=1)
     assert np.median(error) < 0.3 and np.median(error) < np.median(full_error) + 0.1
+
+
+def test_a_preview_costs_one_refinenet_pass_at_full_resolution(camera):
+    image, truth = view(camera, distance=0.30)
+    detector = Detector()
+    batches, run = [], detector.runner.refinenet
+
+    def recording(patches):
+        batches.append(len(patches))
+        return run(patches)
+
+    detector.runner.refinenet = recording
+    found = detector.detect(image)
+    assert batches == [BOARD.num_corners]  # cornerSubPix centred them in the preview, RefineNet once
+    assert np.max(np.linalg.norm(found.corners - truth[found.ids], axis=1)) < 0.5
+
+
+def test_a_preview_corner_is_nudged_onto_the_corner_at_most_one_and_a_half_pixels():
+    from deepcharuco.deep_detector import PREVIEW_MAX_NUDGE_PX, _nudged
+
+    # A chessboard X-junction at (30.3, 20.6): dark top-left and bottom-right quadrants, drawn 8x oversampled.
+    size, scale, corner = (40, 60), 8, np.array([30.3, 20.6])
+    ys, xs = np.mgrid[0:size[0] * scale, 0:size[1] * scale]
+    x, y = (xs + 0.5) / scale - 0.5, (ys + 0.5) / scale - 0.5
+    fine = np.where((x < corner[0]) == (y < corner[1]), 40.0, 210.0)
+    gray = fine.reshape(size[0], scale, size[1], scale).mean(axis=(1, 3)).astype(np.uint8)
+    start = np.array([[30.0, 21.0]], np.float32)  # the point head's pixel
+    assert np.linalg.norm(_nudged(gray, start)[0] - corner) < 0.1
+    off = np.array([[32.0, 22.0]], np.float32)  # 2.2 px off: cornerSubPix reaches the corner, too far a move
+    assert np.linalg.norm(cv2.cornerSubPix(gray, off[:, None].copy(), (2, 2), (-1, -1), CRITERIA).ravel() - corner) < 0.1
+    assert PREVIEW_MAX_NUDGE_PX < 2.2 and np.array_equal(_nudged(gray, off), off)
 
 
 def test_a_partial_or_small_preview_leaves_the_full_image_to_decide(camera):
