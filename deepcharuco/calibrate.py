@@ -6,7 +6,7 @@ Frames are read one at a time (a video is never loaded whole) and the board is d
 only the corners are kept. Views are selected, calibrated with OpenCV, outliers rejected and the
 camera re-solved (`deepcharuco.calibration`). Writes an OpenCV FileStorage camera file that
 `read_camera` and OpenCV read (`write_camera`'s nodes, then ``distortion_model``, the RMS, the
-parameters' standard deviations, the distortion terms solved and the views used), and an HTML report beside it. Exit code 0,
+parameters' standard deviations, the distortion terms solved, the views used and their weights), and an HTML report beside it. Exit code 0,
 or 2 with a one-line reason and nothing written.
 """
 
@@ -91,6 +91,9 @@ def write_calibration(path: str | Path, result: CalibrationResult, board: BoardS
             # calibration.select_terms: each choice's held-out views' RMS per axis (px), the lowest chosen.
             storage.write("held_out_terms", " | ".join(result.held_out))
             storage.write("held_out_rms_px", np.array(list(result.held_out.values()), np.float64).reshape(-1, 1))
+        if len(result.view_weights):
+            # calibration.weigh_views: each view's weight along its noisiest direction (1: as OpenCV weighs it).
+            storage.write("view_weights", np.asarray(result.view_weights, np.float64).reshape(-1, 1))
         storage.write("corner_sigma_px", float(result.corner_sigma))
         # One row per corner used: frame, corner ID, residual x and y (px; detected minus reprojected).
         storage.write("corner_residuals", np.concatenate(
@@ -130,7 +133,7 @@ def run(args: argparse.Namespace) -> CalibrationResult:
                                f"camera index that delivers frames")
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
                                border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin,
-                               select_terms=not args.all_terms)
+                               select_terms=not args.all_terms, weight_views=not args.equal_weights)
     result = calibrate(frames, board, size, args.model, options, fix_k3=args.fix_k3)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -178,6 +181,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="solve the tangential terms p1 p2 always; by default (pinhole/rational, 10 views or more) "
                              "they are held at 0 when that predicts held-out views as well (5-fold cross-validation "
                              "over the views): free p1 p2 trade against the principal point and add noise to it")
+    parser.add_argument("--equal-weights", action="store_true",
+                        help="weigh every view alike (OpenCV's solution); by default (pinhole/rational, 10 views or "
+                             "more) a view whose residuals spread more than 1.5 x the median view's counts less in "
+                             "that direction: motion-blurred views of a shaken video no longer count as much as sharp ones")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid)")
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")

@@ -23,7 +23,11 @@ The steps (each a function, `calibrate` runs them in order):
 5. `select_terms` (pinhole and rational, ``select_terms``, at least `MIN_SELECTION_VIEWS` views): the
    tangential terms p1 p2 are held at 0 when that predicts views left out of the fit (5-fold
    cross-validation over the kept views) at least as well as solving them; they trade against the
-   principal point, so where the views cannot tell the two apart they only add noise to cx and cy.
+   principal point, so where the views cannot tell the two apart they only add noise to cx and cy;
+6. `weigh_views` (pinhole and rational, ``weight_views``): the last solve weighs each view by the spread of its
+   own residuals: a view whose residuals spread more than `VIEW_WEIGHT_SPREAD` x the median view's, in some
+   direction, counts less in that direction (motion blur smears a view's corners along the blur, and the views
+   of a shaken video differ by far more than their corner counts).
 
 Bad input raises `CalibrationError` with one line saying what to capture instead: no board in any
 frame, fewer usable views than ``min_views``, all views at one tilt (the focal length is then not
@@ -56,6 +60,11 @@ MIN_COVERAGE = 0.5  # below this share of the image holding corners, the result 
 MIN_OUTLIER_PX = 0.5  # a view within this RMS is never an outlier: cornerSubPix noise alone reaches it
 MIN_TILT_SPREAD_DEG = 10.0  # Zhang's method needs at least two board orientations this far apart
 MAX_RELATIVE_STD = 0.05  # a focal length less certain than 5 % is not a calibration
+# `weigh_views`: motion blur smears a view's corners along the blur, by up to a few px in a shaken video, while in
+# good light every view is alike (0.1 px); OpenCV weighs every corner alike, so 1-2 px views count as much as
+# 0.1 px ones. A view whose residuals spread (per axis, in their widest direction) by more than this x the median
+# view's counts less in that direction, in proportion to its variance there; the others keep their full weight.
+VIEW_WEIGHT_SPREAD = 1.5
 # Names of calibrateCameraExtended's 18 intrinsic standard deviations, in its order.
 STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 
@@ -117,6 +126,8 @@ class SelectionOptions:
     view_outlier: float = 3.0
     border_px: float = 0.0  # corners nearer the image's border than this are not used (`border_margin`)
     select_terms: bool = True  # hold p1 p2 at 0 where held-out views are predicted as well without them (`select_terms`)
+    weight_views: bool = True  # weigh each view by the spread of its own residuals (`weigh_views`)
+    weight_spread: float = VIEW_WEIGHT_SPREAD  # views within this x the median view's spread keep their full weight
 
 
 # RefineNet refines a corner from the 24 x 24 patch around its pixel (12 px each way): nearer the image's
@@ -174,6 +185,8 @@ class CalibrationResult:
     notes: list[str] = field(default_factory=list)
     terms: str = ""  # the distortion terms solved, e.g. "k1 k2 p1 p2 k3" (the others held at 0)
     held_out: dict[str, float] = field(default_factory=dict)  # `select_terms`' score of each candidate (terms -> px)
+    # `weigh_views`: per kept view, its weight along its noisiest direction (1: a full view; empty: equal weights)
+    view_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -201,7 +214,8 @@ class CalibrationResult:
                 "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "dist": self.camera.dist.tolist(),
                 "std": self.std, "corner_sigma_px": self.corner_sigma, "frames": self.frames, "views_kept": len(self.views),
                 "frames_with_corners": sum(d.corners > 0 for d in self.decisions), "rounds": self.rounds,
-                "terms": self.terms, "held_out_px": self.held_out}
+                "terms": self.terms, "held_out_px": self.held_out,
+                "views_weighed_down": int(np.sum(self.view_weights < 0.5))}  # less than half
 
 
 # ----------------------------------------------------------------------------------------- per frame
@@ -544,6 +558,10 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
             terms = terms_name(model, fix_k3, True)
             solution = solve(objects, images, image_size, model, fix_k3, guess=solution, zero_tangent=True)
             residuals, norms, rms, view_rms = _residuals(objects, images, solution, model)
+    view_weights = np.zeros(0)
+    if model != "fisheye" and options.weight_views and len(active) >= MIN_WEIGHTED_VIEWS:
+        solution, view_weights = weigh_views(objects, images, solution, model, terms, options.weight_spread)
+        residuals, norms, rms, view_rms = _residuals(objects, images, solution, model)
     _check_solution(solution, model, image_size)
     decisions = []
     kept_rms = dict(zip((v.index for v in active), view_rms))
@@ -567,7 +585,7 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
                              per_view_rms=view_rms, rvecs=solution.rvecs, tvecs=solution.tvecs, residuals=residuals,
                              decisions=decisions, frames=len(frames), rounds=rounds,
                              notes=(["k3 fixed at 0"] if fix_k3 else []) + _coverage_notes(used_views, image_size),
-                             terms=terms, held_out=held_out)
+                             terms=terms, held_out=held_out, view_weights=view_weights)
 
 
 # ----------------------------------------------------------------------------------------- distortion terms
@@ -630,6 +648,135 @@ def select_terms(object_points: list[np.ndarray], image_points: list[np.ndarray]
         scores[zero_tangent] = math.sqrt(squares / freedom) if freedom > 0 else math.inf
     # A tie goes to the simpler model.
     return scores[True] <= scores[False], scores
+
+
+# ----------------------------------------------------------------------------------------- view weights
+# Each view's corners are weighed by the spread of its own residuals (`weigh_views`; VIEW_WEIGHT_SPREAD above).
+WEIGHT_ROUNDS = 4  # re-weigh from each weighted solution's residuals this many times (IRLS)
+MIN_WEIGHTED_VIEWS = 10  # fewer views: the median view says too little of what a normal view is; all weigh alike
+LM_STEPS = 50  # Levenberg-Marquardt steps of one weighted solve (started from OpenCV's solution: a few suffice)
+
+
+def _intrinsic_names(model: str) -> tuple[str, ...]:
+    return STD_NAMES[:4 + (5 if model == "pinhole" else 8)]
+
+
+def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray], solution: _Solution, model: str,
+                terms: str, spread: float = VIEW_WEIGHT_SPREAD, rounds: int = WEIGHT_ROUNDS) -> tuple[_Solution, np.ndarray]:
+    """The pinhole or rational solution refitted with each view weighed by its residuals' spread (iteratively
+    reweighted least squares from ``solution``; `weighted_solve`), and each view's weight along its noisiest
+    direction (V,) (1: full weight).
+
+    A view's information matrix is the inverse of its residuals' 2 x 2 covariance (pose's degrees of freedom taken
+    out), scaled so that a view within ``spread`` x the median view's standard deviation in every direction weighs
+    as OpenCV weighs it (1) and a worse one less, only in its worse direction. ``terms`` names the distortion terms
+    solved (`terms_name`); the others stay where ``solution`` has them (0)."""
+    names = _intrinsic_names(model)
+    free = np.array([n in ("fx", "fy", "cx", "cy") or n in terms.split() for n in names])
+    current = solution
+    information = [np.eye(2)] * len(object_points)
+    for _ in range(rounds):
+        residuals = [image - reproject(points, r, t, current.K, current.dist, model)
+                     for points, image, r, t in zip(object_points, image_points, current.rvecs, current.tvecs)]
+        sigma = np.array([math.sqrt(float(np.sum(r ** 2)) / max(2 * len(r) - 6, 1)) for r in residuals])
+        floor = (spread * float(np.median(sigma))) ** 2
+        if floor <= 0:
+            break
+        information = []
+        for r in residuals:
+            covariance = r.T @ r / max(len(r) - 3, 1)
+            variance, axes = np.linalg.eigh(covariance)
+            information.append((axes * (floor / np.maximum(variance, floor))) @ axes.T)
+        current = weighted_solve(object_points, image_points, current, free, information)
+    weights = np.minimum([float(np.linalg.eigvalsh(w)[0]) for w in information], 1.0)
+    return current, weights
+
+
+def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarray], start: _Solution, free: np.ndarray,
+                   information: list[np.ndarray]) -> _Solution:
+    """Levenberg-Marquardt over the intrinsics marked ``free`` (in `STD_NAMES` order: fx fy cx cy k1 k2 p1 p2 k3
+    [k4 k5 k6]) and every view's pose, minimising sum over views v and corners i of r_vi^T W_v r_vi (r: detected
+    minus projected, W_v: the view's 2 x 2 ``information``), from ``start``. OpenCV's calibration has no weights;
+    this uses cv2.projectPoints' derivatives and eliminates the poses per view (Schur complement). ``std``: the
+    free intrinsics' standard deviations from the weighted normal equations, scaled by the weighted residuals."""
+    K, dist = start.K.copy(), start.dist.copy()
+    rvecs, tvecs = start.rvecs.copy(), start.tvecs.copy()
+    roots = [np.linalg.cholesky(w + 1e-12 * np.eye(2)).T for w in information]  # W = L^T L
+    objects = [p.astype(np.float64).reshape(-1, 3) for p in object_points]
+    images = [p.astype(np.float64).reshape(-1, 2) for p in image_points]
+    count = int(free.sum())
+
+    def whitened(K, dist, rvecs, tvecs, derivatives: bool):
+        out = []
+        for points, image, r, t, root in zip(objects, images, rvecs, tvecs, roots):
+            projected, jacobian = cv2.projectPoints(points, r, t, K, dist)
+            residual = (projected.reshape(-1, 2) - image) @ root.T
+            if derivatives:
+                jacobian = np.einsum("ij,njk->nik", root, jacobian.reshape(-1, 2, jacobian.shape[1]))
+                jacobian = jacobian.reshape(-1, jacobian.shape[2])
+                out.append((residual.reshape(-1), jacobian[:, :6], jacobian[:, 6:6 + len(free)][:, free]))
+            else:
+                out.append(residual)
+        return out
+
+    def cost(parts) -> float:
+        return float(sum(np.sum(p ** 2) for p in parts))
+
+    def normal_equations(parts):
+        U, g = np.zeros((count, count)), np.zeros(count)
+        blocks = []
+        for residual, pose_jacobian, intrinsic_jacobian in parts:
+            U += intrinsic_jacobian.T @ intrinsic_jacobian
+            g += intrinsic_jacobian.T @ residual
+            blocks.append((pose_jacobian.T @ pose_jacobian, intrinsic_jacobian.T @ pose_jacobian, pose_jacobian.T @ residual))
+        return U, g, blocks
+
+    current = cost(whitened(K, dist, rvecs, tvecs, False))
+    damping = 1e-3
+    for _ in range(LM_STEPS):
+        U, g, blocks = normal_equations(whitened(K, dist, rvecs, tvecs, True))
+        improved = False
+        while damping < 1e8:
+            reduced, rhs, inverses = U + damping * np.diag(np.diag(U)), -g.copy(), []
+            for V, W, gv in blocks:
+                inverse = np.linalg.inv(V + damping * np.diag(np.diag(V)))
+                inverses.append(inverse)
+                reduced -= W @ inverse @ W.T
+                rhs += W @ inverse @ gv
+            step = np.linalg.solve(reduced, rhs)
+            full = np.zeros(len(free))
+            full[free] = step
+            K2 = K.copy()
+            K2[0, 0] += full[0]
+            K2[1, 1] += full[1]
+            K2[0, 2] += full[2]
+            K2[1, 2] += full[3]
+            dist2 = dist + full[4:]
+            poses = np.stack([inverse @ (-gv - W.T @ step) for (V, W, gv), inverse in zip(blocks, inverses)])
+            rvecs2, tvecs2 = rvecs + poses[:, :3], tvecs + poses[:, 3:]
+            trial = cost(whitened(K2, dist2, rvecs2, tvecs2, False))
+            if trial < current:
+                converged = current - trial < 1e-12 * max(current, 1e-300)
+                K, dist, rvecs, tvecs, current = K2, dist2, rvecs2, tvecs2, trial
+                damping = max(damping / 10, 1e-9)
+                improved = True
+                break
+            damping *= 10
+        if not improved or converged:
+            break
+    # Standard deviations: the weighted normal equations' inverse (poses eliminated), scaled by the residual variance.
+    U, g, blocks = normal_equations(whitened(K, dist, rvecs, tvecs, True))
+    for V, W, _ in blocks:
+        U = U - W @ np.linalg.inv(V) @ W.T
+    measurements = 2 * sum(len(p) for p in objects)
+    freedom = measurements - count - 6 * len(objects)
+    scale = current / freedom if freedom > 0 else math.nan
+    try:
+        deviations = np.sqrt(np.maximum(np.diag(np.linalg.inv(U)), 0.0) * scale)
+    except np.linalg.LinAlgError:
+        deviations = np.full(count, math.nan)
+    names = [n for n, f in zip(STD_NAMES, free) if f]
+    return _Solution(K=K, dist=dist, rvecs=rvecs, tvecs=tvecs, std=dict(zip(names, map(float, deviations))))
 
 
 def _reject_outliers(active: list[FrameDetection], norms: list[np.ndarray], view_rms: np.ndarray, rms: float,

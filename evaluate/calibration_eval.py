@@ -68,10 +68,11 @@ def intrinsics_errors(result: CalibrationResult, K: np.ndarray, dist: np.ndarray
             "mapping_error_px": float(np.linalg.norm(mapped - grid, axis=1).max())}
 
 
-def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True, select_terms: bool = True) -> dict:
+def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True, select_terms: bool = True,
+                    weight_views: bool = True) -> dict:
     """One detector on one sequence: its calibration's errors, or the reason it gave none. Calibrated as
     ``python -m deepcharuco.calibrate`` does with its defaults (the border margin of the detector's refinement;
-    ``select_terms`` False: as with ``--all-terms``)."""
+    ``select_terms`` False: as with ``--all-terms``; ``weight_views`` False: as with ``--equal-weights``)."""
     reader = ShardReader(path)
     try:
         frames = ((str(i), reader[i].image) for i in range(len(reader)))
@@ -83,11 +84,13 @@ def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True, 
     row = {"frames": len(detections), "frames_with_corners": sum(len(d.ids) > 0 for d in detections)}
     try:
         result = calibrate(detections, board, size, options=SelectionOptions(border_px=border_margin(_refine(detector)),
-                                                                             select_terms=select_terms))
+                                                                             select_terms=select_terms,
+                                                                             weight_views=weight_views))
     except CalibrationError as error:
         return {**row, "calibrated": False, "reason": str(error)}
     return {**row, "calibrated": True, "views": len(result.views), "rms_px": result.rms, "terms": result.terms,
             "std_fx": result.std.get("fx"), "std_cx": result.std.get("cx"), "corner_sigma_px": result.corner_sigma,
+            "views_weighed_down": int(np.sum(result.view_weights < 0.5)),  # less than half their weight
             "corner_error_px": corner_error(result, labels), **intrinsics_errors(result, K, dist)}
 
 
@@ -109,9 +112,9 @@ def corner_error(result: CalibrationResult, labels: list[tuple[np.ndarray, np.nd
 
 
 def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec, quiet: bool = False,
-                           select_terms: bool = True) -> dict:
-    """Every detector (name -> detector) on every calibration sequence in ``folder`` (``select_terms``: see
-    `calibrate_shard`)."""
+                           select_terms: bool = True, weight_views: bool = True) -> dict:
+    """Every detector (name -> detector) on every calibration sequence in ``folder`` (``select_terms``,
+    ``weight_views``: see `calibrate_shard`)."""
     rows = []
     for path in list_shards(folder):
         reader = ShardReader(path)
@@ -119,7 +122,7 @@ def calibration_experiment(detectors: dict, folder: str | Path, board: BoardSpec
         reader.close()
         if shard_board != board:
             continue
-        row = {"sequence": name, **{n: calibrate_shard(path, d, board, select_terms=select_terms)
+        row = {"sequence": name, **{n: calibrate_shard(path, d, board, select_terms=select_terms, weight_views=weight_views)
                                     for n, d in detectors.items()}}
         rows.append(row)
         if not quiet:
@@ -206,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     parser.add_argument("--all-terms", action="store_true",
                         help="solve p1 p2 always (calibrate --all-terms: the pipeline before held-out views chose them)")
+    parser.add_argument("--equal-weights", action="store_true",
+                        help="weigh every view alike (calibrate --equal-weights: the pipeline before views were weighed "
+                             "by their residuals' spread)")
     args = parser.parse_args(argv)
     if not available(args.data):
         print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
@@ -218,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     reader.close()
     detectors = {name: make_calibration_detector(name, board, "subpix" if name == "opencv" else "refinenet")
                  for name in args.detectors}
-    results = calibration_experiment(detectors, args.data, board, select_terms=not args.all_terms)
+    results = calibration_experiment(detectors, args.data, board, select_terms=not args.all_terms,
+                                     weight_views=not args.equal_weights)
     for title, text, rows, _ in calibration_sections(results):
         print(f"{title}\n{text}")
         for row in rows:

@@ -339,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m evaluate.calibration_sequences", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Render calibration videos of a hand-waved board through known distorted cameras (k1 "
-                    f"{', '.join(f'{k:+.1f}' for k in K1_VALUES)}): good light, 1 lux, shake; one shard each.",
+                    f"{', '.join(f'{k:+.2f}' for k in K1_VALUES)}): good light, 1 lux, shake; one shard each.",
         epilog=f"Sequences (shard index = position): {', '.join(NAMES)}.")
     parser.add_argument("--out", default="data/calibration", help="output folder of shard-*.h5 + index.json")
     parser.add_argument("--frames", type=int, default=40, help="frames per sequence (views of one sweep)")

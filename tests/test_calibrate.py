@@ -305,10 +305,19 @@ def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved):
     sigma = storage.getNode("corner_sigma_px").real()
     residuals = storage.getNode("corner_residuals").mat()
     frames = storage.getNode("view_frames").mat().ravel()
+    weights = storage.getNode("view_weights").mat()
     storage.release()
     assert 0.02 < sigma < 0.3 and residuals.shape[1] == 4
     assert set(residuals[:, 0].astype(int)) == set(frames.astype(int))  # one row per used corner of each view
     assert np.all(np.abs(residuals[:, 2:]) < 1.0)
+    # Each view's weight (calibration.weigh_views): most views are alike and weigh fully.
+    assert weights.shape == (len(frames), 1) and np.all((weights > 0) & (weights <= 1)) and np.median(weights) > 0.99
+    equal = tmp_path / "equal.yaml"
+    assert main([str(tmp_path / "wave.avi"), "--out", str(equal), "--quiet", "--no-report", "--equal-weights"]) == 0
+    storage = cv2.FileStorage(str(equal), cv2.FILE_STORAGE_READ)
+    assert storage.getNode("view_weights").empty()
+    storage.release()
+    assert abs(read_camera(equal).K[0, 0] / read_camera(out).K[0, 0] - 1) < 0.002
 
 
 def test_a_wrong_corner_at_the_edge_cannot_bend_k3():
