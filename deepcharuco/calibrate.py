@@ -24,7 +24,8 @@ from tqdm import tqdm
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibration import (
-    MODELS, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, border_margin, calibrate, sharpness,
+    MODELS, VIEW_WEIGHT_SPREAD, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, border_margin,
+    calibrate, sharpness,
 )
 from deepcharuco.camera import write_camera
 from deepcharuco.detect import make_detector, open_source
@@ -183,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "over the views): free p1 p2 trade against the principal point and add noise to it")
     parser.add_argument("--equal-weights", action="store_true",
                         help="weigh every view alike (OpenCV's solution); by default (pinhole/rational, 10 views or "
-                             "more) a view whose residuals spread more than 1.5 x the median view's counts less in "
+                             f"more) a view whose residuals spread more than {VIEW_WEIGHT_SPREAD:g} x the median view's counts less in "
                              "that direction: motion-blurred views of a shaken video no longer count as much as sharp ones")
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid)")
