@@ -157,9 +157,17 @@ def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[s
         terms += (" Chosen by 5-fold cross-validation over the views (held-out views' RMS per axis, their poses' "
                   "6 degrees of freedom taken out): " + "; ".join(f"{name}: {score:.4f} px" for name, score in
                                                                   result.held_out.items()) + ".")
+    weighed = ""
+    if len(result.view_weights):
+        terms += (" Views weighed by their residuals' spread (calibration.weigh_views; --equal-weights: all alike): "
+                  f"{int(np.sum(result.view_weights < 1.0))} of {kept} weigh less along their noisiest direction, "
+                  f"{int(np.sum(result.view_weights < 0.5))} less than half; the standard deviations are the weighted "
+                  "fit's.")
+        weighed = "the views weighed as below"
+    source = weighed or "OpenCV's calibrateCameraExtended; the fisheye solver gives none"
     out = [("Summary", summary, None, []),
-           ("Parameters", "Values and standard deviations (OpenCV's calibrateCameraExtended; the fisheye solver gives "
-                          "none; n/a: held at 0 or not solved)." + terms, parameter_rows(result), ["distortion"]),
+           ("Parameters", f"Values and standard deviations ({source}; n/a: held at 0 or not solved)." + terms,
+            parameter_rows(result), ["distortion"]),
            ("Coverage and residuals", "Where the kept views' corners fall in the image (a calibration is trustworthy "
             "where it has corners, most of all for distortion near the edges and corners), and each corner's residual "
             "magnified: a pattern in the arrows means the model does not fit.", None, ["coverage", "residuals"]),
@@ -170,9 +178,10 @@ def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[s
                                                 sorted(counts.items(), key=lambda item: (item[0][0] != "kept", -item[1]))]
     out.append(("Views kept and dropped", "Every frame read, by what became of it.", rows, []))
     listed = [d for d in result.decisions if d.corners > 0]
-    rows = [["frame", "corners", "status", "reason", "RMS px"]]
-    rows += [[d.name, str(d.corners), d.status, d.reason, "" if d.rms is None else f"{d.rms:.3f}"]
-             for d in listed[:MAX_LISTED]]
+    weights = dict(zip((v.index for v in result.views), result.view_weights))  # empty with equal weights
+    rows = [["frame", "corners", "status", "reason", "RMS px", "weight"]]
+    rows += [[d.name, str(d.corners), d.status, d.reason, "" if d.rms is None else f"{d.rms:.3f}",
+              f"{weights[d.index]:.2f}" if d.index in weights else ""] for d in listed[:MAX_LISTED]]
     more = f" (the first {MAX_LISTED} of {len(listed)})" if len(listed) > MAX_LISTED else ""
     out.append(("Frames with corners", f"Each frame where the detector found corners{more}.", rows, []))
     return out

@@ -86,7 +86,8 @@ def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
     assert storage.getNode("avg_reprojection_error").real() < 0.5
     storage.release()
     report = (tmp_path / "cams" / "camera_report.html").read_text()
-    for text in ("RMS reprojection error", "Coverage", "alt=\"distortion\"", "Views kept and dropped", "std dev"):
+    for text in ("RMS reprojection error", "Coverage", "alt=\"distortion\"", "Views kept and dropped", "std dev",
+                 "Views weighed by their residuals"):
         assert text in report
     assert report.count("data:image/png;base64,") == 4
 
