@@ -34,9 +34,9 @@ from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
 from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.placement import WEAK_CONFIDENCE, corners_from_markers, marker_view_verified
+from deepcharuco.placement import WEAK_CONFIDENCE, corners_from_markers, marker_view_verified, settle_fill_ins
 from deepcharuco.pose import Pose, estimate_pose
-from deepcharuco.print_face import canonical_view, corners_from_canonical
+from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
 from deepcharuco.runtime import make_runner
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -214,7 +214,7 @@ class Detector:
                 f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
 
     @torch.inference_mode()
-    def detect(self, image: np.ndarray, *, working_size: int | None = None) -> Detection:
+    def detect(self, image: np.ndarray, *, working_size: int | None = None, _local_white: bool = False) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -228,7 +228,8 @@ class Detector:
             found = self._opencv.detect(image)
             if self._verified(found):
                 return found
-        full = canonical_view(to_gray_u8(image), self.board)  # the networks learnt black ink on white paper
+        # The networks learnt black ink on white paper (_local_white: see below).
+        full = (canonical_view_local_white if _local_white else canonical_view)(to_gray_u8(image), self.board)
         height, width = full.shape
         found = None
         for gray, preview in self._search_levels(full, working_size or self.working_size):
@@ -244,6 +245,10 @@ class Detector:
                 if spacing >= MIN_SQUARE_PX:
                     break  # squares large enough here: a finer level would cost more and find no more
         if found is None:
+            if self.geometry == "markers" and self.board.inverted and not _local_white:
+                # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
+                # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
+                return self.detect(image, working_size=working_size, _local_white=True)
             return Detection.empty()
         gray, ids, pixels, scores, preview = found
         # Refined where found, then again at full resolution: a single full-resolution pass from the reduced
@@ -255,6 +260,8 @@ class Detector:
             ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
             corners = (corners + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
             corners = self._refine(full, corners, window_scale=float(ratio.max()))
+        if self.geometry == "markers":  # filled-in corners refined away from where their neighbours put them go
+            ids, corners, scores = settle_fill_ins(self._board_xy, ids, corners, scores, self.threshold)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
 
     def _whole_view_found(self, ids: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> bool:

@@ -212,3 +212,27 @@ def test_huge_images_are_never_searched_above_the_cap():
     assert levels[0] == (240, 320) and max(max(shape) for shape in levels) == MAX_SEARCH_SIZE
     assert [max(shape) for shape in levels] == sorted(max(shape) for shape in levels)
     assert [level.shape for level, _ in Detector(working_size=None)._search_levels(huge, None)] == [(6000, 8000)]
+
+
+def test_inverted_print_negated_about_its_local_white(camera):
+    """A dim inverted board in a frame whose white is a lamp (caliscope's board across the room): negated about the
+    frame's white it is pale grey on white; about its local white it is a dim board, found by its markers."""
+    from deepcharuco import print_face
+
+    board = UNSEEN[2]  # 4x5 DICT_4X4_1000, inverted
+    image, truth = view_of(board, camera, fill=0.6, **POSES[0])
+    dim = np.round(image * 0.15).astype(np.uint8)  # the board's white print at ~38 / 255: negated about 255, no corner
+    dim[:12, :12] = 255  # a lamp in the corner of the frame
+    plain = print_face.canonical_view(dim, board)
+    local = print_face.canonical_view_local_white(dim, board)
+    inside = cv2.fillConvexPoly(np.zeros_like(dim), cv2.convexHull(truth.astype(np.int32)), 1).astype(bool)
+    # The board's contrast is kept, on a dark level (black ink on dim paper), not on the frame's white.
+    assert np.percentile(local[inside], 95) - np.percentile(local[inside], 5) >= 0.8 * (
+        np.percentile(dim[inside], 95) - np.percentile(dim[inside], 5))
+    assert np.median(local[inside]) < 128 < np.median(plain[inside])
+    # Prints that are not inverted keep `canonical_view`.
+    normal = BoardSpec(squares_x=4, squares_y=5, dictionary="DICT_4X4_1000")
+    assert np.array_equal(print_face.canonical_view_local_white(dim, normal), print_face.canonical_view(dim, normal))
+    found = Detector(board=board).detect(dim)
+    assert len(found.ids) == board.num_corners
+    assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 1.0

@@ -103,3 +103,31 @@ def test_weak_candidates_fill_in_corners_of_the_verified_view_only():
     # Weak candidates alone find no view: they only fill in.
     weak_only = CellCandidates(pixels, np.full(len(truth), 0.1, np.float32), np.zeros((len(truth), 0), np.float32))
     assert len(placement.corners_from_markers(image, board, weak_only, threshold=0.25)[0][0]) == 0
+
+
+def test_filled_in_corners_refined_away_from_their_neighbours_are_left_out():
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    _, truth, _ = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
+    board_xy = board.corner_points()[:, :2]  # 6 x 4 corners
+    ids = np.arange(board.num_corners)
+    scores = np.full(len(ids), 0.9, np.float32)
+    scores[[7, 8]] = 0.1  # two filled-in corners (below the threshold), inner ones
+    corners = truth.astype(np.float32).copy()
+    corners[23] += 2.0  # a confident corner off by as much (3 squares away) is not this check's business
+    agree = placement.FILL_IN_AGREE_PX
+    corners[7] += [0.6 * agree, 0.0]  # within the limit of where its neighbours put it: kept
+    corners[8] += [0.0, 1.6 * agree]  # beyond it (a corner washed out by glare, refined onto the glare): dropped
+    kept_ids, kept, kept_scores = placement.settle_fill_ins(board_xy, ids, corners, scores, threshold=0.25)
+    assert kept_ids.tolist() == [i for i in ids.tolist() if i != 8]  # order kept
+    assert np.array_equal(kept, np.delete(corners, 8, axis=0)) and np.array_equal(kept_scores, np.delete(scores, 8))
+    # In the dark every corner scatters: where the confident neighbours scatter ~1 px about their own fit, a fill-in
+    # 1.6 px off is as good as they are and stays.
+    noisy = corners + np.random.default_rng(0).normal(0.0, 1.0, corners.shape).astype(np.float32)
+    noisy[7], noisy[8] = truth[7], truth[8] + [0.0, 1.6 * agree]
+    assert 8 in placement.settle_fill_ins(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
+    # No fill-ins (every score at or above the threshold): unchanged.
+    out = placement.settle_fill_ins(board_xy, ids, corners, np.full(len(ids), 0.9, np.float32), threshold=0.25)
+    assert len(out[0]) == len(ids)
+    # A fill-in with fewer than 4 confident corners within LOCAL_SQUARES squares cannot be checked: dropped.
+    alone = np.array([0, 1, 6, 7]), truth[[0, 1, 6, 7]].astype(np.float32), np.array([0.9, 0.9, 0.9, 0.1], np.float32)
+    assert placement.settle_fill_ins(board_xy, *alone, threshold=0.25)[0].tolist() == [0, 1, 6]
