@@ -214,7 +214,7 @@ class Detector:
                 f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
 
     @torch.inference_mode()
-    def detect(self, image: np.ndarray, *, working_size: int | None = None, _local_white: bool = False) -> Detection:
+    def detect(self, image: np.ndarray, *, working_size: int | None = None) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -228,28 +228,18 @@ class Detector:
             found = self._opencv.detect(image)
             if self._verified(found):
                 return found
-        # The networks learnt black ink on white paper (_local_white: see below).
-        full = (canonical_view_local_white if _local_white else canonical_view)(to_gray_u8(image), self.board)
-        height, width = full.shape
-        found = None
-        for gray, preview in self._search_levels(full, working_size or self.working_size):
-            ids, pixels, scores = self._find(gray, full)
-            spacing = corner_spacing(pixels)
-            if preview:
-                if spacing >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
-                    found = (gray, ids, pixels, scores, preview)
-                    break
-                continue  # part of the board, or squares too small to trust: the full image decides alone
-            if len(ids):
-                found = (gray, ids, pixels, scores, preview)
-                if spacing >= MIN_SQUARE_PX:
-                    break  # squares large enough here: a finer level would cost more and find no more
+        gray_u8 = to_gray_u8(image)
+        full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
+        working_size = working_size or self.working_size
+        found = self._search(full, working_size)
+        if found is None and self.geometry == "markers" and self.board.inverted:
+            # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
+            # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
+            full = canonical_view_local_white(gray_u8, self.board)
+            found = self._search(full, working_size)
         if found is None:
-            if self.geometry == "markers" and self.board.inverted and not _local_white:
-                # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
-                # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
-                return self.detect(image, working_size=working_size, _local_white=True)
             return Detection.empty()
+        height, width = full.shape
         gray, ids, pixels, scores, preview = found
         # Refined where found, then again at full resolution: a single full-resolution pass from the reduced
         # level's cell pixel (up to ~1.5 px off) fitted a pose less well in good light (validation sequences,
@@ -263,6 +253,24 @@ class Detector:
         if self.geometry == "markers":  # filled-in corners refined away from where their neighbours put them go
             ids, corners, scores = settle_fill_ins(self._board_xy, ids, corners, scores, self.threshold)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
+
+    def _search(self, full: np.ndarray, working_size: int | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool] | None:
+        """The board searched level by level (`_search_levels`) in the canonical image ``full`` -> (the level's
+        image, ids, integer pixels there, scores, whether it is the preview), or None where no level found it."""
+        found = None
+        for gray, preview in self._search_levels(full, working_size):
+            ids, pixels, scores = self._find(gray, full)
+            spacing = corner_spacing(pixels)
+            if preview:
+                if spacing >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
+                    return gray, ids, pixels, scores, preview
+                continue  # part of the board, or squares too small to trust: the full image decides alone
+            if len(ids):
+                found = (gray, ids, pixels, scores, preview)
+                if spacing >= MIN_SQUARE_PX:
+                    break  # squares large enough here: a finer level would cost more and find no more
+        return found
 
     def _whole_view_found(self, ids: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether (ids, pixels) are every board corner that their view (a homography fitted to them) puts
