@@ -115,10 +115,10 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
         return None
     # Each proposal: board square units -> image, via its square's frame and the quarter turn.
     square_xy = markers.squares[matches.marker].astype(np.float64)
-    proposals = np.stack([
-        squares[read] @ QUARTER_TURNS[turn] @ _translate(-sx, -sy)
-        for read, turn, (sx, sy) in zip(matches.read, matches.turn, square_xy)
-    ])
+    to_square = np.zeros((len(square_xy), 3, 3))
+    to_square[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    to_square[:, :2, 2] = -square_xy
+    proposals = squares[matches.read] @ QUARTER_TURNS[matches.turn] @ to_square
     # Proposal i agrees with proposal j when it puts j's square where j was read, the same way round:
     # compare the square's centre and its first corner. Only the best-correlated proposals are tried
     # as the view (the right view has many proposals, so some among the best): O(HYPOTHESES x K).
@@ -133,7 +133,7 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
             predicted = mapped[:, :2] / mapped[:, 2:]
         gap = np.hypot(predicted[:, 0] - observed[None, :, 0], predicted[:, 1] - observed[None, :, 1])
         agrees &= np.nan_to_num(gap, nan=np.inf) < AGREEMENT * side[None]
-    support = np.array([_support(matches.marker[row], matches.ncc[row]) for row in agrees])
+    support = _support(matches.marker, matches.ncc, agrees)
     best = int(np.argmax(support))
     if len(np.unique(matches.marker[agrees[best]])) < MIN_MARKERS:
         return None
@@ -226,12 +226,13 @@ def marker_view_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndar
     return view_is_verified(read_gray, board, to_read @ homography, reader, chosen_by)
 
 
-def _support(marker: np.ndarray, ncc: np.ndarray) -> float:
-    """The evidence of agreeing proposals: each distinct marker counts once, by its best correlation."""
-    best: dict[int, float] = {}
-    for m, value in zip(marker.tolist(), ncc.tolist()):
-        best[m] = max(best.get(m, 0.0), value)
-    return sum(best.values())
+def _support(marker: np.ndarray, ncc: np.ndarray, agrees: np.ndarray) -> np.ndarray:
+    """The evidence of each hypothesis' agreeing proposals: ``marker``, ``ncc`` (K,) per proposal, ``agrees``
+    (H, K) bool -> (H,): each distinct marker counts once, by its best correlation (at least 0)."""
+    order = np.argsort(marker, kind="stable")
+    _, starts = np.unique(marker[order], return_index=True)
+    values = np.where(agrees, np.maximum(ncc.astype(np.float64), 0.0)[None], 0.0)[:, order]
+    return np.maximum.reduceat(values, starts, axis=1).sum(axis=1)
 
 
 def _square_sides(squares: np.ndarray) -> np.ndarray:
