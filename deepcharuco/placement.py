@@ -345,8 +345,6 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
     return ids[order], pixels[order], scores[order]
 
 
-
-
 def settle_fill_ins(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, scores: np.ndarray,
                     threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """After refinement: keep a filled-in corner (score below ``threshold``, `_fill_in`) only where its refined
