@@ -308,23 +308,16 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
         return found
     candidates, confidence = weak.pixels.astype(np.float64), weak.confidence
     own_ids, _, _ = assign_ids(view, board_xy, weak, image_size)  # corners the view lets take a weak candidate
-    square = float(np.linalg.norm(board_xy[1] - board_xy[0]))  # corners 0 and 1: neighbours along a row
     taken = set(ids.tolist())
     extra: list[tuple[int, int]] = []
     for corner in own_ids.tolist():
         if corner in taken:
             continue
-        near = np.max(np.abs(board_xy[ids] - board_xy[corner]), axis=1) <= LOCAL_SQUARES * square + 1e-9
-        if near.sum() < 4:
-            continue
-        local, _ = cv2.findHomography(board_xy[ids[near]], pixels[near].astype(np.float64), 0)
+        local = _local_prediction(board_xy, ids, pixels, np.ones(len(ids), bool), corner)
         if local is None:
             continue
-        with np.errstate(divide="ignore", invalid="ignore"):
-            fitted, _ = apply_homography(local, board_xy[ids[near]])
-            (predicted,), (w,) = apply_homography(local, board_xy[corner][None])
-        residual = np.linalg.norm(fitted - pixels[near], axis=1)
-        if not np.all(residual <= LOCAL_FIT_PX) or w == 0:  # its neighbours disagree, or it maps to infinity
+        predicted, misfit = local
+        if not np.all(np.linalg.norm(misfit, axis=1) <= LOCAL_FIT_PX):  # its neighbours disagree
             continue
         gap = np.linalg.norm(candidates - predicted, axis=1)
         best = int(np.argmin(gap))
@@ -358,22 +351,36 @@ def settle_fill_ins(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, 
     if len(weak) == 0:
         return ids, corners, scores
     strong = scores >= threshold
-    square = float(np.linalg.norm(board_xy[1] - board_xy[0]))  # corners 0 and 1: neighbours along a row
     keep = np.ones(len(ids), bool)
     for i in weak.tolist():
-        near = strong & (np.max(np.abs(board_xy[ids] - board_xy[ids[i]]), axis=1) <= LOCAL_SQUARES * square + 1e-9)
-        if near.sum() < 4:
-            keep[i] = False
-            continue
-        local, _ = cv2.findHomography(board_xy[ids[near]].astype(np.float64), corners[near].astype(np.float64), 0)
+        local = _local_prediction(board_xy, ids, corners, strong, ids[i])
         if local is None:
             keep[i] = False
             continue
-        with np.errstate(divide="ignore", invalid="ignore"):
-            (predicted,), (w,) = apply_homography(local, board_xy[ids[i]][None])
-            fitted, _ = apply_homography(local, board_xy[ids[near]])
-        count = int(near.sum())  # 2 residuals each, 8 degrees of freedom taken by the fit: 4 corners fit exactly
-        scatter = math.sqrt(float(np.sum((fitted - corners[near]) ** 2)) / (2 * count - 8)) if count > 4 else 0.0
+        predicted, misfit = local
+        count = len(misfit)  # 2 residuals each, 8 degrees of freedom taken by the fit: 4 corners fit exactly
+        scatter = math.sqrt(float(np.sum(misfit ** 2)) / (2 * count - 8)) if count > 4 else 0.0
         limit = max(FILL_IN_AGREE_PX, FILL_IN_NOISE * scatter)
-        keep[i] = w != 0 and bool(np.linalg.norm(predicted - corners[i]) <= limit)
+        keep[i] = bool(np.linalg.norm(predicted - corners[i]) <= limit)
     return ids[keep], corners[keep], scores[keep]
+
+
+def _local_prediction(board_xy: np.ndarray, ids: np.ndarray, pixels: np.ndarray, pool: np.ndarray, corner: int
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the corners of ``pool`` ((N,) bool over ``ids`` / ``pixels`` (N, 2)) within `LOCAL_SQUARES` squares of
+    ``corner`` on the board put it: a homography fitted to them -> (the predicted pixel (2,), their own pixels minus
+    the fit's (n, 2)); None for fewer than 4 of them, no fit, or a corner the fit sends to infinity. A lens bends
+    the board away from any one homography; a few squares of it stay nearly flat."""
+    square = float(np.linalg.norm(board_xy[1] - board_xy[0]))  # corners 0 and 1: neighbours along a row
+    near = pool & (np.max(np.abs(board_xy[ids] - board_xy[corner]), axis=1) <= LOCAL_SQUARES * square + 1e-9)
+    if near.sum() < 4:
+        return None
+    local, _ = cv2.findHomography(board_xy[ids[near]].astype(np.float64), pixels[near].astype(np.float64), 0)
+    if local is None:
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fitted, _ = apply_homography(local, board_xy[ids[near]])
+        (predicted,), (w,) = apply_homography(local, board_xy[corner][None])
+    if w == 0:
+        return None
+    return predicted, pixels[near] - fitted
