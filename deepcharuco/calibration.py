@@ -475,10 +475,15 @@ def _solve_opencv(objects: list[np.ndarray], images: list[np.ndarray], image_siz
     return K, dist, rvecs, tvecs, np.asarray(std, np.float64).ravel(), float(rms)
 
 
+def _intrinsic_names(model: str) -> tuple[str, ...]:
+    """The pinhole or rational model's intrinsics in `STD_NAMES` order: fx fy cx cy and its distortion terms."""
+    return STD_NAMES[:4 + (5 if model == "pinhole" else 8)]
+
+
 def _named(raw: tuple, model: str, fix_k3: bool, zero_tangent: bool = False) -> _Solution:
     K, dist, rvecs, tvecs, std_intrinsics, _ = raw
-    count = 5 if model == "pinhole" else 8
-    names = STD_NAMES[:4 + count]
+    names = _intrinsic_names(model)
+    count = len(names) - 4
     std = {name: float(v) for name, v in zip(names, std_intrinsics[:len(names)])
            if not (fix_k3 and name == "k3") and not (zero_tangent and name in ("p1", "p2"))
            and not (v == 0.0 and name in ("k3", "k4", "k5", "k6"))}
@@ -666,10 +671,6 @@ MIN_WEIGHTED_VIEWS = 10
 LM_STEPS = 50  # Levenberg-Marquardt steps of one weighted solve (from OpenCV's solution; it stops when the cost settles)
 
 
-def _intrinsic_names(model: str) -> tuple[str, ...]:
-    return STD_NAMES[:4 + (5 if model == "pinhole" else 8)]
-
-
 def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray], solution: _Solution, model: str,
                 terms: str, spread: float = VIEW_WEIGHT_SPREAD, rounds: int = WEIGHT_ROUNDS) -> tuple[_Solution, np.ndarray]:
     """The pinhole or rational solution refitted with each view weighed by its residuals' spread (iteratively
@@ -685,8 +686,7 @@ def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray],
     current = solution
     information = [np.eye(2)] * len(object_points)
     for _ in range(rounds):
-        residuals = [image - reproject(points, r, t, current.K, current.dist, model)
-                     for points, image, r, t in zip(object_points, image_points, current.rvecs, current.tvecs)]
+        residuals = _residuals(object_points, image_points, current, model)[0]
         sigma = np.array([math.sqrt(float(np.sum(r ** 2)) / max(2 * len(r) - 6, 1)) for r in residuals])
         floor = (spread * float(np.median(sigma))) ** 2
         if floor <= 0:
