@@ -100,9 +100,14 @@ def _nudged(gray: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     window = (PREVIEW_SUBPIX_HALF_WINDOW, PREVIEW_SUBPIX_HALF_WINDOW)
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
     nudged = cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).astype(np.float32), window, (-1, -1), criteria).reshape(-1, 2)
-    far = np.linalg.norm(nudged - pixels, axis=1) > PREVIEW_MAX_NUDGE_PX
-    nudged[far] = pixels[far]
-    return nudged
+    return _within(nudged, pixels, PREVIEW_MAX_NUDGE_PX)
+
+
+def _within(refined: np.ndarray, pixels: np.ndarray, max_move: float) -> np.ndarray:
+    """(N, 2) ``refined`` corners, each one moved farther than ``max_move`` px from its ``pixels`` row put back there."""
+    far = np.linalg.norm(refined - pixels, axis=1) > max_move
+    refined[far] = pixels[far]
+    return refined
 
 
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
@@ -386,10 +391,7 @@ class Detector:
         origins = pixels.astype(np.int64) - PATCH_ORIGIN  # patch top-left in image pixels
         patches = np.stack([padded[y + border:y + border + PATCH, x + border:x + border + PATCH] for x, y in origins])
         offsets = decode_offsets(self.runner.refinenet(patches[:, None] / np.float32(255.0)), self.soft_radius).numpy()
-        refined = (origins + offsets).astype(np.float32)
-        moved = np.linalg.norm(refined - pixels, axis=1) > max_move
-        refined[moved] = pixels[moved]
-        return refined
+        return _within((origins + offsets).astype(np.float32), pixels, max_move)
 
     def estimate_pose(self, detection: Detection, K: np.ndarray, dist: np.ndarray | None = None, **kwargs) -> Pose | None:
         """`deepcharuco.estimate_pose` for this detector's board.
