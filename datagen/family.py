@@ -29,6 +29,21 @@ FAMILIES: dict[str, tuple[str, ...]] = {
 }
 
 
+# Grids no training board of a family has, in either orientation: the report's unseen boards
+# (`evaluate.unseen_boards.UNSEEN_BOARDS`, whose test checks they are all here), so that a family model
+# is measured on boards its training never showed, whatever their marker size, IDs or polarity.
+HELD_OUT_GRIDS: dict[str, tuple[tuple[int, int], ...]] = {
+    "DICT_4X4": ((4, 5),),
+    "DICT_5X5": ((8, 11),),
+    "DICT_6X6": ((5, 7),),
+}
+
+
+def held_out(family: str, squares_x: int, squares_y: int) -> bool:
+    """Whether a board of ``family`` with this grid (either orientation) is kept out of training renders."""
+    return tuple(sorted((squares_x, squares_y))) in HELD_OUT_GRIDS.get(family, ())
+
+
 class FamilyError(DeepCharucoError, ValueError):
     """An unknown marker family or impossible family sampling settings."""
 
@@ -102,18 +117,22 @@ def sample_board(rng: np.random.Generator, families: tuple[str, ...], sampling: 
     3-5 squares a side, a third 13-25, as printed boards are mostly small), then the grid is shrunk (the longer side
     first) until the family's largest dictionary holds its markers (only AprilTag 36h11, 587
     markers, ever needs it: 25x25 has 312). The dictionary named is a random one of the family
-    that holds the board's IDs, as users print boards of any of them."""
+    that holds the board's IDs, as users print boards of any of them. A grid of `HELD_OUT_GRIDS` is
+    drawn again: the report's unseen boards stay unseen."""
     family = families[int(rng.integers(len(families)))]
     dictionaries = FAMILIES[family]
     sizes = [dictionary_size(name) for name in dictionaries]
     low, high = sampling.squares
-    draws = np.exp(rng.uniform(math.log(low), math.log(high + 1), size=2))
-    squares_x, squares_y = (min(int(v), high) for v in draws)
-    while squares_x * squares_y // 2 > sizes[-1]:
-        if squares_x >= squares_y:
-            squares_x -= 1
-        else:
-            squares_y -= 1
+    while True:  # a held-out grid is drawn again (from the same generator: still a pure function of it)
+        draws = np.exp(rng.uniform(math.log(low), math.log(high + 1), size=2))
+        squares_x, squares_y = (min(int(v), high) for v in draws)
+        while squares_x * squares_y // 2 > sizes[-1]:
+            if squares_x >= squares_y:
+                squares_x -= 1
+            else:
+                squares_y -= 1
+        if not held_out(family, squares_x, squares_y):
+            break
     markers = squares_x * squares_y // 2
     ratio = float(rng.uniform(*sampling.marker_ratio))
     square = float(math.exp(rng.uniform(*np.log(sampling.square_length_m))))

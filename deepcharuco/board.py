@@ -38,6 +38,19 @@ def _dictionary_id(name: str) -> int:
     )
 
 
+def marker_family(dictionary: str) -> str | None:
+    """The marker family a dictionary belongs to: ``DICT_4X4_250`` -> ``DICT_4X4`` (its _50/_100/_250/_1000
+    dictionaries are prefixes of one another, so one family model reads them all), ``DICT_APRILTAG_36h11`` ->
+    ``APRILTAG_36H11``; None for the others (``DICT_ARUCO_ORIGINAL``, the smaller AprilTag sets)."""
+    name = dictionary.upper()
+    if name == "DICT_APRILTAG_36H11":
+        return "APRILTAG_36H11"
+    head, _, size = name.rpartition("_")
+    if head in ("DICT_4X4", "DICT_5X5", "DICT_6X6", "DICT_7X7") and size in ("50", "100", "250", "1000"):
+        return head
+    return None
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """A ChArUco board: the default is the paper's 5x5 board with DICT_5X5_50 markers 0..11.

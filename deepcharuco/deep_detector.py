@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from deepcharuco.board import BoardSpec
+from deepcharuco.board import BoardSpec, marker_family
 from deepcharuco.board_check import (
     GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, apply_homography, assign_ids, fit_board_homography, id_hypotheses,
 )
@@ -41,6 +41,9 @@ from deepcharuco.runtime import make_runner
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
+# Family models (`train.pipeline --family F`): weights/families/DICT_4X4.pt ..., point head trained on random
+# boards of the family; `Detector()` loads the one of the board's family (`shipped_weights`).
+FAMILY_WEIGHTS_DIR = WEIGHTS_DIR / "families"
 REFINE_MODES = ("refinenet", "subpix", "none")
 DEFAULT_THRESHOLD = 0.3
 PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)
@@ -116,6 +119,19 @@ def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCand
     return candidates.subset((candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height))
 
 
+def shipped_weights(board: BoardSpec | None) -> Path:
+    """The shipped weights `Detector` loads for ``board`` when none are given: the paper's board-specific model
+    (`DEFAULT_WEIGHTS`, ID head and all) for no board or a board of its layout; else the family model of the
+    board's marker family (`FAMILY_WEIGHTS_DIR`/<family>.pt) when this version ships one; else the paper's
+    model, whose point head finds the corners of other boards too (their IDs then come from the markers)."""
+    if board is None or board.same_layout(BoardSpec()):
+        return DEFAULT_WEIGHTS
+    family = marker_family(board.dictionary)
+    if family is not None and (FAMILY_WEIGHTS_DIR / f"{family}.pt").is_file():
+        return FAMILY_WEIGHTS_DIR / f"{family}.pt"
+    return DEFAULT_WEIGHTS
+
+
 class Detector:
     """The deep ChArUco detector.
 
@@ -124,7 +140,9 @@ class Detector:
             (grid, dictionary, legacy flag, marker/square ratio) is found by its markers
             (``geometry="markers"``) with no training; the same board at another size, inverted or
             mirrored keeps the weights' ID head.
-        weights: a ChArUcoNet checkpoint or a bundle with both networks (default: the shipped weights).
+        weights: a ChArUcoNet checkpoint or a bundle with both networks (default: the shipped weights for the
+            board, `shipped_weights`: the paper's board-specific model for its board, the family model of the
+            board's marker family where one is shipped, else the paper's). ``self.weights`` says which.
         refine: "refinenet" (the paper's best), "subpix" (OpenCV cornerSubPix) or "none" (cell pixels).
         device: "cpu", "cuda", "mps" ...
         refine_weights: RefineNet checkpoint when ``weights`` holds only ChArUcoNet.
@@ -178,11 +196,12 @@ class Detector:
         if geometry is not None and geometry not in DECODINGS:
             raise ValueError(f"geometry must be one of {DECODINGS}, got {geometry!r}")
         if weights is None:
-            weights = DEFAULT_WEIGHTS
+            weights = shipped_weights(board)
             if not weights.is_file():
                 raise DeepCharucoError(
                     f"no shipped weights in this version ({weights} is missing): train them with python -m "
                     f"train.charuconet and python -m train.refinenet, then pass weights=..., refine_weights=...")
+        self.weights = Path(weights)
         self.device = torch.device(device)
         self.charuconet, trained_for, self.checkpoint = load_charuconet(weights)
         self.board = board or trained_for

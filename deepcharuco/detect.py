@@ -189,6 +189,8 @@ def run(args: argparse.Namespace) -> dict:
     out = output_folder(args.out)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
+    if getattr(detector, "weights", None) is not None:
+        print(f"weights: {detector.weights} (decoding: {detector.geometry})", file=sys.stderr)
 
     records: list[dict] = []
     writer = None
@@ -285,7 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default="subpix",
                         help="corner refinement")
     parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle "
-                                                         "(default: the shipped weights)")
+                                                         "(default: the shipped weights for the board: the paper's "
+                                                         "board's own, else its marker family's model where one "
+                                                         "is shipped)")
     parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
                                                                 "checkpoint when --weights holds only ChArUcoNet")
     parser.add_argument("--out", default="detect_out", help="output folder")

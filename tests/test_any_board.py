@@ -236,3 +236,51 @@ def test_inverted_print_negated_about_its_local_white(camera):
     found = Detector(board=board).detect(dim)
     assert len(found.ids) == board.num_corners
     assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 1.0
+
+
+def test_marker_family_of_dictionaries():
+    from deepcharuco.board import marker_family
+    from datagen.family import FAMILIES
+
+    for family, dictionaries in FAMILIES.items():  # the runtime's families are the renderer's
+        assert {marker_family(name) for name in dictionaries} == {family}
+    assert marker_family("dict_4x4_250") == "DICT_4X4"
+    assert marker_family("DICT_ARUCO_ORIGINAL") is None and marker_family("DICT_APRILTAG_16h5") is None
+
+
+def test_detector_loads_the_shipped_weights_of_the_board_family(tmp_path, monkeypatch):
+    import shutil
+
+    from deepcharuco import deep_detector
+    from deepcharuco.models.checkpoint import load_charuconet
+
+    paper = BoardSpec()
+    assert load_charuconet(deep_detector.DEFAULT_WEIGHTS)[1].same_layout(paper)  # BoardSpec() is the shipped board
+    monkeypatch.setattr(deep_detector, "FAMILY_WEIGHTS_DIR", tmp_path)
+    shutil.copy(deep_detector.DEFAULT_WEIGHTS, tmp_path / "DICT_6X6.pt")
+    six = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    seven = BoardSpec(squares_x=6, squares_y=4, square_length=0.04, marker_length=0.025, dictionary="DICT_7X7_50")
+    assert deep_detector.shipped_weights(six) == tmp_path / "DICT_6X6.pt"
+    assert deep_detector.shipped_weights(seven) == deep_detector.DEFAULT_WEIGHTS  # no DICT_7X7 model here
+    assert deep_detector.shipped_weights(BoardSpec(inverted=True, square_length=0.02, marker_length=0.015)) \
+        == deep_detector.DEFAULT_WEIGHTS  # the paper's board at another size keeps its own model and ID head
+    assert deep_detector.shipped_weights(None) == deep_detector.DEFAULT_WEIGHTS
+    detector = Detector(board=six)
+    assert detector.weights == tmp_path / "DICT_6X6.pt" and detector.geometry == "markers"
+    assert Detector(board=paper).weights == deep_detector.DEFAULT_WEIGHTS
+    assert Detector(board=six, weights=deep_detector.DEFAULT_WEIGHTS).weights == deep_detector.DEFAULT_WEIGHTS
+
+
+def test_shipped_family_models_are_point_heads_named_for_their_family():
+    from pathlib import Path
+
+    from datagen.family import FAMILIES
+    from deepcharuco import deep_detector
+    from deepcharuco.models.checkpoint import load_charuconet
+
+    for path in sorted(Path(deep_detector.FAMILY_WEIGHTS_DIR).glob("*.pt")):
+        assert path.stem in FAMILIES, f"{path.name} names no marker family"
+        checkpoint = load_charuconet(path)[2]
+        assert checkpoint.get("heads") == "points", f"{path.name} is not a family (points-only) model"
+    shipped = sum(p.stat().st_size for p in Path(deep_detector.WEIGHTS_DIR).rglob("*") if p.is_file())
+    assert shipped < 30e6  # every shipped weight together

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from datagen.family import FAMILIES, FamilyError, check_prefixes, parse_families, sample_board
+from datagen.family import FAMILIES, FamilyError, check_prefixes, held_out, parse_families, sample_board
 from datagen.frames import frame_board, frame_distortion, frame_rng
 from datagen.labels import marker_points
 from datagen.lens import monotonic_k2, sample_distortion
@@ -46,6 +46,19 @@ def test_family_boards_cover_the_issue_ranges():
         small = [b for b in boards if b.num_markers <= 250]
         assert all(b.first_marker_id + b.num_markers <= 250 for b in small)
         assert len({b.first_marker_id for b in small}) > 50  # offsets spread over 0-249, not only 0
+
+
+def test_the_report_unseen_boards_are_never_drawn_for_training():
+    from evaluate.unseen_boards import UNSEEN_BOARDS
+    rng = np.random.default_rng(1)
+    for board in UNSEEN_BOARDS.values():
+        family = next(f for f, names in FAMILIES.items() if board.dictionary.upper() in {n.upper() for n in names})
+        assert held_out(family, board.squares_x, board.squares_y)
+        assert held_out(family, board.squares_y, board.squares_x)
+        # Small boards are drawn often (a third have 3-5 squares a side): 4x5 would show up in 3,000 draws.
+        grids = {(b.squares_x, b.squares_y) for b in (sample_board(rng, (family,)) for _ in range(3000))}
+        assert (board.squares_x, board.squares_y) not in grids and (board.squares_y, board.squares_x) not in grids
+    assert not held_out("DICT_4X4", 5, 5) and not held_out("DICT_6X6", 4, 5)
 
 
 def test_frame_board_and_lens_depend_only_on_seed_and_index():
@@ -152,6 +165,28 @@ def test_old_shards_still_read_everywhere(tmp_path):
 
     item = FrameDataset([path], board, augmentation=None)[0]
     assert item["corners"].shape == (16, 2)
+
+
+def test_frames_of_inverted_prints_are_trained_as_the_detector_sees_them(tmp_path):
+    """An inverted board's frame reaches ChArUcoNet negated about its white (`print_face.canonical_view`), after
+    augmentation; a plain board's frame is the camera's image."""
+    pytest.importorskip("torch")
+    from deepcharuco.print_face import canonical_view
+    from train.augment import AugmentConfig
+    from train.dataset import FrameDataset
+
+    rng = np.random.default_rng(4)
+    plain, inverted = BoardSpec(), BoardSpec(inverted=True)
+    frames = [replace(_frame(board, rng), image=rng.integers(10, 200, (24, 32), dtype=np.uint8), board=board)
+              for board in (plain, inverted)]
+    path = write_shard(tmp_path, 0, frames, None, {"command": "test"}, family={"families": ["DICT_5X5"]})
+    data = FrameDataset([path], None, augmentation=None)
+    np.testing.assert_allclose(data[0]["image"][0].numpy(), frames[0].image / 255.0, atol=1e-6)
+    expected = canonical_view(frames[1].image, inverted) / 255.0
+    np.testing.assert_allclose(data[1]["image"][0].numpy(), expected, atol=1e-6)
+    # With augmentation the negative is taken last: the brightest pixel is 0 whatever the draws darkened.
+    augmented = FrameDataset([path], None, augmentation=AugmentConfig(), seed=3)[1]["image"][0].numpy()
+    assert augmented.min() == 0.0 and augmented.max() > 0.0
 
 
 # ------------------------------------------------------------------ rendered

@@ -42,7 +42,8 @@ class FrameDataset(torch.utils.data.Dataset):
     ``board=None`` takes shards of any boards (shards of other boards, or of random boards of a marker
     family, ``datagen.render --family``; for the point head alone): C is then the largest board's corner
     count, smaller boards' rows padded with NaN and not visible (a batch stacks), and ``ids`` are each
-    frame's own board's corner IDs, which mean nothing across boards."""
+    frame's own board's corner IDs, which mean nothing across boards. A frame of an inverted print is given as
+    the detector sees it, negated about its brightest level after augmentation (`print_face.canonical_view`)."""
 
     def __init__(self, shards: list[Path], board: BoardSpec | None, augmentation: AugmentConfig | None = AugmentConfig(),
                  seed: int = 0):
@@ -78,6 +79,10 @@ class FrameDataset(torch.utils.data.Dataset):
         if self.augmentation is not None:
             rng = np.random.default_rng([self.seed, self.epoch, index])
             image, corners, visible = augment(image, corners, visible, has_board, rng, self.augmentation)
+        if frame.board is not None and frame.board.inverted:
+            # What the runtime's networks see (`print_face.canonical_view`): the camera's image, shadows and noise
+            # included, negated about its own white. Not flipped for a mirrored face: an X-junction is one either way.
+            image = image.max() - image
         points, ids = encode_cells(corners, visible, *image.shape)
         return {"image": torch.from_numpy(np.ascontiguousarray(image))[None], "points": torch.from_numpy(points),
                 "ids": torch.from_numpy(ids), "corners": torch.from_numpy(corners), "visible": torch.from_numpy(visible),
