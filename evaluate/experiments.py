@@ -27,6 +27,7 @@ LABELS = {
     "deep": "ChArUcoNet + RefineNet", "deep_subpix": "ChArUcoNet + cornerSubPix", "deep_norefine": "ChArUcoNet + NoRefine",
     "deep_paper": "ChArUcoNet + RefineNet, paper's decoding",
     "deep_markers": "ChArUcoNet points + markers (any board) + RefineNet",
+    "deep_paper_weights": "ChArUcoNet + RefineNet, the paper board's weights",
     "opencv": "OpenCV detector + cornerSubPix", "opencv_norefine": "OpenCV detector + NoRefine",
 }
 LUX_BINS = (0.0, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, float("inf"))

@@ -238,3 +238,11 @@ def test_quick_takes_an_explicit_synthetic_images(tmp_path, capsys, frames, came
     assert report.main(argv + ["--synthetic-images", "5"]) == 2
     err = capsys.readouterr().err
     assert "only 4 well-lit frames" in err and "where 5 are needed" in err and "lower --synthetic-images" in err
+
+
+def test_unseen_boards_only_refuses_a_board_it_does_not_know(capsys, tmp_path):
+    from evaluate import unseen_boards
+
+    code = unseen_boards.main(["--no-render", "--root", str(tmp_path), "--only", "5x5 DICT_9X9"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--only names no unseen board: 5x5 dict_9x9" in err and '"4x5 DICT_4X4_1000 inverted"' in err

@@ -305,6 +305,26 @@ def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unsee
     assert names[2:4] == ["charuconet-a", "charuconet-b"]  # the shipped recipe: plain loss, then the ID term weighted
 
 
+def test_zero_refinenet_steps_keep_the_initial_refinenet(tmp_path, capsys):
+    """--refinenet-steps 0 (how the shipped DICT_4X4 model was made): no patches, no RefineNet stage, the initial
+    weights' RefineNet bundled as it is; refused from scratch, where there is none to keep."""
+    keep = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "run"), "--frames", "100",
+                          "--charuconet-steps", "50", "--refinenet-steps", "0", "--synthetic-patches", "0"])
+    keep.sizes = pipeline.Sizes(**{**pipeline.asdict(pipeline.FULL["points"]), **keep.fixed_sizes()})
+    keep.rates = {**pipeline.ASSUMED_RATES, **RECORDED}
+    stages = {stage.name: stage for stage in keep.stages()}
+    assert "patches" not in stages and "refinenet" not in stages
+    bundle = stages["bundle"].command
+    assert bundle[bundle.index("--refinenet") + 1] == str(SHIPPED)
+    assert bundle[bundle.index("--charuconet") + 1] == str(tmp_path / "run" / "charuconet" / "best.pt")
+    assert "--refinenet-steps 0" in keep.reproduce_command()
+    code, err = run_main(["--family", "DICT_4X4", "--out", str(tmp_path / "s"), "--init", "none",
+                          "--refinenet-steps", "0"], capsys)
+    assert code == 2 and "--refinenet-steps 0" in err and "--init shipped" in err
+    code, err = run_main(["--family", "DICT_4X4", "--out", str(tmp_path / "s"), "--charuconet-steps", "0"], capsys)
+    assert code == 2 and "--charuconet-steps 0: give a number >= 1" in err
+
+
 def test_rate_probes_time_real_steps():
     assert 0 < pipeline.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu") < 60
     assert 0 < pipeline.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu") < 60

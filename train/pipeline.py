@@ -344,9 +344,10 @@ def eta_of(sizes: Sizes, rates: dict, boards: int, heads: str, from_scratch: boo
     bundle = start + (100 * 19 * rates["detect_s_per_image"] if heads == "points" else 300 * rates["detect_s_per_image"])
     return {
         "render": blender + sizes.frames * rates["render_s_per_frame"],
-        "patches": start + (sizes.synthetic_patches + 4 * 10 * sizes.frames) * rates["patch_s_per_patch"],
+        "patches": (start + (sizes.synthetic_patches + 4 * 10 * sizes.frames) * rates["patch_s_per_patch"]
+                    if sizes.refinenet_steps else 0.0),
         "charuconet": stages * start + sizes.charuconet_steps * rates["charuconet_s_per_step"],
-        "refinenet": start + sizes.refinenet_steps * rates["refinenet_s_per_step"],
+        "refinenet": start + sizes.refinenet_steps * rates["refinenet_s_per_step"] if sizes.refinenet_steps else 0.0,
         "bundle": bundle,
         "eval-data": boards * blender + eval_frames * rates["eval_render_s_per_frame"],
         "evaluate": boards * (sizes.eval_images * 22 * 2 + sizes.eval_sequences * sizes.eval_frames * 2)
@@ -439,7 +440,12 @@ class Pipeline:
         if fixed["eval_frames"] < 31:
             raise PipelineError(f"--eval-frames {fixed['eval_frames']}: give 31 or more (each evaluation sequence "
                                 "starts with 30 well-lit frames, then its condition)")
+        if fixed.get("refinenet_steps") == 0 and self.from_scratch:
+            raise PipelineError("--refinenet-steps 0 keeps the initial weights' RefineNet, and --init none has none: "
+                                "give 1 or more steps, or --init shipped (or a bundle)")
         for name, value in fixed.items():
+            if name in ("refinenet_steps", "synthetic_patches") and value == 0 and not self.from_scratch:
+                continue  # RefineNet kept from the initial weights: no patches, no RefineNet stage
             if value < 1 or (name == "eval_sequences" and value > 26):
                 raise PipelineError(f"--{name.replace('_', '-')} {value}: give "
                                     + ("1 to 26" if name == "eval_sequences" else "a number >= 1"))
@@ -550,30 +556,35 @@ class Pipeline:
                   f"{s.frames} frames {self.image_size[0]}x{self.image_size[1]}", eta["render"],
                   [*self.module("datagen.render"), *self.render_args(), "--n", str(s.frames), "--shard-size",
                    str(shard_size), "--out", str(renders), "--resume", *quiet]),
-            Stage("patches", "cut corner patches and synthesise X-junctions for RefineNet",
-                  f"4 per corner + {s.synthetic_patches} synthetic", eta["patches"],
-                  [*self.module("datagen.patches"), "--renders", str(renders), "--out", str(patches), "--per-corner", "4",
-                   "--synthetic", str(s.synthetic_patches), "--seed", str(self.args.seed), "--overwrite"]),
         ]
+        if s.refinenet_steps:
+            stages.append(Stage("patches", "cut corner patches and synthesise X-junctions for RefineNet",
+                                f"4 per corner + {s.synthetic_patches} synthetic", eta["patches"],
+                                [*self.module("datagen.patches"), "--renders", str(renders), "--out", str(patches),
+                                 "--per-corner", "4", "--synthetic", str(s.synthetic_patches), "--seed",
+                                 str(self.args.seed), "--overwrite"]))
         stages += self.charuconet_stages(eta["charuconet"], renders)
-        refine_init = [] if self.from_scratch else ["--init", self.init]
-        warmup = max(1, min(100, s.refinenet_steps // 10))
-        stages.append(Stage(
-            "refinenet", "train RefineNet" + ("" if self.from_scratch else " from the initial weights' RefineNet"),
-            f"{s.refinenet_steps} steps x 128 patches", eta["refinenet"],
-            [*self.module("train.refinenet", torchrun=True), "--data", str(patches), "--out", str(run / "refinenet"),
-             "--width", self.args.width, "--steps", str(s.refinenet_steps), "--batch-size", "128",
-             "--lr", "3e-3" if self.from_scratch else "1e-3", "--warmup", str(warmup), *refine_init,
-             "--val-every", str(validation_interval(s.refinenet_steps)), "--val-batches", "40",
-             "--checkpoint-every", str(max(1, min(500, s.refinenet_steps // 4))), "--workers", "0",
-             "--seed", str(self.args.seed), "--device", self.trainer_device(), *quiet],
-            folder=run / "refinenet", steps=s.refinenet_steps, torchrun=self.args.nproc_per_node > 1))
-        last = stages[-2].folder
+        last = stages[-1].folder
+        # --refinenet-steps 0: the initial weights' RefineNet as it is (RefineNet is board-agnostic).
+        refinenet = run / "refinenet" / "best.pt" if s.refinenet_steps else Path(self.init)
+        if s.refinenet_steps:
+            refine_init = [] if self.from_scratch else ["--init", self.init]
+            warmup = max(1, min(100, s.refinenet_steps // 10))
+            stages.append(Stage(
+                "refinenet", "train RefineNet" + ("" if self.from_scratch else " from the initial weights' RefineNet"),
+                f"{s.refinenet_steps} steps x 128 patches", eta["refinenet"],
+                [*self.module("train.refinenet", torchrun=True), "--data", str(patches), "--out", str(run / "refinenet"),
+                 "--width", self.args.width, "--steps", str(s.refinenet_steps), "--batch-size", "128",
+                 "--lr", "3e-3" if self.from_scratch else "1e-3", "--warmup", str(warmup), *refine_init,
+                 "--val-every", str(validation_interval(s.refinenet_steps)), "--val-batches", "40",
+                 "--checkpoint-every", str(max(1, min(500, s.refinenet_steps // 4))), "--workers", "0",
+                 "--seed", str(self.args.seed), "--device", self.trainer_device(), *quiet],
+                folder=run / "refinenet", steps=s.refinenet_steps, torchrun=self.args.nproc_per_node > 1))
         stages.append(Stage(
             "bundle", "pack both networks; choose the score threshold on the validation shards", "1 file",
             eta["bundle"],
             [*self.module("train.bundle"), "--charuconet", str(last / "best.pt"), "--refinenet",
-             str(run / "refinenet" / "best.pt"), "--threshold", "auto", "--note", f"pipeline={self.reproduce_command()}",
+             str(refinenet), "--threshold", "auto", "--note", f"pipeline={self.reproduce_command()}",
              "--note", f"card={run / 'MODEL_CARD.md'}", "--out", str(run / "detector.pt")]))
         for board_name, board in self.eval_boards.items():
             folder = run / "eval" / slug(board_name)
