@@ -16,21 +16,16 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from deepcharuco.board import BoardSpec
+from deepcharuco.board import MARKER_FAMILIES, BoardSpec
 from deepcharuco.errors import DeepCharucoError
 
-# Family name -> its dictionaries, smallest first (each a prefix of the next).
-FAMILIES: dict[str, tuple[str, ...]] = {
-    "DICT_4X4": ("DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000"),
-    "DICT_5X5": ("DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250", "DICT_5X5_1000"),
-    "DICT_6X6": ("DICT_6X6_50", "DICT_6X6_100", "DICT_6X6_250", "DICT_6X6_1000"),
-    "DICT_7X7": ("DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000"),
-    "APRILTAG_36H11": ("DICT_APRILTAG_36h11",),
-}
+# Family name -> its dictionaries, smallest first (each a prefix of the next): the runtime's table, which
+# `Detector` picks a board's family model by.
+FAMILIES = MARKER_FAMILIES
 
 
 # Grids no training board of a family has, in either orientation: the report's unseen boards
-# (`evaluate.unseen_boards.UNSEEN_BOARDS`, whose test checks they are all here), so that a family model
+# (`evaluate.unseen_boards.UNSEEN_BOARDS`; a test checks they are all here), so that a family model
 # is measured on boards its training never showed, whatever their marker size, IDs or polarity.
 HELD_OUT_GRIDS: dict[str, tuple[tuple[int, int], ...]] = {
     "DICT_4X4": ((4, 5),),

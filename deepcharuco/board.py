@@ -38,17 +38,23 @@ def _dictionary_id(name: str) -> int:
     )
 
 
+# Marker family -> its OpenCV dictionaries, smallest first (each a prefix of the next: a board of any of them is a
+# board of the family, `datagen.family.check_prefixes`). One family model reads them all.
+MARKER_FAMILIES: dict[str, tuple[str, ...]] = {
+    "DICT_4X4": ("DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000"),
+    "DICT_5X5": ("DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250", "DICT_5X5_1000"),
+    "DICT_6X6": ("DICT_6X6_50", "DICT_6X6_100", "DICT_6X6_250", "DICT_6X6_1000"),
+    "DICT_7X7": ("DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000"),
+    "APRILTAG_36H11": ("DICT_APRILTAG_36h11",),
+}
+
+
 def marker_family(dictionary: str) -> str | None:
-    """The marker family a dictionary belongs to: ``DICT_4X4_250`` -> ``DICT_4X4`` (its _50/_100/_250/_1000
-    dictionaries are prefixes of one another, so one family model reads them all), ``DICT_APRILTAG_36h11`` ->
-    ``APRILTAG_36H11``; None for the others (``DICT_ARUCO_ORIGINAL``, the smaller AprilTag sets)."""
+    """The `MARKER_FAMILIES` family a dictionary belongs to (any case): ``DICT_4X4_250`` -> ``DICT_4X4``,
+    ``DICT_APRILTAG_36h11`` -> ``APRILTAG_36H11``; None for the others (``DICT_ARUCO_ORIGINAL``, the smaller
+    AprilTag sets)."""
     name = dictionary.upper()
-    if name == "DICT_APRILTAG_36H11":
-        return "APRILTAG_36H11"
-    head, _, size = name.rpartition("_")
-    if head in ("DICT_4X4", "DICT_5X5", "DICT_6X6", "DICT_7X7") and size in ("50", "100", "250", "1000"):
-        return head
-    return None
+    return next((family for family, names in MARKER_FAMILIES.items() if name in {n.upper() for n in names}), None)
 
 
 @dataclass(frozen=True)

@@ -239,10 +239,9 @@ def test_inverted_print_negated_about_its_local_white(camera):
 
 
 def test_marker_family_of_dictionaries():
-    from deepcharuco.board import marker_family
-    from datagen.family import FAMILIES
+    from deepcharuco.board import MARKER_FAMILIES, marker_family
 
-    for family, dictionaries in FAMILIES.items():  # the runtime's families are the renderer's
+    for family, dictionaries in MARKER_FAMILIES.items():
         assert {marker_family(name) for name in dictionaries} == {family}
     assert marker_family("dict_4x4_250") == "DICT_4X4"
     assert marker_family("DICT_ARUCO_ORIGINAL") is None and marker_family("DICT_APRILTAG_16h5") is None
@@ -274,12 +273,12 @@ def test_detector_loads_the_shipped_weights_of_the_board_family(tmp_path, monkey
 def test_shipped_family_models_are_point_heads_named_for_their_family():
     from pathlib import Path
 
-    from datagen.family import FAMILIES
     from deepcharuco import deep_detector
+    from deepcharuco.board import MARKER_FAMILIES
     from deepcharuco.models.checkpoint import load_charuconet
 
     for path in sorted(Path(deep_detector.FAMILY_WEIGHTS_DIR).glob("*.pt")):
-        assert path.stem in FAMILIES, f"{path.name} names no marker family"
+        assert path.stem in MARKER_FAMILIES, f"{path.name} names no marker family"
         checkpoint = load_charuconet(path)[2]
         assert checkpoint.get("heads") == "points", f"{path.name} is not a family (points-only) model"
     shipped = sum(p.stat().st_size for p in Path(deep_detector.WEIGHTS_DIR).rglob("*") if p.is_file())

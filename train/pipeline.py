@@ -566,8 +566,9 @@ class Pipeline:
         stages += self.charuconet_stages(eta["charuconet"], renders)
         last = stages[-1].folder
         # --refinenet-steps 0: the initial weights' RefineNet as it is (RefineNet is board-agnostic).
-        refinenet = run / "refinenet" / "best.pt" if s.refinenet_steps else Path(self.init)
+        refinenet = Path(self.init)
         if s.refinenet_steps:
+            refinenet = run / "refinenet" / "best.pt"
             refine_init = [] if self.from_scratch else ["--init", self.init]
             warmup = max(1, min(100, s.refinenet_steps // 10))
             stages.append(Stage(
