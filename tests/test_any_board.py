@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, project_corners
+from deepcharuco import deep_detector
 from deepcharuco.lattice import find_cells
 from deepcharuco.marker_reader import board_markers, correlate, read_squares
 from deepcharuco.placement import marker_agreement
@@ -178,8 +179,10 @@ def test_large_image_searched_at_working_size_refined_at_full_resolution():
     board = UNSEEN[0]
     camera = Camera.from_fov(1920, 1080, hfov_deg=60.0)
     image, truth = view_of(board, camera, fill=0.9, **POSES[0])  # squares ~140 px: too large for the network
-    native = Detector(board=board, working_size=None).detect(image)
-    found = Detector(board=board).detect(image)
+    # The paper's weights: the search is what is tested (the DICT_6X6 family model finds these squares natively too).
+    weights = deep_detector.DEFAULT_WEIGHTS
+    native = Detector(board=board, weights=weights, working_size=None).detect(image)
+    found = Detector(board=board, weights=weights).detect(image)
     assert len(native.ids) < 0.5 * board.num_corners
     assert len(found.ids) >= 0.9 * board.num_corners
     assert np.median(np.linalg.norm(found.corners - truth[found.ids], axis=1)) < 0.5
@@ -283,3 +286,7 @@ def test_shipped_family_models_are_point_heads_named_for_their_family():
         assert checkpoint.get("heads") == "points", f"{path.name} is not a family (points-only) model"
     shipped = sum(p.stat().st_size for p in Path(deep_detector.WEIGHTS_DIR).rglob("*") if p.is_file())
     assert shipped < 30e6  # every shipped weight together
+    # This version ships DICT_6X6 (chosen on validation boards, README "Family models"), with its model card.
+    six = BoardSpec(squares_x=5, squares_y=7, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    assert Detector(board=six).weights == Path(deep_detector.FAMILY_WEIGHTS_DIR) / "DICT_6X6.pt"
+    assert (Path(deep_detector.FAMILY_WEIGHTS_DIR) / "DICT_6X6.md").is_file()

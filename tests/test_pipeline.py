@@ -18,6 +18,7 @@ from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.deep_detector import Detector
 from deepcharuco.models import load_charuconet
 from deepcharuco.models.checkpoint import PointsOnlyBoard, read_checkpoint
+from deepcharuco.placement import WEAK_CONFIDENCE
 from train import pipeline
 from train.bundle import choose_threshold
 from train.charuconet import ChArUcoNetTask, match_points
@@ -256,7 +257,8 @@ def test_points_only_training_marks_the_id_head_untrained(two_boards, tmp_path):
     with pytest.raises(DeepCharucoError, match="geometry='repair' decodes with the ID head"):
         Detector(board=BoardSpec(), weights=tmp_path / "best.pt", refine="none", geometry="repair")
     threshold, balance = choose_threshold(tmp_path / "best.pt", max_frames=6)
-    assert 0 < threshold < 1 and set(balance) == {float(t) for t in np.round(np.arange(0.05, 0.951, 0.05), 2)}
+    # Read by markers: only thresholds above WEAK_CONFIDENCE, below which no cell is left to be a checked fill-in
+    assert WEAK_CONFIDENCE < threshold < 1 and set(balance) == {float(t) for t in np.round(np.arange(0.1, 0.951, 0.05), 2)}
 
 
 def test_points_only_options_are_checked(two_boards, tmp_path):

@@ -131,3 +131,23 @@ def test_filled_in_corners_refined_away_from_their_neighbours_are_left_out():
     # A fill-in with fewer than 4 confident corners within LOCAL_SQUARES squares cannot be checked: dropped.
     alone = np.array([0, 1, 6, 7]), truth[[0, 1, 6, 7]].astype(np.float32), np.array([0.9, 0.9, 0.9, 0.1], np.float32)
     assert placement.settle_fill_ins(board_xy, *alone, threshold=0.25)[0].tolist() == [0, 1, 6]
+
+
+def test_corners_far_from_the_others_are_left_out_of_large_detections():
+    board = BoardSpec(squares_x=12, squares_y=9, square_length=0.03, marker_length=0.022, dictionary="DICT_4X4_1000")
+    board_xy = board.corner_points()[:, :2]  # 11 x 8 corners, ID = row * 11 + column
+    block = np.array([row * 11 + column for row in range(3) for column in range(4)])  # a 4 x 3 block: 12 corners
+    lone, pair = np.array([10]), np.array([84, 85])  # 6 columns from the block; two neighbours, 5 rows from it
+    ids = np.concatenate([block, lone, pair])
+    corners = (board_xy[ids] * 1000).astype(np.float32)
+    scores = np.linspace(1.0, 0.5, len(ids)).astype(np.float32)
+    kept_ids, kept, kept_scores = placement.drop_isolated(board_xy, ids, corners, scores)
+    # Each of the pair has 1 neighbour, the lone corner none: fewer than MIN_NEIGHBOURS (3); each of the block's corners
+    # has 8 within LOCAL_SQUARES squares and stays.
+    assert placement.MIN_NEIGHBOURS == 3 and kept_ids.tolist() == block.tolist()
+    assert np.array_equal(kept, corners[:12]) and np.array_equal(kept_scores, scores[:12])
+    # A detection smaller than ISOLATION_MIN_CORNERS (darkness, a small board) is left as it is.
+    small = np.concatenate([block[:4], pair])
+    assert len(small) < placement.ISOLATION_MIN_CORNERS
+    assert placement.drop_isolated(board_xy, small, (board_xy[small] * 1000).astype(np.float32),
+                                   np.ones(len(small), np.float32))[0].tolist() == small.tolist()

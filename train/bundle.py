@@ -36,6 +36,7 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
 from datagen.shards import ShardReader
 from deepcharuco.models.checkpoint import id_head_trained, read_checkpoint, save_bundle
+from deepcharuco.placement import WEAK_CONFIDENCE
 from train.dataset import FrameDataset, split_shards
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
@@ -95,11 +96,18 @@ def _validation_shards(charuconet: str | Path, checkpoint: dict, data: str | Non
 
 def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_frames: int) -> tuple[float, dict]:
     """`choose_threshold` for geometry "markers": every validation frame is detected whole (its shard's board,
-    read by its markers) at each threshold, as `Detector.detect` does; the network runs once per frame and
-    threshold, so fewer frames are used (a third of ``max_frames``)."""
+    read by its markers) at each threshold above `placement.WEAK_CONFIDENCE`, as `Detector.detect` does; the
+    network runs once per frame and threshold, so fewer frames are used (a third of ``max_frames``).
+
+    Only thresholds above WEAK_CONFIDENCE: the threshold is what a corner needs to find and fit the view, and
+    the weaker cells may only fill in corners that their found neighbours place (`placement._fill_in`,
+    `settle_fill_ins`). At WEAK_CONFIDENCE every cell is "confident" and those local checks never run: the
+    DICT_4X4 family model chose 0.05 on its 320x240 validation frames and then put a corner two squares off
+    where a 22x22 board's one view, fitted on one corner of the board, was extrapolated across a wide lens."""
     checkpoint = read_checkpoint(charuconet, "charuconet")
     _, validation = _validation_shards(charuconet, checkpoint, data)
-    balance = dict.fromkeys(THRESHOLDS, 0)
+    thresholds = tuple(t for t in THRESHOLDS if t > WEAK_CONFIDENCE)
+    balance = dict.fromkeys(thresholds, 0)
     budget = max(1, max_frames // 3)
     frames = [(reader, index) for reader in map(ShardReader, validation) for index in range(len(reader))][:budget]
     detectors: dict = {}  # one per board: a shard of random boards (datagen.render --family) has one per frame
@@ -109,7 +117,7 @@ def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_fram
         if board not in detectors:
             detectors[board] = Detector(board=board, weights=charuconet, refine="none", geometry="markers")
         detector = detectors[board]
-        for threshold in THRESHOLDS:
+        for threshold in thresholds:
             detector.threshold = threshold
             detection = detector.detect(frame.image)
             if not frame.meta["has_board"]:
@@ -117,7 +125,7 @@ def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_fram
                 continue
             match = match_corners(detection, frame.corners, frame.visible)
             balance[threshold] += 2 * match.num_correct - len(detection.ids)
-    best = max(THRESHOLDS, key=lambda t: (balance[t], t))
+    best = max(thresholds, key=lambda t: (balance[t], t))
     return float(best), {float(t): int(v) for t, v in balance.items()}
 
 

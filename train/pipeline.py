@@ -884,7 +884,9 @@ def write_card(pipeline: Pipeline) -> Path:
     target = pipeline.target
     lines = [f"# Model card: `{run / 'detector.pt'}` ({target.name})", ""]
     if target.heads == "points":
-        lines += [f"A family model: ChArUcoNet's point head and RefineNet trained on renders of random "
+        trained = "ChArUcoNet's point head and RefineNet" if s.refinenet_steps else \
+            "ChArUcoNet's point head (RefineNet: the initial weights', `--refinenet-steps 0`)"
+        lines += [f"A family model: {trained} trained on renders of random "
                   f"{target.family} boards. Its ID head is untrained (recorded in the file: `heads: points`), so "
                   "`Detector(board=..., weights=...)` finds every board by its markers (geometry \"markers\"); without "
                   "`board=` it looks for the board stored with the weights by the same route.", ""]
