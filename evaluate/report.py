@@ -81,6 +81,11 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
     for name, refine in (("deep", "refinenet"), ("deep_subpix", "subpix"), ("deep_norefine", "none")):
         detectors[name] = Detector(board=board, weights=weights, refine=refine, device=device,
                                    refine_weights=refine_weights)
+    if detectors["deep"].geometry == "markers":  # no ID head for this board: a family model, or another layout
+        notes.append(f"**The deep detector reads {board} by its markers** ({detectors['deep'].weights} is a points-only "
+                     f"family model, or was trained for another layout): the deep rows are the markers decoding; the "
+                     f"paper's decoding (the ID head) is not evaluated.")
+        return detectors
     detectors["deep_paper"] = Detector(board=board, weights=weights, device=device, refine_weights=refine_weights,
                                        geometry="none")
     # What a board the ID head never saw gets: the point head and the board's markers alone.

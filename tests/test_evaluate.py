@@ -202,6 +202,25 @@ def test_report_end_to_end(frames, camera, tmp_path, checkpoint):
     assert "Held-out renders" in markdown and "Timing" in markdown
 
 
+def test_report_of_a_points_only_model_leaves_out_the_papers_decoding(frames, camera, tmp_path, checkpoint):
+    # A family model (`train.pipeline --family`, heads "points") has no ID head: the report reads the board by its
+    # markers in every deep row and says why the paper's decoding is missing, instead of refusing.
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "family.pt", ChArUcoNet(ChArUcoNetConfig.lite(16)), board=BOARD, input_size=(320, 240),
+                    heads="points")
+    write_test_shards(tmp_path / "seq", frames, camera, {f"lux-{lux}-a": [400] * 3 + [lux] * 3 for lux in (700, 1)})
+    write_test_shards(tmp_path / "data", frames, camera, {"renders": [300, 3, 30, 0.5, 900]})
+    out = tmp_path / "report"
+    argv = ["--sequences", str(tmp_path / "seq"), "--data", str(tmp_path / "data"), "--out", str(out), "--quiet",
+            "--weights", str(tmp_path / "family.pt"), "--refine-weights", str(checkpoint / "refinenet.pt"),
+            "--synthetic-images", "2", "--timing-seconds", "0.1", "--gallery", "1", "--no-autolabel-check",
+            "--no-render", "--no-calibration", "--no-captures", "--no-unseen-boards", "--no-false-positives"]
+    assert report.main(argv) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "opencv", "opencv_norefine"}
+    assert any("by its markers" in note and "not evaluated" in note for note in results["notes"])
+
+
 def test_report_refuses_missing_data_and_weights(tmp_path, capsys, frames, camera):
     argv = ["--sequences", str(tmp_path / "none"), "--data", str(tmp_path / "none2"), "--out", str(tmp_path / "r"),
             "--quiet"]
