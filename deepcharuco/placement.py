@@ -70,7 +70,7 @@ FILL_IN_NOISE = 3.0
 # detection of at least ISOLATION_MIN_CORNERS, is left out (`drop_isolated`): its ID rests on the view's one homography
 # carried far from the corners it was fitted on, and a wide lens bends a big board's edge a whole square from it.
 # Validation renders of random DICT_4X4/5X5/6X6 boards (seed 9137 at 320x240; seeds 4242/4243 at 720x540; not the
-# report's boards), corners 6 px or more off their truth (a square at those sizes) before -> after, frames with one:
+# report's boards), frames with a corner 6 px or more off its truth (mostly IDs a square off), before -> after:
 # the paper's weights 16 -> 13 frames, 80 of 12,746 right corners left out (0.6 %); the DICT_4X4 family model 16 -> 9,
 # 53 of 12,902 (0.4 %); no frame lost its >= 4 right corners. Fewer than 4 neighbours: 10 and 6 frames for 242 and 214
 # right corners. Below 10 corners (darkness, a small board) most corners have few neighbours found: left as found.
