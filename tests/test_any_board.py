@@ -5,8 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, project_corners
-from deepcharuco import deep_detector
+from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, deep_detector, project_corners
 from deepcharuco.lattice import find_cells
 from deepcharuco.marker_reader import board_markers, correlate, read_squares
 from deepcharuco.placement import marker_agreement
