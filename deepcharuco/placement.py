@@ -384,11 +384,15 @@ def drop_isolated(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, sc
     Returns (ids, corners, scores), order kept."""
     if len(ids) < ISOLATION_MIN_CORNERS:
         return ids, corners, scores
-    square = float(np.linalg.norm(board_xy[1] - board_xy[0]))  # corners 0 and 1: neighbours along a row
-    xy = board_xy[ids]
-    near = np.max(np.abs(xy[:, None] - xy[None]), axis=2) <= LOCAL_SQUARES * square + 1e-9  # (N, N), self included
-    keep = near.sum(axis=1) - 1 >= MIN_NEIGHBOURS
+    keep = _near_on_board(board_xy, board_xy[ids], board_xy[ids]).sum(axis=1) - 1 >= MIN_NEIGHBOURS  # self counted
     return ids[keep], corners[keep], scores[keep]
+
+
+def _near_on_board(board_xy: np.ndarray, points: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(P, 2), (Q, 2) board points (metres) -> (P, Q) bool: within `LOCAL_SQUARES` squares of each other along
+    both board axes. ``board_xy``: (C, 2) the board's corners, whose first two are neighbours along a row."""
+    square = float(np.linalg.norm(board_xy[1] - board_xy[0]))
+    return np.max(np.abs(points[:, None] - others[None]), axis=2) <= LOCAL_SQUARES * square + 1e-9
 
 
 def _local_prediction(board_xy: np.ndarray, ids: np.ndarray, pixels: np.ndarray, pool: np.ndarray, corner: int
@@ -397,8 +401,7 @@ def _local_prediction(board_xy: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
     ``corner`` on the board put it: a homography fitted to them -> (the predicted pixel (2,), their own pixels minus
     the fit's (n, 2)); None for fewer than 4 of them, no fit, or a corner the fit sends to infinity. A lens bends
     the board away from any one homography; a few squares of it stay nearly flat."""
-    square = float(np.linalg.norm(board_xy[1] - board_xy[0]))  # corners 0 and 1: neighbours along a row
-    near = pool & (np.max(np.abs(board_xy[ids] - board_xy[corner]), axis=1) <= LOCAL_SQUARES * square + 1e-9)
+    near = pool & _near_on_board(board_xy, board_xy[ids], board_xy[corner][None])[:, 0]
     if near.sum() < 4:
         return None
     local, _ = cv2.findHomography(board_xy[ids[near]].astype(np.float64), pixels[near].astype(np.float64), 0)
