@@ -82,7 +82,14 @@ def cv_camera_from_blender(blender_matrix: np.ndarray) -> np.ndarray:
 
 
 def rigid(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """(4, 4) transform from a (3, 3) rotation and a (3,) translation."""
+    """(4, 4) transform from a (3, 3) rotation and a (3,) translation.
+
+    Raises ValueError for a matrix that is not a proper rotation: Blender would render its nearest
+    rotation while labels used the matrix itself."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    if rotation.shape != (3, 3) or not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) \
+            or np.linalg.det(rotation) <= 0:
+        raise ValueError(f"rotation must be a proper 3x3 rotation (orthonormal, det +1), got {rotation.tolist()}")
     matrix = np.eye(4)
     matrix[:3, :3] = rotation
     matrix[:3, 3] = np.ravel(translation)

@@ -50,6 +50,26 @@ def test_board_pose_in_camera_matches_world_projection():
     np.testing.assert_allclose(project_corners(board, rvec, tvec, spec.K), by_hand, atol=1e-9)
 
 
+def test_board_rotation_is_rigid_when_the_board_faces_up():
+    # Frame 163 of seed 0 draws a board facing within 8 degrees of straight up: its rotation was a
+    # shear (R^T R off I by 0.14) that Blender rendered as a rotation, so labels drifted off the board.
+    board = BoardSpec()
+    for index in (163, 177, *range(40)):
+        rotation = sample_scene(frame_rng(0, index), board.size_m).board_matrix[:3, :3]
+        np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-9)
+        assert np.linalg.det(rotation) == pytest.approx(1.0)
+    assert abs(sample_scene(frame_rng(0, 163), board.size_m).board_matrix[2, 2]) > 0.99  # the case above
+
+
+def test_rigid_refuses_what_blender_cannot_place():
+    from blender_scenes.conversions import rigid
+
+    with pytest.raises(ValueError, match="proper 3x3 rotation"):
+        rigid(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.14, 0.0, 1.0]]), np.zeros(3))
+    with pytest.raises(ValueError, match="proper 3x3 rotation"):
+        rigid(np.diag([1.0, 1.0, -1.0]), np.zeros(3))  # a reflection
+
+
 def _spec_arrays(spec):
     return [spec.K, spec.trajectory, spec.board_matrix, *[s.matrix for s in spec.shapes], *[l.matrix for l in spec.lights]]
 
