@@ -285,7 +285,13 @@ def test_shipped_family_models_are_point_heads_named_for_their_family():
         assert checkpoint.get("heads") == "points", f"{path.name} is not a family (points-only) model"
     shipped = sum(p.stat().st_size for p in Path(deep_detector.WEIGHTS_DIR).rglob("*") if p.is_file())
     assert shipped < 30e6  # every shipped weight together
-    # This version ships DICT_6X6 (chosen on validation boards, README "Family models"), with its model card.
+    # This version ships DICT_4X4 and DICT_6X6 (chosen on validation boards, README "Family models"), each with
+    # its model card; DICT_5X5 boards other than the paper's layout keep the paper's weights.
     six = BoardSpec(squares_x=5, squares_y=7, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
-    assert Detector(board=six).weights == Path(deep_detector.FAMILY_WEIGHTS_DIR) / "DICT_6X6.pt"
-    assert (Path(deep_detector.FAMILY_WEIGHTS_DIR) / "DICT_6X6.md").is_file()
+    four = BoardSpec(squares_x=4, squares_y=5, square_length=0.054, marker_length=0.0405, dictionary="DICT_4X4_1000",
+                     inverted=True)  # caliscope's board
+    five = BoardSpec(squares_x=11, squares_y=8, square_length=0.022, marker_length=0.016, dictionary="DICT_5X5_1000")
+    for board, family in ((six, "DICT_6X6"), (four, "DICT_4X4")):
+        assert Detector(board=board).weights == Path(deep_detector.FAMILY_WEIGHTS_DIR) / f"{family}.pt"
+        assert (Path(deep_detector.FAMILY_WEIGHTS_DIR) / f"{family}.md").is_file()
+    assert Detector(board=five).weights == deep_detector.DEFAULT_WEIGHTS
