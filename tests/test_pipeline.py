@@ -127,7 +127,9 @@ def test_refusals_name_the_problem_and_the_fix(tmp_path, capsys, unwritable_dir)
     board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
     out = ["--out", str(tmp_path / "run")]
     code, err = run_main(["--family", "DICT_9X9", *out], capsys)
-    assert code == 2 and "--family 'DICT_9X9' is not a marker family" in err and "DICT_4X4" in err
+    assert code == 2 and "unknown marker family 'DICT_9X9'" in err and "DICT_4X4" in err
+    code, err = run_main(["--family", "DICT_4X4,DICT_6X6", *out], capsys)
+    assert code == 2 and "one family per model" in err
     code, err = run_main(["--family", "DICT_4X4", "--board", str(board_file), *out], capsys)
     assert code == 2 and "exactly one of --family" in err and "not both" in err
     code, err = run_main(out, capsys)

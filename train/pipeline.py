@@ -41,16 +41,14 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from deepcharuco.board import BoardSpec
+from datagen.family import FamilyError, parse_families
+from deepcharuco.board import MARKER_FAMILIES, BoardSpec
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "deepcharuco" / "weights" / "detector.pt"
 
-# The family name a user gives -> the dictionary whose markers cover it (the _50/_100/_250 ones are prefixes).
-FAMILIES = {"DICT_4X4": "DICT_4X4_1000", "DICT_5X5": "DICT_5X5_1000", "DICT_6X6": "DICT_6X6_1000",
-            "DICT_7X7": "DICT_7X7_1000", "APRILTAG_36h11": "DICT_APRILTAG_36h11"}
 # Evaluation sequences in the order a budget keeps them: the well-lit ones anchor the synthetic protocol,
 # then the darkest, shadows and shake (what OpenCV fails on), then the rest.
 SEQUENCE_PRIORITY = ("lux-700-a", "lux-400-b", "lux-1-a", "lux-0.3-b", "shadow-1", "motion-1", "lux-10-a",
@@ -114,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Sizes left out are the full plan's (family: 5000 frames, 6000 ChArUcoNet steps; board: 2000 "
                "frames, 3000 steps), reduced to fit --budget. Rerun the same command to resume after a kill.")
     target = parser.add_argument_group("what to make (exactly one)")
-    target.add_argument("--family", default=None, help=f"marker family for a family model: {', '.join(FAMILIES)}")
+    target.add_argument("--family", default=None,
+                        help=f"marker family for a family model: {', '.join(MARKER_FAMILIES)} (any case)")
     target.add_argument("--board", default=None, help="board file (YAML/JSON) to fine-tune a model for")
     parser.add_argument("--out", required=True, help="run folder: data, runs, detector.pt, MODEL_CARD.md")
     parser.add_argument("--budget", default=None, help="time budget for the whole pipeline, e.g. 6h, 90m, 1h30m "
@@ -185,10 +184,13 @@ def check_target(args: argparse.Namespace) -> Target:
                             "or --board B.yaml (a model fine-tuned for one board)"
                             + (", not both" if args.family else ""))
     if args.family:
-        if args.family not in FAMILIES:
-            raise PipelineError(f"--family {args.family!r} is not a marker family this pipeline knows: use one of "
-                                f"{', '.join(FAMILIES)}")
-        return Target(args.family, None, args.heads or "points")
+        try:  # the names `datagen.render --family` and `Detector`'s weights lookup use (DICT_4X4, APRILTAG_36H11, ...)
+            families = parse_families(args.family)
+        except FamilyError as exc:
+            raise PipelineError(f"--family {args.family!r}: {exc}") from exc
+        if len(families) != 1:
+            raise PipelineError(f"--family {args.family!r}: one family per model (run the pipeline once for each)")
+        return Target(families[0], None, args.heads or "points")
     return Target(None, BoardSpec.load(args.board), args.heads or "all")
 
 
@@ -810,7 +812,7 @@ def evaluation_boards(target: Target) -> dict[str, BoardSpec]:
         return {f"{target.board.squares_x}x{target.board.squares_y} {target.board.dictionary}": target.board}
     from evaluate.unseen_boards import UNSEEN_BOARDS
 
-    dictionary = FAMILIES[target.family]
+    dictionary = MARKER_FAMILIES[target.family][-1]  # the largest: the _50/_100/_250 ones are its prefixes
     prefix = dictionary.rsplit("_", 1)[0] if "APRILTAG" not in dictionary else dictionary
     boards = {name: board for name, board in UNSEEN_BOARDS.items() if board.dictionary.startswith(prefix)}
     if not boards:
