@@ -133,16 +133,17 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
     # compare the square's centre and its first corner. Only the best-correlated proposals are tried
     # as the view (the right view has many proposals, so some among the best): O(HYPOTHESES x K).
     hypotheses = np.argsort(-matches.ncc, kind="stable")[:HYPOTHESES]
-    side = _square_sides(squares[matches.read])
-    agrees = np.ones((len(hypotheses), len(proposals)), bool)
-    for point in ((0.5, 0.5), (0.0, 0.0)):
-        board_points = np.c_[square_xy + point, np.ones(len(square_xy))]
-        observed = _apply_each(proposals, board_points[:, :2])  # (K, 2): where j itself puts that point
-        mapped = proposals[hypotheses] @ board_points.T  # (H, 3, K)
-        with np.errstate(divide="ignore", invalid="ignore"):  # a far-off proposal may send a point to infinity
-            predicted = mapped[:, :2] / mapped[:, 2:]
-        gap = np.hypot(predicted[:, 0] - observed[None, :, 0], predicted[:, 1] - observed[None, :, 1])
-        agrees &= np.nan_to_num(gap, nan=np.inf) < AGREEMENT * side[None]
+    reach = AGREEMENT * _square_sides(squares[matches.read])  # (K,)
+    # A far-off proposal may send a point to infinity. The centres first, for every (hypothesis, proposal) pair:
+    # (H, K); the first corners then only for the pairs whose centres agree (a few in a hundred).
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        centres = np.c_[square_xy + 0.5, np.ones(len(square_xy))]
+        agrees = _lands_within(proposals[hypotheses] @ centres.T, _apply_each(proposals, centres[:, :2]), reach)
+        pair_h, pair_k = np.nonzero(agrees)
+        firsts = np.c_[square_xy, np.ones(len(square_xy))]
+        mapped = np.einsum("nij,nj->ni", proposals[hypotheses[pair_h]], firsts[pair_k])[:, :, None]  # (n, 3, 1)
+        observed = _apply_each(proposals, square_xy)[pair_k][:, None]  # (n, 1, 2)
+        agrees[pair_h, pair_k] = _lands_within(mapped, observed, reach[pair_k][:, None])[:, 0]
     support = _support(matches.marker, matches.ncc, agrees)
     best = int(np.argmax(support))
     if len(np.unique(matches.marker[agrees[best]])) < MIN_MARKERS:
@@ -243,6 +244,16 @@ def _support(marker: np.ndarray, ncc: np.ndarray, agrees: np.ndarray) -> np.ndar
     _, starts = np.unique(marker[order], return_index=True)
     values = np.where(agrees, np.maximum(ncc.astype(np.float64), 0.0)[None], 0.0)[:, order]
     return np.maximum.reduceat(values, starts, axis=1).sum(axis=1)
+
+
+def _lands_within(mapped: np.ndarray, observed: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(A, 3, K) homogeneous points, (K, 2) or (A, K, 2) pixels, (K,) or (A, K) distances -> (A, K) bool: whether each
+    point lands within its distance of its pixel. Compared as |p - o w| < r |w|, which is |p / w - o| < r without
+    the division (a point at infinity, w = 0, or a pixel that is not finite never lands)."""
+    w = mapped[:, 2]
+    dx = mapped[:, 0] - observed[..., 0] * w
+    dy = mapped[:, 1] - observed[..., 1] * w
+    return dx * dx + dy * dy < (reach * w) ** 2
 
 
 def _square_sides(squares: np.ndarray) -> np.ndarray:
