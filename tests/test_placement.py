@@ -151,3 +151,17 @@ def test_corners_far_from_the_others_are_left_out_of_large_detections():
     assert len(small) < placement.ISOLATION_MIN_CORNERS
     assert placement.drop_isolated(board_xy, small, (board_xy[small] * 1000).astype(np.float32),
                                    np.ones(len(small), np.float32))[0].tolist() == small.tolist()
+
+
+def test_agreement_test_is_the_pixel_distance_without_division():
+    rng = np.random.default_rng(4)
+    mapped = rng.normal(size=(5, 3, 7)) * [[10.0], [10.0], [1.0]]  # some w negative
+    observed = rng.normal(size=(7, 2)) * 10.0
+    reach = rng.uniform(1.0, 20.0, size=7)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        expected = np.hypot(*(mapped[:, :2] / mapped[:, 2:] - observed.T[None]).transpose(1, 0, 2)) < reach
+    np.testing.assert_array_equal(placement._lands_within(mapped, observed, reach), expected)
+    at_infinity = np.array([[[3.0], [4.0], [0.0]]])  # w = 0: a point at infinity lands nowhere
+    with np.errstate(invalid="ignore"):
+        assert not placement._lands_within(at_infinity, np.zeros((1, 2)), np.array([1e9]))[0, 0]
+        assert not placement._lands_within(np.ones((1, 3, 1)), np.full((1, 2), np.inf), np.array([1e9]))[0, 0]
