@@ -178,8 +178,8 @@ def main() -> None:
             cells.append(f"{fps[name]:7.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:5.2f} {error:5.2f}")
         print(f"{label:28s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
 
-    # Boards the weights never saw, found by their markers (geometry="markers") with the family models that ship
-    # for them (`Detector(board)` picks them): drawn 320x240 views.
+    # Boards the weights never saw, found by their markers (geometry="markers") with the weights `Detector(board)`
+    # picks (a family model where one ships): drawn 320x240 views.
     for name, unseen in UNSEEN_BOARDS.items():
         others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen),
                   "hybrid": Detector(unseen, mode="hybrid")}
