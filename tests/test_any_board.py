@@ -124,6 +124,23 @@ def test_look_alike_boards_give_nothing(look_alike, camera):
         assert len(detector.detect(image).ids) == 0
 
 
+CALISCOPE_LOOK_ALIKES = [  # the inverted 4x5 DICT_4X4_1000 board (UNSEEN[2], read with the shipped DICT_4X4 model)
+    BoardSpec(**{**UNSEEN[2].to_dict(), "dictionary": "DICT_5X5_250"}),
+    BoardSpec(**{**UNSEEN[2].to_dict(), "mirrored": True}),
+    BoardSpec(**{**UNSEEN[2].to_dict(), "first_marker_id": 10}),  # the next ten markers of the dictionary
+]
+
+
+@pytest.mark.parametrize("look_alike", CALISCOPE_LOOK_ALIKES, ids=["other-dictionary", "mirrored", "other-ids"])
+def test_look_alikes_of_an_inverted_dict_4x4_board_give_nothing(look_alike, camera):
+    detector = Detector(board=UNSEEN[2])
+    assert detector.weights.name == "DICT_4X4.pt"
+    for pose in POSES:
+        image, _ = view_of(look_alike, camera, **pose)
+        assert len(detector.detect(image).ids) == 0
+        assert len(detector.detect(view_of(UNSEEN[2], camera, **pose)[0]).ids) > 0  # the board itself is found
+
+
 def test_paper_board_detector_refuses_look_alikes_and_plain_chessboards(camera):
     detector = Detector()  # the board-specific ID head, geometry "repair", checked against the markers
     assert detector.geometry == "repair"
