@@ -42,7 +42,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from datagen.family import FamilyError, parse_families
-from deepcharuco.board import MARKER_FAMILIES, BoardSpec
+from deepcharuco.board import MARKER_FAMILIES, BoardSpec, marker_family
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
@@ -813,8 +813,7 @@ def evaluation_boards(target: Target) -> dict[str, BoardSpec]:
     from evaluate.unseen_boards import UNSEEN_BOARDS
 
     dictionary = MARKER_FAMILIES[target.family][-1]  # the largest: the _50/_100/_250 ones are its prefixes
-    prefix = dictionary.rsplit("_", 1)[0] if "APRILTAG" not in dictionary else dictionary
-    boards = {name: board for name, board in UNSEEN_BOARDS.items() if board.dictionary.startswith(prefix)}
+    boards = {name: board for name, board in UNSEEN_BOARDS.items() if marker_family(board.dictionary) == target.family}
     if not boards:
         boards = {f"6x5 {dictionary}": BoardSpec(squares_x=6, squares_y=5, square_length=0.04, marker_length=0.03,
                                                  dictionary=dictionary)}
