@@ -23,6 +23,11 @@ NEIGHBOURS = 8  # nearest candidates a corner pairs up: its 4 lattice neighbours
 CLOSURE_TOLERANCE = 0.25
 MAX_SIDE_RATIO = 2.5  # sides of one cell: foreshortening stretches them, not beyond this
 MIN_SIDE_PX = 4.0  # smaller squares hold markers too small to read
+# A quad gives way to a rival on one of its sides that is squarer by this much (`squarest_cells`): a square's sheared
+# rival is 0.71 less square, a real cell's under a view steep enough to shear it to 69 degrees only 0.2.
+SQUARER_BY = 0.2
+SAME_AREA = 0.3  # ... of about the same area (a quad of two cells is as square as a real one under some views)
+CONTAINED_AREA = 0.6  # a quad of two or more cells: one that shares its side is at most this fraction of its area
 
 
 def find_cells(pixels: np.ndarray) -> np.ndarray:
@@ -62,6 +67,47 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
         return np.zeros((0, 4), np.int64)
     _, unique = np.unique(np.sort(quads, axis=1), axis=0, return_index=True)
     return quads[np.sort(unique)].astype(np.int64)
+
+
+def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(N, 2) candidate pixels, (Q, 4) quads (a, b, d, c) of `find_cells` -> those without a clearly squarer rival
+    of about their size, order kept.
+
+    Walked a -> b -> d -> c -> a, right-handed quads that lie on the same side of a side walk it the same way: two
+    quads that share a directed side overlap. A lattice's corners close sheared quads too (a, a + x, a + y,
+    a - x + y: halves of two cells), about four for every real cell. A quad is dropped where a rival sharing one of
+    its directed sides, its area within `SAME_AREA`, is squarer by `SQUARER_BY` (largest |cos| of a corner angle: 0
+    for a rectangle; a square's sheared rival 0.71). The lattice alone cannot tell which is real: where a steep view
+    shears the real cells below ~55 degrees, their sheared rivals are the squarer ones and the real cells go; the
+    caller reads every quad when these find nothing (`placement.corners_from_markers`). Then a quad that shares a
+    side with one at most `CONTAINED_AREA` its area and not less square by `SQUARER_BY` is dropped (two cells, or
+    four: it holds a real cell)."""
+    if len(quads) < 2:
+        return quads
+    points = np.asarray(pixels, np.float64).reshape(-1, 2)
+    corners = points[quads]  # (Q, 4, 2), around the quad
+    ahead, behind = np.roll(corners, -1, axis=1) - corners, np.roll(corners, 1, axis=1) - corners
+    cosine = (np.abs(np.sum(ahead * behind, axis=2)) / np.maximum(
+        np.linalg.norm(ahead, axis=2) * np.linalg.norm(behind, axis=2), 1e-12)).max(axis=1)
+    x, y = corners[:, :, 0], corners[:, :, 1]
+    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+    # Each quad's four directed sides as integers a * N + b (N candidates): (Q, 4).
+    sides = (quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)).tolist()
+    cosine, area = cosine.tolist(), area.tolist()
+    kept: dict[int, list[int]] = {}  # the quads kept so far on each directed side (visited squarest first)
+    keep = np.zeros(len(quads), bool)
+    for q in np.argsort(cosine, kind="stable").tolist():
+        squarer, size = cosine[q] - SQUARER_BY, SAME_AREA * area[q]
+        if not any(cosine[r] < squarer and abs(area[r] - area[q]) <= size for side in sides[q] for r in kept.get(side, ())):
+            keep[q] = True
+            for side in sides[q]:
+                kept.setdefault(side, []).append(q)
+    # Quads of two or four cells (squares of a lattice's diagonals, near the edge of the candidates) share a side with
+    # a smaller quad as square as they are, which they contain.
+    for q in np.flatnonzero(keep).tolist():
+        smaller, squarer = CONTAINED_AREA * area[q], cosine[q] + SQUARER_BY
+        keep[q] = not any(area[r] <= smaller and cosine[r] <= squarer for side in sides[q] for r in kept[side] if r != q)
+    return quads[keep]
 
 
 def _nearest(points: np.ndarray, k: int, block: int = 1024) -> np.ndarray:

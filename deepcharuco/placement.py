@@ -23,7 +23,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.board_check import BoardView, apply_homography, assign_ids
 from deepcharuco.detection import no_corners
-from deepcharuco.lattice import cell_homographies, find_cells
+from deepcharuco.lattice import cell_homographies, find_cells, squarest_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
 from deepcharuco.models.cells import CellCandidates
 
@@ -99,14 +99,15 @@ def _translate(dx: float, dy: float) -> np.ndarray:
 
 
 def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
-                     read_gray: np.ndarray | None = None, reader: str | None = None) -> MarkerView | None:
+                     read_gray: np.ndarray | None = None, reader: str | None = None,
+                     quads: np.ndarray | None = None) -> MarkerView | None:
     """The view of ``board`` that the markers around ``pixels`` (N, 2) corner candidates agree on, or None.
 
     ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
     ``pixels`` (most confident first) were found in; ``read_gray``: the same image at a higher resolution to read the markers in
-    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs). The view returned maps to
-    ``gray``'s pixels."""
-    quads = find_cells(pixels)
+    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs); ``quads``: the cells among ``pixels``
+    to read (default: every one, `lattice.find_cells`). The view returned maps to ``gray``'s pixels."""
+    quads = find_cells(pixels) if quads is None else quads
     if len(quads) == 0:
         return None
     if len(quads) > MAX_CELLS:  # pixels come most confident first: keep the cells of the most confident corners
@@ -293,10 +294,30 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
         candidates, weak = candidates.subset(confident), candidates.subset(~confident)
     # The view is searched among the most confident corners only (an untrained or confused point head must
     # not cost seconds); every candidate may then take a corner the view predicts.
-    strongest = np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]
-    found = find_marker_view(gray, board, candidates.pixels[strongest], read_gray, reader)
-    if found is None:
+    strongest = candidates.pixels[np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]]
+    # The squarest cells first: a fifth of the reads where the view is not steep (`lattice.squarest_cells`); every
+    # cell where those find no verified view.
+    every = find_cells(strongest)
+    squarest = squarest_cells(strongest, every)
+    for quads in (squarest, every) if len(squarest) < len(every) else (every,):
+        found = find_marker_view(gray, board, strongest, read_gray, reader, quads)
+        verified = found and _verified_corners(gray, board, candidates, found, refits, read_gray, reader)
+        if verified:
+            break
+    else:
         return no_corners(), None
+    (ids, pixels, scores), view = verified
+    if weak is not None and len(weak):
+        height, width = gray.shape
+        ids, pixels, scores = _fill_in(view, board.corner_points()[:, :2], (ids, pixels, scores), weak, (width, height))
+    return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)
+
+
+def _verified_corners(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates, found: MarkerView, refits: int,
+                      read_gray: np.ndarray | None, reader: str | None
+                      ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], BoardView] | None:
+    """The corners among ``candidates`` that ``found``'s view names, that view refitted ``refits`` times on them
+    (RANSAC) -> ((ids, pixels, scores), the view), or None where its markers do not read as the board's own."""
     board_xy = board.corner_points()[:, :2]
     height, width = gray.shape
     ids, pixels, scores = assign_ids(found.view, board_xy, candidates, (width, height))
@@ -310,10 +331,8 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
         view = BoardView(homography=homography, inliers=mask.ravel().astype(bool))
         ids, pixels, scores = assign_ids(view, board_xy, candidates, (width, height))
     if not marker_view_verified(gray, board, view.homography, read_gray, reader, chosen_by=found.marker_ids):
-        return no_corners(), None
-    if weak is not None and len(weak):
-        ids, pixels, scores = _fill_in(view, board_xy, (ids, pixels, scores), weak, (width, height))
-    return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)
+        return None
+    return (ids, pixels, scores), view
 
 
 def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray],

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, deep_detector, project_corners
-from deepcharuco.lattice import find_cells
+from deepcharuco import placement
+from deepcharuco.lattice import find_cells, squarest_cells
 from deepcharuco.marker_reader import board_markers, correlate, read_squares
 from deepcharuco.placement import marker_agreement
 from deepcharuco.synthetic import look_at_pose, render_board_view, texture_homography
@@ -58,6 +59,60 @@ def test_cells_of_a_perspective_lattice_each_once_right_handed():
         ab, ac = points[b] - points[a], points[c] - points[a]
         assert ab[0] * ac[1] - ab[1] * ac[0] > 0
         assert np.allclose(points[b] + points[c] - points[a], points[d], atol=0.25 * min(np.hypot(*ab), np.hypot(*ac)))
+
+
+def lattice(homography: np.ndarray, columns: int = 6, rows: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """(lattice points (N, 2) integer grid coordinates, their pixels (N, 2) through ``homography``)."""
+    grid = np.stack(np.meshgrid(np.arange(float(columns)), np.arange(float(rows))), axis=-1).reshape(-1, 2)
+    mapped = np.c_[grid, np.ones(len(grid))] @ homography.T
+    return grid, mapped[:, :2] / mapped[:, 2:]
+
+
+def grid_area(grid: np.ndarray, quad: np.ndarray) -> float:
+    x, y = grid[quad, 0], grid[quad, 1]
+    return 0.5 * abs(float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)))
+
+
+@pytest.mark.parametrize("shear_deg", [90, 75, 65])
+def test_squarest_cells_keep_the_real_cells_and_drop_their_sheared_rivals(shear_deg):
+    # The lattice's columns turned by shear_deg from its rows in the image (a steeper view shears more).
+    angle = np.radians(shear_deg)
+    homography = np.array([[30.0, 30.0 * np.cos(angle), 40.0], [0.0, 30.0 * np.sin(angle), 30.0], [0.0, 1e-4, 1.0]])
+    grid, pixels = lattice(homography)
+    every, squarest = find_cells(pixels), squarest_cells(pixels, find_cells(pixels))
+    real = {frozenset((r * 6 + c, r * 6 + c + 1, (r + 1) * 6 + c + 1, (r + 1) * 6 + c)) for r in range(4) for c in range(5)}
+    sheared = [quad for quad in every if grid_area(grid, quad) == 1.0 and frozenset(quad.tolist()) not in real]
+    assert len(sheared) >= 2 * len(real)  # what the filter is for: find_cells closes them all
+    kept = {frozenset(quad.tolist()) for quad in squarest}
+    assert real <= kept
+    kept_sheared = [quad for quad in sheared if frozenset(quad.tolist()) in kept]
+    if shear_deg >= 75:
+        assert not kept_sheared
+        assert len(squarest) < 0.4 * len(every)
+    else:  # as square as the real cells, nearly: kept beside them, for the markers to tell apart
+        assert kept_sheared
+
+
+def test_a_view_too_steep_for_the_squarest_cells_is_found_from_every_cell(camera, monkeypatch):
+    # Tilted 65 degrees: the real cells' image angles near 55 degrees, their sheared rivals squarer.
+    board = UNSEEN[0]
+    rvec, tvec = look_at_pose(board, distance_for(board, camera, 0.8), tilt_x_deg=65, tilt_y_deg=20, roll_deg=30)
+    image = render_board_view(board, camera.K, rvec, tvec, camera.image_size)
+    truth = project_corners(board, rvec, tvec, camera.K)
+    searches = []
+    find_marker_view = placement.find_marker_view
+
+    def spy(*args, **kwargs):
+        found = find_marker_view(*args, **kwargs)
+        searches.append((len(args[5]), found is not None))
+        return found
+
+    monkeypatch.setattr(placement, "find_marker_view", spy)
+    detection = Detector(board).detect(image)
+    assert len(searches) == 2 and searches[0][0] < searches[1][0]  # the squarest cells, then every cell
+    assert not searches[0][1] and searches[1][1]
+    assert len(detection.ids) >= 20
+    assert np.linalg.norm(detection.corners - truth[detection.ids], axis=1).max() < 1.0
 
 
 @pytest.mark.parametrize("board", UNSEEN[:3], ids=lambda b: b.dictionary)
