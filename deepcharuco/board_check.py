@@ -123,9 +123,9 @@ def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates
     distance[~in_view] = np.inf
     nearest_candidate = distance.argmin(axis=1)
     nearest_corner = distance.argmin(axis=0)
-    ids = np.array([j for j in range(len(predicted))
-                    if nearest_corner[nearest_candidate[j]] == j and distance[j, nearest_candidate[j]] <= reach[j]],
-                   dtype=np.int64)
+    corner = np.arange(len(predicted))
+    ids = np.flatnonzero((nearest_corner[nearest_candidate] == corner)
+                         & (distance[corner, nearest_candidate] <= reach)).astype(np.int64)
     if len(ids) == 0:
         return no_corners()
     cells = nearest_candidate[ids]

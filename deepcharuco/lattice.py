@@ -5,7 +5,9 @@ square: corner ``a``, its neighbours ``b`` and ``c`` along the two lattice direc
 opposite ``a``, where ``d`` lies close to ``b + c - a`` (a parallelogram; perspective bends
 this by a little over one square). `find_cells` finds such quads among the candidates of a
 corner detector that knows nothing of the board; which square of which board each quad is,
-is for the markers around it to say (`marker_reader`, `placement`).
+is for the markers around it to say (`marker_reader`, `placement`). The lattice closes quads that are
+no cell as well (halves of two cells, two or four cells): `squarest_cells` keeps the likeliest cells,
+which the markers are read in first.
 
 A cell's quad is ordered (a, b, d, c): unit-square corners (0, 0), (1, 0), (1, 1), (0, 1),
 with ``cross(b - a, c - a) > 0`` in image coordinates (x right, y down). A board seen from
@@ -65,7 +67,12 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     quads = quads[(quads[:, 2] != quads[:, 0]) & (quads[:, 2] != quads[:, 1]) & (quads[:, 2] != quads[:, 3])]
     if len(quads) == 0:
         return np.zeros((0, 4), np.int64)
-    _, unique = np.unique(np.sort(quads, axis=1), axis=0, return_index=True)
+    # Each cell once, whichever corner it was found from: its sorted corners as one integer key (rows beyond int64).
+    corners = np.sort(quads, axis=1).astype(np.int64)
+    if count < 2 ** 15:
+        _, unique = np.unique(corners @ (count ** np.arange(3, -1, -1, dtype=np.int64)), return_index=True)
+    else:
+        _, unique = np.unique(corners, axis=0, return_index=True)
     return quads[np.sort(unique)].astype(np.int64)
 
 

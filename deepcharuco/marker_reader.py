@@ -105,6 +105,12 @@ def board_markers(board: BoardSpec) -> BoardMarkers:
 def _sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Sample points in a square's unit frame: (G*G, S, 2) over the marker's (n + 2)^2 bit cells and
     (R, 2) on the paper ring around the marker. G = n + 2, S = SAMPLES_PER_BIT^2."""
+    return _cached_sample_grid(int(size), float(ratio))
+
+
+@cache
+def _cached_sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """`_sample_grid`, computed once per (size, ratio); the arrays are read-only."""
     grid = size + 2
     cell = ratio / grid
     start = 0.5 - ratio / 2
@@ -121,6 +127,7 @@ def _sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
         np.stack([along, np.full(8, ring_at)], 1), np.stack([along, np.full(8, 1 - ring_at)], 1),
         np.stack([np.full(8, ring_at), along], 1), np.stack([np.full(8, 1 - ring_at), along], 1),
     ])
+    bits.flags.writeable = ring.flags.writeable = False
     return bits, ring
 
 
@@ -175,7 +182,9 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     inside = (corners[:, :, 2] > 0).all(axis=1) & np.isfinite(corner_xy).all(axis=(1, 2)) \
         & (corner_xy >= 0).all(axis=(1, 2)) & (corner_xy[:, :, 0] <= width - 1).all(axis=1) \
         & (corner_xy[:, :, 1] <= height - 1).all(axis=1)
-    mapped = np.c_[local, np.ones(len(local))].astype(np.float32) @ homographies[inside].astype(np.float32).transpose(0, 2, 1)
+    # Every sample through every square's homography as one (P, 3) x (3, 3R) product: (R, P, 3).
+    stacked = homographies[inside].astype(np.float32).transpose(2, 0, 1).reshape(3, -1)
+    mapped = (np.c_[local, np.ones(len(local))].astype(np.float32) @ stacked).reshape(len(local), -1, 3).transpose(1, 0, 2)
     image_points = (mapped[:, :, :2] / mapped[:, :, 2:]).astype(np.float32)
     values = np.zeros((count, len(local)), np.float32)
     if inside.any():

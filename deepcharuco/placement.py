@@ -1,6 +1,7 @@
 """Where the board lies: markers read in chessboard cells vote for one view of the board.
 
-    corner candidates -> cells (`lattice.find_cells`) -> each cell and its four edge neighbours
+    corner candidates -> cells (`lattice.find_cells`; the squarest of them first, `lattice.squarest_cells`, every
+    cell where those find no verified view) -> each cell and its four edge neighbours
     read as markers (`marker_reader`) -> every marker matched to the board proposes a homography
     (its square's place on the board, the cell's frame, the quarter turn between them) -> the
     proposal most other matched markers agree with wins, if at least ``MIN_MARKERS`` distinct
@@ -178,7 +179,10 @@ def _expected_ranks(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, 
     the fraction of the other (marker, turn) pairs that correlate less, ties counted half)."""
     markers = board_markers(board)
     scale = np.diag([board.square_length, board.square_length, 1.0])
-    squares = np.stack([homography @ scale @ _translate(sx, sy) for sx, sy in markers.squares.astype(np.float64)])
+    shifts = np.zeros((len(markers.squares), 3, 3))
+    shifts[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    shifts[:, :2, 2] = markers.squares
+    squares = homography @ scale @ shifts  # (M, 3, 3): each marker's square frame -> pixels
     bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
     readable = np.flatnonzero(contrast > 0)
     if len(readable) == 0:
