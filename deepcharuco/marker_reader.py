@@ -185,7 +185,7 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     # Every sample through every square's homography as one (P, 3) x (3, 3R) product: (R, P, 3).
     stacked = homographies[inside].astype(np.float32).transpose(2, 0, 1).reshape(3, -1)
     mapped = (np.c_[local, np.ones(len(local))].astype(np.float32) @ stacked).reshape(len(local), -1, 3).transpose(1, 0, 2)
-    image_points = (mapped[:, :, :2] / mapped[:, :, 2:]).astype(np.float32)
+    image_points = mapped[:, :, :2] / mapped[:, :, 2:]  # float32
     values = np.zeros((count, len(local)), np.float32)
     if inside.any():
         values[inside] = _sample(gray, image_points.reshape(-1, 2)).reshape(image_points.shape[:2])

@@ -333,7 +333,10 @@ def _verified_corners(gray: np.ndarray, board: BoardSpec, candidates: CellCandid
         if homography is None:
             break
         view = BoardView(homography=homography, inliers=mask.ravel().astype(bool))
+        claimed = ids, pixels
         ids, pixels, scores = assign_ids(view, board_xy, candidates, (width, height))
+        if np.array_equal(ids, claimed[0]) and np.array_equal(pixels, claimed[1]):
+            break  # the same corners again: a refit would repeat this one (OpenCV seeds its RANSAC)
     if not marker_view_verified(gray, board, view.homography, read_gray, reader, chosen_by=found.marker_ids):
         return None
     return (ids, pixels, scores), view
