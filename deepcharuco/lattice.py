@@ -98,7 +98,7 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
         np.linalg.norm(ahead, axis=2) * np.linalg.norm(behind, axis=2), 1e-12)).max(axis=1)
     x, y = corners[:, :, 0], corners[:, :, 1]
     area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
-    # Each quad's four directed sides as integers a * N + b (N candidates): (Q, 4).
+    # Each quad's four directed sides a -> b as integers a * n + b (n: one more than the largest index): (Q, 4).
     sides = (quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)).tolist()
     cosine, area = cosine.tolist(), area.tolist()
     kept: dict[int, list[int]] = {}  # the quads kept so far on each directed side (visited squarest first)

@@ -102,15 +102,11 @@ def board_markers(board: BoardSpec) -> BoardMarkers:
     return BoardMarkers(ids=ids, squares=squares, bits=expected, ratio=ratio)
 
 
+@cache
 def _sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Sample points in a square's unit frame: (G*G, S, 2) over the marker's (n + 2)^2 bit cells and
-    (R, 2) on the paper ring around the marker. G = n + 2, S = SAMPLES_PER_BIT^2."""
-    return _cached_sample_grid(int(size), float(ratio))
-
-
-@cache
-def _cached_sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """`_sample_grid`, computed once per (size, ratio); the arrays are read-only."""
+    (R, 2) on the paper ring around the marker. G = n + 2, S = SAMPLES_PER_BIT^2. Computed once per
+    (size, ratio): the arrays are read-only."""
     grid = size + 2
     cell = ratio / grid
     start = 0.5 - ratio / 2

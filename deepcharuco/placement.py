@@ -299,7 +299,7 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     # The view is searched among the most confident corners only (an untrained or confused point head must
     # not cost seconds); every candidate may then take a corner the view predicts.
     strongest = candidates.pixels[np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]]
-    # The squarest cells first: a fifth of the reads where the view is not steep (`lattice.squarest_cells`); every
+    # The squarest cells first: about a quarter of the reads where the view is not steep (`lattice.squarest_cells`); every
     # cell where those find no verified view.
     every = find_cells(strongest)
     squarest = squarest_cells(strongest, every)
