@@ -96,8 +96,7 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     ahead, behind = np.roll(corners, -1, axis=1) - corners, np.roll(corners, 1, axis=1) - corners
     cosine = (np.abs(np.sum(ahead * behind, axis=2)) / np.maximum(
         np.linalg.norm(ahead, axis=2) * np.linalg.norm(behind, axis=2), 1e-12)).max(axis=1)
-    x, y = corners[:, :, 0], corners[:, :, 1]
-    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+    area = quad_areas(corners)
     # Each quad's four directed sides a -> b as integers a * n + b (n: one more than the largest index): (Q, 4).
     sides = (quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)).tolist()
     cosine, area = cosine.tolist(), area.tolist()
@@ -115,6 +114,12 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
         smaller, squarer = CONTAINED_AREA * area[q], cosine[q] + SQUARER_BY
         keep[q] = not any(area[r] <= smaller and cosine[r] <= squarer for side in sides[q] for r in kept[side] if r != q)
     return quads[keep]
+
+
+def quad_areas(corners: np.ndarray) -> np.ndarray:
+    """(Q, 4, 2) quad corners in order around each quad -> (Q,) their areas (shoelace; pixels^2)."""
+    x, y = corners[:, :, 0], corners[:, :, 1]
+    return 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
 
 
 def _nearest(points: np.ndarray, k: int, block: int = 1024) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.board_check import BoardView, apply_homography, assign_ids
 from deepcharuco.detection import no_corners
-from deepcharuco.lattice import cell_homographies, find_cells, squarest_cells
+from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
 from deepcharuco.models.cells import CellCandidates
 
@@ -95,27 +95,30 @@ class MarkerView:
     reads: int
 
 
-def _translate(dx: float, dy: float) -> np.ndarray:
-    return np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1]], np.float64)
+def _translations(offsets: np.ndarray) -> np.ndarray:
+    """(N, 2) offsets (x, y) -> (N, 3, 3) homogeneous translations by each."""
+    moves = np.zeros((len(offsets), 3, 3))
+    moves[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    moves[:, :2, 2] = offsets
+    return moves
 
 
-def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
-                     read_gray: np.ndarray | None = None, reader: str | None = None,
-                     quads: np.ndarray | None = None) -> MarkerView | None:
-    """The view of ``board`` that the markers around ``pixels`` (N, 2) corner candidates agree on, or None.
+def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, quads: np.ndarray,
+                     read_gray: np.ndarray | None = None, reader: str | None = None) -> MarkerView | None:
+    """The view of ``board`` that the markers in the cells ``quads`` (Q, 4) (`lattice.find_cells`) between
+    ``pixels`` (N, 2) corner candidates agree on, or None.
 
     ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
     ``pixels`` (most confident first) were found in; ``read_gray``: the same image at a higher resolution to read the markers in
-    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs); ``quads``: the cells among ``pixels``
-    to read (default: every one, `lattice.find_cells`). The view returned maps to ``gray``'s pixels."""
-    quads = find_cells(pixels) if quads is None else quads
+    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs). The view returned maps to
+    ``gray``'s pixels."""
     if len(quads) == 0:
         return None
     if len(quads) > MAX_CELLS:  # pixels come most confident first: keep the cells of the most confident corners
         quads = quads[np.argsort(quads.max(axis=1), kind="stable")[:MAX_CELLS]]
     cells = cell_homographies(pixels, quads)  # (Q, 3, 3) unit square -> image
     # Every cell and its edge neighbours: (Q * 5) squares, each with its own unit frame.
-    shifts = np.stack([_translate(*offset) for offset in NEIGHBOUR_OFFSETS])
+    shifts = _translations(NEIGHBOUR_OFFSETS)
     # The same square is read from up to five cells: each read is one more vote, and a square badly
     # extrapolated from one cell is read well from another.
     squares = np.einsum("qij,sjk->qsik", cells, shifts).reshape(-1, 3, 3)
@@ -127,10 +130,7 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray,
         return None
     # Each proposal: board square units -> image, via its square's frame and the quarter turn.
     square_xy = markers.squares[matches.marker].astype(np.float64)
-    to_square = np.zeros((len(square_xy), 3, 3))
-    to_square[:, [0, 1, 2], [0, 1, 2]] = 1.0
-    to_square[:, :2, 2] = -square_xy
-    proposals = squares[matches.read] @ QUARTER_TURNS[matches.turn] @ to_square
+    proposals = squares[matches.read] @ QUARTER_TURNS[matches.turn] @ _translations(-square_xy)
     # Proposal i agrees with proposal j when it puts j's square where j was read, the same way round:
     # compare the square's centre and its first corner. Only the best-correlated proposals are tried
     # as the view (the right view has many proposals, so some among the best): O(HYPOTHESES x K).
@@ -179,10 +179,7 @@ def _expected_ranks(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, 
     the fraction of the other (marker, turn) pairs that correlate less, ties counted half)."""
     markers = board_markers(board)
     scale = np.diag([board.square_length, board.square_length, 1.0])
-    shifts = np.zeros((len(markers.squares), 3, 3))
-    shifts[:, [0, 1, 2], [0, 1, 2]] = 1.0
-    shifts[:, :2, 2] = markers.squares
-    squares = homography @ scale @ shifts  # (M, 3, 3): each marker's square frame -> pixels
+    squares = homography @ scale @ _translations(markers.squares)  # (M, 3, 3): each marker's square frame -> pixels
     bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
     readable = np.flatnonzero(contrast > 0)
     if len(readable) == 0:
@@ -265,9 +262,7 @@ def _square_sides(squares: np.ndarray) -> np.ndarray:
     """(R, 3, 3) unit-square frames -> (R,) square root of each square's area in the image (pixels)."""
     unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
     corners = np.stack([_apply_each(squares, np.tile(point, (len(squares), 1))) for point in unit], axis=1)
-    x, y = corners[:, :, 0], corners[:, :, 1]
-    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
-    return np.sqrt(area)
+    return np.sqrt(quad_areas(corners))
 
 
 def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -303,26 +298,28 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     # cell where those find no verified view.
     every = find_cells(strongest)
     squarest = squarest_cells(strongest, every)
+    board_xy = board.corner_points()[:, :2]
     for quads in (squarest, every) if len(squarest) < len(every) else (every,):
-        found = find_marker_view(gray, board, strongest, read_gray, reader, quads)
-        verified = found and _verified_corners(gray, board, candidates, found, refits, read_gray, reader)
-        if verified:
+        found = find_marker_view(gray, board, strongest, quads, read_gray, reader)
+        verified = None if found is None else \
+            _verified_corners(gray, board, board_xy, candidates, found, refits, read_gray, reader)
+        if verified is not None:
             break
     else:
         return no_corners(), None
     (ids, pixels, scores), view = verified
     if weak is not None and len(weak):
         height, width = gray.shape
-        ids, pixels, scores = _fill_in(view, board.corner_points()[:, :2], (ids, pixels, scores), weak, (width, height))
+        ids, pixels, scores = _fill_in(view, board_xy, (ids, pixels, scores), weak, (width, height))
     return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)
 
 
-def _verified_corners(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates, found: MarkerView, refits: int,
-                      read_gray: np.ndarray | None, reader: str | None
+def _verified_corners(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray, candidates: CellCandidates,
+                      found: MarkerView, refits: int, read_gray: np.ndarray | None, reader: str | None
                       ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], BoardView] | None:
-    """The corners among ``candidates`` that ``found``'s view names, that view refitted ``refits`` times on them
-    (RANSAC) -> ((ids, pixels, scores), the view), or None where its markers do not read as the board's own."""
-    board_xy = board.corner_points()[:, :2]
+    """The corners among ``candidates`` that ``found``'s view names (``board_xy``: (C, 2) the board's corners), that
+    view refitted ``refits`` times on them (RANSAC) -> ((ids, pixels, scores), the view), or None where its markers
+    do not read as the board's own."""
     height, width = gray.shape
     ids, pixels, scores = assign_ids(found.view, board_xy, candidates, (width, height))
     view = found.view

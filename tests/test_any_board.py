@@ -104,7 +104,7 @@ def test_a_view_too_steep_for_the_squarest_cells_is_found_from_every_cell(camera
 
     def spy(*args, **kwargs):
         found = find_marker_view(*args, **kwargs)
-        searches.append((len(args[5]), found is not None))
+        searches.append((len(args[3]), found is not None))
         return found
 
     monkeypatch.setattr(placement, "find_marker_view", spy)
