@@ -35,7 +35,7 @@ from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import (WEAK_CONFIDENCE, corners_from_markers, drop_isolated, marker_view_verified,
-                                   settle_fill_ins)
+                                   settle_corners)
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
 from deepcharuco.runtime import make_runner
@@ -275,8 +275,8 @@ class Detector:
             ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
             corners = (corners + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
             corners = self._refine(full, corners, window_scale=float(ratio.max()))
-        if self.geometry == "markers":  # filled-in corners refined away from where their neighbours put them go
-            ids, corners, scores = settle_fill_ins(self._board_xy, ids, corners, scores, self.threshold)
+        if self.geometry == "markers":  # corners refined away from where their neighbours put them go
+            ids, corners, scores = settle_corners(self._board_xy, ids, corners, scores, self.threshold)
             ids, corners, scores = drop_isolated(self._board_xy, ids, corners, scores)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
 

@@ -113,24 +113,77 @@ def test_filled_in_corners_refined_away_from_their_neighbours_are_left_out():
     scores = np.full(len(ids), 0.9, np.float32)
     scores[[7, 8]] = 0.1  # two filled-in corners (below the threshold), inner ones
     corners = truth.astype(np.float32).copy()
-    corners[23] += 2.0  # a confident corner off by as much (3 squares away) is not this check's business
+    corners[23] += 2.0  # a confident corner as far off at the board's corner: its neighbours all on one side, unchecked
     agree = placement.FILL_IN_AGREE_PX
     corners[7] += [0.6 * agree, 0.0]  # within the limit of where its neighbours put it: kept
-    corners[8] += [0.0, 1.6 * agree]  # beyond it (a corner washed out by glare, refined onto the glare): dropped
-    kept_ids, kept, kept_scores = placement.settle_fill_ins(board_xy, ids, corners, scores, threshold=0.25)
+    corners[8] += [0.0, 1.25 * agree]  # beyond it (a corner washed out by glare, refined onto the glare): dropped
+    kept_ids, kept, kept_scores = placement.settle_corners(board_xy, ids, corners, scores, threshold=0.25)
     assert kept_ids.tolist() == [i for i in ids.tolist() if i != 8]  # order kept
     assert np.array_equal(kept, np.delete(corners, 8, axis=0)) and np.array_equal(kept_scores, np.delete(scores, 8))
     # In the dark every corner scatters: where the confident neighbours scatter ~1 px about their own fit, a fill-in
     # 1.6 px off is as good as they are and stays.
     noisy = corners + np.random.default_rng(0).normal(0.0, 1.0, corners.shape).astype(np.float32)
     noisy[7], noisy[8] = truth[7], truth[8] + [0.0, 1.6 * agree]
-    assert 8 in placement.settle_fill_ins(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
-    # No fill-ins (every score at or above the threshold): unchanged.
-    out = placement.settle_fill_ins(board_xy, ids, corners, np.full(len(ids), 0.9, np.float32), threshold=0.25)
+    assert 8 in placement.settle_corners(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
+    # The same corners all confident: 1.25 px is within the looser limit for a corner the point head is sure of.
+    assert 1.25 * agree < placement.OUTLYING_PX
+    out = placement.settle_corners(board_xy, ids, corners, np.full(len(ids), 0.9, np.float32), threshold=0.25)
     assert len(out[0]) == len(ids)
     # A fill-in with fewer than 4 confident corners within LOCAL_SQUARES squares cannot be checked: dropped.
     alone = np.array([0, 1, 6, 7]), truth[[0, 1, 6, 7]].astype(np.float32), np.array([0.9, 0.9, 0.9, 0.1], np.float32)
-    assert placement.settle_fill_ins(board_xy, *alone, threshold=0.25)[0].tolist() == [0, 1, 6]
+    assert placement.settle_corners(board_xy, *alone, threshold=0.25)[0].tolist() == [0, 1, 6]
+
+
+def test_local_predictions_match_opencv_homographies():
+    board = BoardSpec(squares_x=12, squares_y=9, square_length=0.03, marker_length=0.022, dictionary="DICT_4X4_1000")
+    _, truth, _ = view(board, fill=0.9, tilt_x_deg=40, tilt_y_deg=-25, roll_deg=20)  # strong perspective
+    noisy = truth + np.random.default_rng(3).normal(0.0, 0.2, truth.shape)
+    board_xy = board.corner_points()[:, :2]
+    grid = np.rint(board_xy / board.square_length)  # 11 x 8 corners, places in squares
+    target, others = 40, np.array([28, 29, 30, 39, 41, 50, 51, 52, 17, 62])  # 8 around it, 2 two squares away
+    homography, _ = cv2.findHomography(board_xy[others], noisy[others], 0)
+    expected = cv2.perspectiveTransform(board_xy[[target]][None], homography)[0, 0]
+    misfit = cv2.perspectiveTransform(board_xy[others][None], homography)[0] - noisy[others]
+    expected_scatter = np.sqrt(np.sum(misfit ** 2) / (2 * len(others) - 8))
+    # Two slots empty (weight 0, garbage in them): they must not count.
+    offsets = np.r_[grid[others] - grid[target], [[5.0, 5.0], [-3.0, 7.0]]][None]
+    image = np.r_[noisy[others], [[0.0, 0.0], [1e4, -1e4]]][None]
+    weight = np.r_[np.ones(len(others)), [0.0, 0.0]][None]
+    predicted, misfit = placement.local_predictions(offsets, weight, image)
+    # Least squares on the normalised linear equations vs OpenCV's refined fit: the same to well under 0.05 px.
+    assert np.linalg.norm(predicted[0] - expected) < 0.05
+    assert np.all(misfit[0, -2:] == 0.0)
+    scatter = placement._scatter(misfit, weight)[0]
+    assert abs(scatter - expected_scatter) < 0.02 and 0.1 < scatter < 0.4
+
+
+def test_confident_corners_refined_away_from_their_neighbours_are_left_out():
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    _, truth, _ = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
+    board_xy = board.corner_points()[:, :2]  # 6 x 4 corners, ID = row * 6 + column
+    ids = np.arange(board.num_corners)
+    scores = np.full(len(ids), 0.9, np.float32)
+    corners = truth.astype(np.float32).copy()
+    limit = placement.OUTLYING_PX
+    corners[3] += [1.3 * limit, 0.0]  # on the top row, neighbours either side along it: checked, dropped (glare)
+    corners[14] += [0.0, 0.6 * limit]  # inside, within the limit: kept
+    corners[0] += [2.0 * limit, 0.0]  # the board's corner: its neighbours all on one side, unchecked, kept
+    kept_ids, kept, kept_scores = placement.settle_corners(board_xy, ids, corners, scores, threshold=0.25)
+    assert kept_ids.tolist() == [i for i in ids.tolist() if i != 3]  # order kept
+    assert np.array_equal(kept, np.delete(corners, 3, axis=0)) and np.array_equal(kept_scores, np.delete(scores, 3))
+    # Below the threshold (a fill-in) the same corner meets the stricter limit: dropped too.
+    weak = scores.copy()
+    weak[3] = 0.1
+    assert 3 not in placement.settle_corners(board_xy, ids, corners, weak, threshold=0.25)[0].tolist()
+    # In the dark every corner scatters: where the neighbours scatter ~1 px about their own fit, a corner 2 px off
+    # is as good as they are and stays.
+    noisy = truth + np.random.default_rng(0).normal(0.0, 1.0, truth.shape).astype(np.float32)
+    noisy[3] = truth[3] + [1.3 * limit, 0.0]
+    assert 3 in placement.settle_corners(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
+    # One row of corners: nothing spans both board axes, nothing is checked.
+    row = np.arange(6)
+    kept_ids = placement.settle_corners(board_xy, row, corners[row], scores[row], threshold=0.25)[0]
+    assert kept_ids.tolist() == row.tolist()
 
 
 def test_corners_far_from_the_others_are_left_out_of_large_detections():
