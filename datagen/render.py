@@ -35,7 +35,7 @@ from deepcharuco.errors import DeepCharucoError
 
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
 CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean", "family",
-                "distortion_probability")
+                "distortion_probability", "shadow_probability")
 FAMILY_DISTORTION_P = 0.5  # --distortion-probability's default with --family (0 with one board, as before)
 
 
@@ -44,7 +44,8 @@ class RenderJob:
     """What one run renders (everything a worker needs, picklable).
 
     ``board``: the board of every frame, or None with ``families`` (a random board per frame).
-    ``distortion_p``: the probability of a distorted frame."""
+    ``distortion_p``: the probability of a distorted frame. ``shadow_p``: the probability of an object between a
+    lamp and the board (a cast shadow), None for the scene's own (`SceneConfig.shadow_p`)."""
 
     n: int
     out: str
@@ -59,6 +60,7 @@ class RenderJob:
     threads: int
     families: tuple[str, ...] = ()
     distortion_p: float = 0.0
+    shadow_p: float | None = None
 
     def __post_init__(self) -> None:
         if (self.board is None) == (not self.families):
@@ -73,6 +75,8 @@ class RenderJob:
             content["family"] = list(self.families)
         if self.distortion_p:
             content["distortion_probability"] = self.distortion_p
+        if self.shadow_p is not None:
+            content["shadow_probability"] = self.shadow_p
         return content
 
     def family_attribute(self) -> dict | None:
@@ -99,6 +103,8 @@ def scene_config(job: RenderJob) -> SceneConfig:
     config = replace(config, width=job.width, height=job.height)
     if job.families:
         config = random_board_config(config)
+    if job.shadow_p is not None:
+        config = replace(config, shadow_p=job.shadow_p)
     return replace(config, samples=job.samples) if job.samples else config
 
 
@@ -128,8 +134,11 @@ def check_existing(job: RenderJob, mine: list[int], resume: bool) -> set[int]:
     if not existing:
         return set()
     previous = ShardReader(existing[0]).generator.get("args", {})
-    differences = [f"{key}: {previous.get(key)!r} there, {value!r} now" for key, value in job.content().items()
-                   if previous.get(key) != value]
+    content = job.content()
+    # An option set there and left out now differs too (optional options are recorded only where set).
+    keys = list(content) + [key for key in CONTENT_ARGS if key in previous and key not in content]
+    differences = [f"{key}: {previous.get(key)!r} there, {content.get(key)!r} now" for key in keys
+                   if previous.get(key) != content.get(key)]
     if differences:
         raise DeepCharucoError(
             f"{out} holds shards rendered with other arguments ({'; '.join(differences)}). "
@@ -214,6 +223,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--distortion-probability", type=float, default=None,
                         help=f"probability that a frame is taken through a distorting lens (k1 uniform in -0.4..+0.1, "
                              f"k2 = k1^2; default: {FAMILY_DISTORTION_P} with --family, 0 with a board, as before)")
+    parser.add_argument("--shadow-probability", type=float, default=None,
+                        help=f"probability that an object between a lamp and the board casts its shadow on it (in "
+                             f"frames with a lamp; default: {SceneConfig.shadow_p}, 0 with --clean)")
     parser.add_argument("--width", type=int, default=320, help="image width in pixels")
     parser.add_argument("--height", type=int, default=240, help="image height in pixels")
     parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: 4, --clean 64)")
@@ -238,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--samples must be >= 1, got {args.samples}")
     if args.distortion_probability is not None and not 0.0 <= args.distortion_probability <= 1.0:
         problems.append(f"--distortion-probability must be in [0, 1], got {args.distortion_probability}")
+    if args.shadow_probability is not None and not 0.0 <= args.shadow_probability <= 1.0:
+        problems.append(f"--shadow-probability must be in [0, 1], got {args.shadow_probability}")
     if not 0 <= args.shard_index < args.num_shards:
         problems.append(f"--shard-index must be in [0, --num-shards), got {args.shard_index} of {args.num_shards}")
     if problems:
@@ -257,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         job = RenderJob(n=args.n, out=args.out, seed=args.seed, board=board, width=args.width, height=args.height,
                         samples=args.samples or (64 if args.clean else None), shard_size=args.shard_size,
                         clean=args.clean, device=args.device, threads=threads, families=families,
-                        distortion_p=float(distortion_p))
+                        distortion_p=float(distortion_p), shadow_p=args.shadow_probability)
         started = time.perf_counter()
         index = run(job, workers=args.workers, shard_index=args.shard_index, num_shards=args.num_shards,
                     resume=args.resume, recycle=args.recycle, quiet=args.quiet)

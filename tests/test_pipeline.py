@@ -300,6 +300,10 @@ def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unsee
     assert "--heads points" in charuconet and "--id-positive-weight" not in charuconet and str(SHIPPED) in charuconet
     assert "eval-data 4x5 DICT_4X4_1000 inverted" in stages
     assert "--family DICT_4X4" in plan.reproduce_command() and "--budget" not in plan.reproduce_command()
+    assert "--shadow-probability" not in render  # datagen.render's own unless given
+    shadows = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "shadows"), "--shadow-probability", "0.8"])
+    assert "--shadow-probability 0.8" in " ".join(shadows.render_args())
+    assert "--shadow-probability 0.8" in shadows.reproduce_command()
     five = make_pipeline(["--family", "DICT_5X5", "--out", str(tmp_path / "five")])
     assert "5x5 DICT_5X5_50 (the paper's)" in five.eval_boards and "11x8 DICT_5X5_1000" in five.eval_boards
     scratch = make_pipeline(["--board", str(SMALL_BOARD.save(tmp_path / "b.yaml")), "--out", str(tmp_path / "s"),

@@ -200,6 +200,31 @@ def test_cli_rejects_bad_arguments(tmp_path):
     assert bad.returncode == 2 and "squares_x" in bad.stderr
 
 
+def test_shadow_probability_sets_the_cast_shadows_and_is_part_of_the_run(tmp_path):
+    from datagen.render import RenderJob, scene_config
+
+    board = BoardSpec()
+
+    def shadowed(probability):
+        job = RenderJob(n=1, out=str(tmp_path), seed=0, board=board, width=160, height=120, samples=None, shard_size=1,
+                        clean=False, device="cpu", threads=1, shadow_p=probability)
+        config = scene_config(job)
+        scenes = [sample_scene(frame_rng(0, i), board.size_m, config) for i in range(60)]
+        lit = [s for s in scenes if any(light.kind != "SUN" for light in s.lights)]  # a shadow needs a lamp
+        return config.shadow_p, len(lit), sum(any(shape.role == "shadow-caster" for shape in s.shapes) for s in lit)
+
+    assert shadowed(None)[0] == SceneConfig().shadow_p  # not given: the scene's own
+    probability, lit, cast = shadowed(1.0)
+    assert probability == 1.0 and lit >= 20 and cast == lit
+    assert shadowed(0.0)[2] == 0
+    # A run rendered with another shadow probability is not resumed into.
+    render("--n", 1, "--shard-size", 1, "--out", tmp_path / "run", *SMALL, "--shadow-probability", 0.9)
+    other = render("--n", 1, "--shard-size", 1, "--out", tmp_path / "run", *SMALL, "--resume", check=False)
+    assert other.returncode != 0 and "shadow_probability" in other.stderr
+    bad = render("--shadow-probability", 1.5, "--out", tmp_path / "bad", check=False)
+    assert bad.returncode == 2 and "--shadow-probability must be in [0, 1]" in bad.stderr
+
+
 def test_inspect_writes_a_mosaic(reference, tmp_path, capsys):
     out, _ = reference
     assert inspect_main([str(out), "--out", str(tmp_path), "--frames", "4", "--columns", "2"]) == 0

@@ -139,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
     look = parser.add_argument_group("renders and training")
     look.add_argument("--image-size", default="320x240", help="rendered frame size, WxH")
     look.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: datagen.render's)")
+    look.add_argument("--shadow-probability", type=float, default=None,
+                      help="share of rendered frames (with a lamp) where an object casts its shadow on the board "
+                           "(default: datagen.render's)")
     look.add_argument("--batch-size", type=int, default=32, help="ChArUcoNet batch size")
     look.add_argument("--crop", default=None, help="ChArUcoNet training crops, WxH (default: half the frame size)")
     look.add_argument("--workers", type=int, default=2, help="DataLoader workers of the ChArUcoNet trainer")
@@ -535,6 +538,8 @@ class Pipeline:
             args += ["--board", str(self.board_file())]
         if self.args.samples is not None:
             args += ["--samples", str(self.args.samples)]
+        if self.args.shadow_probability is not None:
+            args += ["--shadow-probability", str(self.args.shadow_probability)]
         if self.args.device.startswith("cuda"):
             args += ["--device", "gpu"]
         return args
@@ -667,6 +672,8 @@ class Pipeline:
                   "--batch-size", str(a.batch_size), "--crop", self.crop, "--seed", str(a.seed)]
         if a.samples is not None:
             parts += ["--samples", str(a.samples)]
+        if a.shadow_probability is not None:
+            parts += ["--shadow-probability", str(a.shadow_probability)]
         if s is not None:
             parts += ["--frames", str(s.frames), "--charuconet-steps", str(s.charuconet_steps),
                       "--refinenet-steps", str(s.refinenet_steps), "--synthetic-patches", str(s.synthetic_patches),
@@ -1058,6 +1065,8 @@ def main(argv: list[str] | None = None) -> int:
             parse_duration(args.budget)
         if args.nproc_per_node < 1 or args.batch_size < 1 or args.workers < 0:
             raise PipelineError("--nproc-per-node and --batch-size must be >= 1, --workers >= 0")
+        if args.shadow_probability is not None and not 0.0 <= args.shadow_probability <= 1.0:
+            raise PipelineError(f"--shadow-probability {args.shadow_probability}: give a probability in [0, 1]")
         if args.init.lower() not in ("none", "shipped") and not Path(args.init).is_file():
             raise PipelineError(f"--init {args.init} does not exist: give a bundle or checkpoint, or 'none' to "
                                 "train from scratch")
