@@ -101,7 +101,7 @@ def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_fram
 
     Only thresholds above WEAK_CONFIDENCE: the threshold is what a corner needs to find and fit the view, and
     the weaker cells may only fill in corners that their found neighbours place (`placement._fill_in`,
-    `settle_fill_ins`). At WEAK_CONFIDENCE every cell is "confident" and those local checks never run: the
+    `settle_corners`). At WEAK_CONFIDENCE every cell is "confident" and those local checks never run: the
     DICT_4X4 family model chose 0.05 on its 320x240 validation frames and then put a corner two squares off
     where a 22x22 board's one view, fitted on one corner of the board, was extrapolated across a wide lens."""
     checkpoint = read_checkpoint(charuconet, "charuconet")
