@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.board_check import BoardView, apply_homography, assign_ids
+from deepcharuco.board_check import BoardView, assign_ids
 from deepcharuco.detection import no_corners
 from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
@@ -79,6 +79,7 @@ FILL_IN_NOISE = 3.0
 OUTLYING_PX = 1.5
 OUTLYING_NOISE = 5.0
 OUTLYING_MIN_NEIGHBOURS = 6
+RIDGE = 1e-9  # added to the local fits' normal equations (entries ~1-100): solvable always, the same fits
 # A corner with fewer than MIN_NEIGHBOURS other found corners within LOCAL_SQUARES squares of it on the board, in a
 # detection of at least ISOLATION_MIN_CORNERS, is left out (`drop_isolated`): its ID rests on the view's one homography
 # carried far from the corners it was fitted on, and a wide lens bends a big board's edge a whole square from it.
@@ -507,11 +508,15 @@ def local_predictions(offsets: np.ndarray, weight: np.ndarray, image: np.ndarray
     rows *= np.concatenate([weight, weight], axis=1)[..., None]
     rhs = np.concatenate([u * weight, v * weight], axis=1)[..., None]
     transposed = rows.transpose(0, 2, 1)
-    h = np.linalg.solve(transposed @ rows, transposed @ rhs)[..., 0]  # (T, 8), h33 = 1: the target is no horizon point
-    w = h[:, None, 6] * x + h[:, None, 7] * y + 1.0
-    misfit_u = (h[:, None, 0] * x + h[:, None, 1] * y + h[:, None, 2]) / w - u
-    misfit_v = (h[:, None, 3] * x + h[:, None, 4] * y + h[:, None, 5]) / w - v
-    misfit = np.sqrt(misfit_u ** 2 + misfit_v ** 2) * scale[:, None] * weight
+    # A tiny ridge keeps the system solvable where the neighbours' pixels all lie on one line (a board seen edge-on,
+    # which no verified view is): np.linalg.solve would raise on the whole batch.
+    normal = transposed @ rows + RIDGE * np.eye(8)
+    h = np.linalg.solve(normal, transposed @ rhs)[..., 0]  # (T, 8), h33 = 1: the target is no horizon point
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = h[:, None, 6] * x + h[:, None, 7] * y + 1.0
+        misfit_u = (h[:, None, 0] * x + h[:, None, 1] * y + h[:, None, 2]) / w - u
+        misfit_v = (h[:, None, 3] * x + h[:, None, 4] * y + h[:, None, 5]) / w - v
+        misfit = np.where(weight > 0, np.hypot(misfit_u, misfit_v) * scale[:, None], 0.0)
     return centre + scale[:, None] * h[:, [2, 5]], misfit
 
 
