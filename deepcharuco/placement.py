@@ -413,8 +413,9 @@ def settle_corners(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, s
     strong = np.flatnonzero(scores >= threshold)
     offsets, weight, slots = _neighbourhoods(board_xy, ids, ids[strong])
     weak = scores < threshold
-    surrounded = _fittable(offsets, weight, OUTLYING_MIN_NEIGHBOURS) & _both_sides(offsets, weight)
-    checked = np.where(weak, _fittable(offsets, weight), surrounded)
+    fittable = _fittable(offsets, weight)
+    surrounded = fittable & (weight.sum(axis=1) >= OUTLYING_MIN_NEIGHBOURS) & _both_sides(offsets, weight)
+    checked = np.where(weak, fittable, surrounded)
     keep = ~weak  # a fill-in without 4 confident neighbours to check it against goes
     if checked.any():
         predicted, misfit = local_predictions(offsets[checked], weight[checked],
@@ -452,8 +453,8 @@ def _near(offsets: np.ndarray) -> np.ndarray:
     return (reach <= LOCAL_SQUARES) & (reach > 0)
 
 
-def _fittable(offsets: np.ndarray, weight: np.ndarray, least: int = 4) -> np.ndarray:
-    """(T,) bool: targets with at least ``least`` neighbours (`_neighbourhoods`' ``offsets`` (T, K, 2) and ``weight``
+def _fittable(offsets: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(T,) bool: targets with at least 4 neighbours (`_neighbourhoods`' ``offsets`` (T, K, 2) and ``weight``
     (T, K)), not all on one line: a homography fits them and says where the target is."""
     x, y = offsets[..., 0], offsets[..., 1]
     count = weight.sum(axis=1)
@@ -461,7 +462,7 @@ def _fittable(offsets: np.ndarray, weight: np.ndarray, least: int = 4) -> np.nda
     dx = (x - ((weight * x).sum(axis=1) / safe)[:, None]) * weight
     dy = (y - ((weight * y).sum(axis=1) / safe)[:, None]) * weight
     spread = (dx * dx).sum(axis=1) * (dy * dy).sum(axis=1) - (dx * dy).sum(axis=1) ** 2  # 0 on one line
-    return (count >= least) & (spread > 1e-6)
+    return (count >= 4) & (spread > 1e-6)
 
 
 def _both_sides(offsets: np.ndarray, weight: np.ndarray) -> np.ndarray:
