@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from datagen.patches import CENTRE_HIGH, CENTRE_LOW, cut_patches, in_centre, synthetic_patch, synthetic_patches
+from datagen.patches import (CENTRE_HIGH, CENTRE_LOW, SHADOW_LEVELS, cast_shadow_edges, cut_patches, in_centre,
+                             synthetic_patch, synthetic_patches)
 from datagen.shards import ShardError, read_patch_shard, write_patch_shard
 
 
@@ -56,6 +57,27 @@ def test_synthetic_patches_are_deterministic_and_varied():
     np.testing.assert_array_equal(oa, ob)
     means = a.reshape(200, -1).mean(axis=1)
     assert means.min() < 20 and means.max() > 120  # near-black to bright
+
+
+def test_shadow_edges_darken_one_side_of_a_line_beside_the_corner():
+    rng = np.random.default_rng(3)
+    offsets = rng.uniform(CENTRE_LOW, CENTRE_HIGH, (200, 2))
+    grey = np.full((200, 24, 24), 200, np.uint8)
+    out, shadowed = cast_shadow_edges(grey, offsets, np.random.default_rng(4), 0.5)
+    again, _ = cast_shadow_edges(grey, offsets, np.random.default_rng(4), 0.5)
+    np.testing.assert_array_equal(out, again)
+    assert 70 < shadowed.sum() < 130
+    np.testing.assert_array_equal(out[~shadowed], grey[~shadowed])
+    np.testing.assert_array_equal(grey, 200)  # the input is left as it was
+    yy, xx = np.mgrid[0:24, 0:24]
+    for patch, offset in zip(out[shadowed] / 200.0, offsets[shadowed]):
+        assert patch.max() <= 1.0 and patch.min() <= SHADOW_LEVELS[1] + 0.2  # a shadow, darker on one side
+        # The edge passes beside the corner: the pixels near it lie on both sides of the half-way brightness.
+        near = np.hypot(xx - offset[0], yy - offset[1]) <= 4.0
+        middle = (patch.min() + patch.max()) / 2
+        assert (patch[near] < middle).any() and (patch[near] > middle).any()
+    none, _ = cast_shadow_edges(grey, offsets, np.random.default_rng(4), 0.0)
+    np.testing.assert_array_equal(none, grey)
 
 
 def test_patch_shard_round_trip_and_errors(tmp_path):

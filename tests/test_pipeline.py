@@ -290,7 +290,7 @@ def test_match_points_pairs_each_truth_once():
     assert match_points(np.zeros((0, 2)), truth) == 0
 
 
-def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unseen_boards(tmp_path):
+def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unseen_boards(tmp_path, capsys):
     plan = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "run"), "--budget", "2h"])
     plan.sizes, plan.rates = pipeline.FULL["points"], {**pipeline.ASSUMED_RATES, **RECORDED}
     stages = {stage.name: stage for stage in plan.stages()}
@@ -311,6 +311,14 @@ def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unsee
     scratch.sizes, scratch.rates = pipeline.FULL["all"], plan.rates
     names = [stage.name for stage in scratch.stages()]
     assert names[2:4] == ["charuconet-a", "charuconet-b"]  # the shipped recipe: plain loss, then the ID term weighted
+    assert "--shadow-edges" not in " ".join(scratch.stages()[1].command)  # datagen.patches' own unless given
+    edges = make_pipeline(["--board", str(tmp_path / "b.yaml"), "--out", str(tmp_path / "e"), "--init", "none",
+                           "--shadow-edges", "0.4"])
+    edges.sizes, edges.rates = pipeline.FULL["all"], plan.rates
+    patches = {stage.name: stage for stage in edges.stages()}["patches"]
+    assert "--shadow-edges 0.4" in " ".join(patches.command) and "--shadow-edges 0.4" in edges.reproduce_command()
+    assert pipeline.main(["--family", "DICT_4X4", "--out", str(tmp_path / "bad"), "--shadow-edges", "1.5"]) == 2
+    assert "--shadow-edges 1.5: give a share of the patches in [0, 1]" in capsys.readouterr().err
 
 
 def test_zero_refinenet_steps_keep_the_initial_refinenet(tmp_path, capsys):

@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     look.add_argument("--shadow-probability", type=float, default=None,
                       help="share of rendered frames (with a lamp) where an object casts its shadow on the board "
                            "(default: datagen.render's)")
+    look.add_argument("--shadow-edges", type=float, default=None,
+                      help="share of RefineNet's patches laid under a cast shadow's edge near the corner "
+                           "(default: datagen.patches')")
     look.add_argument("--batch-size", type=int, default=32, help="ChArUcoNet batch size")
     look.add_argument("--crop", default=None, help="ChArUcoNet training crops, WxH (default: half the frame size)")
     look.add_argument("--workers", type=int, default=2, help="DataLoader workers of the ChArUcoNet trainer")
@@ -529,6 +532,10 @@ class Pipeline:
         return Path(tempfile.mkdtemp(dir=folder))
 
     # -- stage commands
+    def patch_args(self) -> list[str]:
+        """datagen.patches' optional arguments given to the pipeline (its sizes and seed aside)."""
+        return [] if self.args.shadow_edges is None else ["--shadow-edges", str(self.args.shadow_edges)]
+
     def render_args(self) -> list[str]:
         """datagen.render's arguments that decide the frames (not --n/--out)."""
         args = ["--seed", str(self.args.seed), "--width", str(self.image_size[0]), "--height", str(self.image_size[1])]
@@ -569,7 +576,7 @@ class Pipeline:
                                 f"4 per corner + {s.synthetic_patches} synthetic", eta["patches"],
                                 [*self.module("datagen.patches"), "--renders", str(renders), "--out", str(patches),
                                  "--per-corner", "4", "--synthetic", str(s.synthetic_patches), "--seed",
-                                 str(self.args.seed), "--overwrite"]))
+                                 str(self.args.seed), "--overwrite", *self.patch_args()]))
         stages += self.charuconet_stages(eta["charuconet"], renders)
         last = stages[-1].folder
         # --refinenet-steps 0: the initial weights' RefineNet as it is (RefineNet is board-agnostic).
@@ -674,6 +681,7 @@ class Pipeline:
             parts += ["--samples", str(a.samples)]
         if a.shadow_probability is not None:
             parts += ["--shadow-probability", str(a.shadow_probability)]
+        parts += self.patch_args()
         if s is not None:
             parts += ["--frames", str(s.frames), "--charuconet-steps", str(s.charuconet_steps),
                       "--refinenet-steps", str(s.refinenet_steps), "--synthetic-patches", str(s.synthetic_patches),
@@ -1067,6 +1075,8 @@ def main(argv: list[str] | None = None) -> int:
             raise PipelineError("--nproc-per-node and --batch-size must be >= 1, --workers >= 0")
         if args.shadow_probability is not None and not 0.0 <= args.shadow_probability <= 1.0:
             raise PipelineError(f"--shadow-probability {args.shadow_probability}: give a probability in [0, 1]")
+        if args.shadow_edges is not None and not 0.0 <= args.shadow_edges <= 1.0:
+            raise PipelineError(f"--shadow-edges {args.shadow_edges}: give a share of the patches in [0, 1]")
         if args.init.lower() not in ("none", "shipped") and not Path(args.init).is_file():
             raise PipelineError(f"--init {args.init} does not exist: give a bundle or checkpoint, or 'none' to "
                                 "train from scratch")
