@@ -166,6 +166,8 @@ def test_resuming_with_other_settings_is_refused(tmp_path, capsys):
     assert code == 2 and "holds a run made with other settings (seed)" in err and "choose another --out" in err
     code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--frames", "8"], capsys)
     assert code == 2 and "other settings (frames)" in err
+    code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--shadow-edges", "0.4"], capsys)
+    assert code == 2 and "other settings (shadow_edges)" in err  # its patches and RefineNet were made without
 
 
 def test_help_lists_defaults():
@@ -311,7 +313,7 @@ def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unsee
     scratch.sizes, scratch.rates = pipeline.FULL["all"], plan.rates
     names = [stage.name for stage in scratch.stages()]
     assert names[2:4] == ["charuconet-a", "charuconet-b"]  # the shipped recipe: plain loss, then the ID term weighted
-    assert "--shadow-edges" not in " ".join(scratch.stages()[1].command)  # datagen.patches' own unless given
+    assert "--shadow-edges" not in " ".join(next(s for s in scratch.stages() if s.name == "patches").command)
     edges = make_pipeline(["--board", str(tmp_path / "b.yaml"), "--out", str(tmp_path / "e"), "--init", "none",
                            "--shadow-edges", "0.4"])
     edges.sizes, edges.rates = pipeline.FULL["all"], plan.rates

@@ -324,6 +324,8 @@ class Settings:
     width: str
     image_size: list[int]
     samples: int | None
+    shadow_probability: float | None
+    shadow_edges: float | None
     batch_size: int
     crop: str
     seed: int
@@ -439,6 +441,7 @@ class Pipeline:
         return Settings(family=self.target.family, board=self.target.board.to_dict() if self.target.board else None,
                         heads=self.target.heads, init=str(Path(self.init).resolve()) if self.init else "none",
                         width=self.args.width, image_size=list(self.image_size), samples=self.args.samples,
+                        shadow_probability=self.args.shadow_probability, shadow_edges=self.args.shadow_edges,
                         batch_size=self.args.batch_size, crop=self.crop, seed=self.args.seed)
 
     def fixed_sizes(self) -> dict:
