@@ -12,7 +12,7 @@ label is that offset. Two sources, as in the paper:
   near-black), blur, Gaussian and speckle noise.
 
 ``--shadow-edges P`` then lays, on a fraction P of each source's patches, the edge of a cast shadow
-through or beside the corner (`cast_shadow_edges`): one side of a straight line within 2 px of it
+through or beside the corner (`cast_shadow_edges`, `datagen.shadow_edge`): one side of a straight line within 2 px of it
 darkened to 10-60 %, its penumbra 0.3-4 px wide. Renders seldom put a shadow's edge on a corner,
 and a RefineNet that never saw one placed such synthetic junctions 1.8 px off on average (0.13 px
 without). Default 0: trained with it, RefineNet found these corners but lost precision on clean ones
@@ -42,6 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 import deepcharuco
+from datagen.shadow_edge import PENUMBRA_PX, SHADOW_EDGE_REACH_PX, SHADOW_LEVELS, shadow_edge_gain
 from datagen.shards import PATCH_SIZE, ShardReader, list_shards, write_patch_shard
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
@@ -50,9 +51,6 @@ CENTRE_LOW, CENTRE_HIGH = 7.5, 15.5  # the central 8x8 pixels, as an interval of
 SYNTHETIC_SHARD_BASE = 10**6
 SUPERSAMPLE = 8
 SHADOW_STREAM = 7  # the shadow edges' own generator per shard: the other draws stay as they were
-SHADOW_EDGE_REACH_PX = 2.0  # the edge passes this close to the corner at most
-SHADOW_LEVELS = (0.1, 0.6)  # the shadowed side keeps this share of its light
-PENUMBRA_PX = (0.3, 4.0)  # width of the soft edge (a lamp's size over its distance)
 
 
 def in_centre(offset: np.ndarray) -> np.ndarray:
@@ -143,12 +141,8 @@ def cast_shadow_edges(patches: np.ndarray, offsets: np.ndarray, rng: np.random.G
     penumbra = rng.uniform(*PENUMBRA_PX, count)
     level = rng.uniform(*SHADOW_LEVELS, count)
     out = patches.copy()
-    grid = np.arange(PATCH_SIZE, dtype=np.float64)
     for i in np.flatnonzero(shadowed):
-        normal = np.array([-np.sin(angle[i]), np.cos(angle[i])])
-        across = (grid[None, :] - through[i, 0]) * normal[0] + (grid[:, None] - through[i, 1]) * normal[1]
-        lit = 0.5 * (1.0 + np.tanh(across / penumbra[i]))  # logistic: 0 in the shadow, 1 in the light
-        gain = level[i] + (1.0 - level[i]) * lit
+        gain = shadow_edge_gain(PATCH_SIZE, PATCH_SIZE, through[i], angle[i], penumbra[i], level[i])
         out[i] = np.clip(np.round(patches[i] * gain), 0, 255).astype(np.uint8)
     return out, shadowed
 

@@ -317,10 +317,12 @@ def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unsee
     edges = make_pipeline(["--board", str(tmp_path / "b.yaml"), "--out", str(tmp_path / "e"), "--init", "none",
                            "--shadow-edges", "0.4"])
     edges.sizes, edges.rates = pipeline.FULL["all"], plan.rates
-    patches = {stage.name: stage for stage in edges.stages()}["patches"]
-    assert "--shadow-edges 0.4" in " ".join(patches.command) and "--shadow-edges 0.4" in edges.reproduce_command()
+    edge_stages = {stage.name: stage for stage in edges.stages()}
+    assert "--shadow-edges 0.4" in " ".join(edge_stages["patches"].command) and "--shadow-edges 0.4" in edges.reproduce_command()
+    assert all("--shadow-edges 0.4" in " ".join(edge_stages[name].command) for name in ("charuconet-a", "charuconet-b"))
+    assert "--shadow-edges" not in " ".join(edge_stages["refinenet"].command)  # its patches carry them
     assert pipeline.main(["--family", "DICT_4X4", "--out", str(tmp_path / "bad"), "--shadow-edges", "1.5"]) == 2
-    assert "--shadow-edges 1.5: give a share of the patches in [0, 1]" in capsys.readouterr().err
+    assert "--shadow-edges 1.5: give a share of the crops and patches in [0, 1]" in capsys.readouterr().err
 
 
 def test_zero_refinenet_steps_keep_the_initial_refinenet(tmp_path, capsys):

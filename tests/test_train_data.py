@@ -80,6 +80,32 @@ def test_photometric_effects_keep_range_and_negatives_stay_put():
     assert min(means) < 0.1 and max(means) > 0.4  # brightness rescale reaches near-black
 
 
+def test_shadow_edge_crosses_a_visible_corner_and_is_off_by_default(default_views):
+    """--shadow-edges darkens one side of a line near a visible corner, moves no label, and at 0 draws nothing."""
+    image, _, _, corners = default_views[0]
+    image, corners, visible = image / 255.0, corners.astype(np.float32), np.ones(16, bool)
+    plain = AugmentConfig(probabilities=(), homography_p=0.0)
+    shadowed = AugmentConfig(probabilities=(), homography_p=0.0, shadow_edge_p=1.0)
+    out, moved, _ = augment(image, corners, visible, True, np.random.default_rng(3), plain)
+    assert np.array_equal(out, np.clip(image.astype(np.float32), 0, 1))  # p = 0: no draw, no change
+    darker_near_a_corner = 0
+    for seed in range(20):
+        out, moved, shown = augment(image, corners, visible, True, np.random.default_rng(seed), shadowed)
+        assert np.array_equal(moved, corners) and np.array_equal(shown, visible)
+        ratio = (out + 1e-3) / (image.astype(np.float32) + 1e-3)
+        assert ratio.max() <= 1.0 + 1e-5 and ratio.min() < 0.65  # only darkened, and some of it well darkened
+        dark = ratio < 0.95
+        assert 0.0 < dark.mean() < 1.0  # one side of a line, not the whole image
+        near = [dark[max(0, int(y) - 3):int(y) + 4, max(0, int(x) - 3):int(x) + 4] for x, y in corners]
+        darker_near_a_corner += any(0.0 < patch.mean() < 1.0 for patch in near)  # the edge passes by a corner
+    assert darker_near_a_corner == 20
+    same = [augment(image, corners, visible, True, np.random.default_rng(7), shadowed)[0] for _ in range(2)]
+    assert np.array_equal(*same)
+    nothing = np.zeros(16, bool)  # no visible corner: nothing to lay the edge through
+    out, _, _ = augment(image, corners, nothing, True, np.random.default_rng(0), shadowed)
+    assert np.array_equal(out, np.clip(image.astype(np.float32), 0, 1))
+
+
 def _shard(tmp_path, index, board, n=3, has_board=True):
     rng = np.random.default_rng(index)
     frames = []

@@ -183,6 +183,11 @@ def test_refusals(patches, tmp_path):
         RefineNetTask(TrainConfig(**{**cfg.__dict__, "crop": "16x16"}))
     with pytest.raises(DeepCharucoError, match="--id-positive-weight applies to ChArUcoNet"):
         RefineNetTask(TrainConfig(**{**cfg.__dict__, "id_positive_weight": 5.0}))
+    with pytest.raises(DeepCharucoError, match="--shadow-edges applies to ChArUcoNet's crops.*datagen.patches"):
+        RefineNetTask(TrainConfig(**{**cfg.__dict__, "shadow_edges": 0.3}))
+    done = subprocess.run([sys.executable, "-m", "train.charuconet", "--shadow-edges", "1.5", "--out", str(tmp_path / "x")],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 2 and "--shadow-edges is a share of the crops, from 0 to 1" in done.stderr, done.stderr
     for bad in ("160", "161x120", "0x8", "axb"):
         done = subprocess.run([sys.executable, "-m", "train.charuconet", "--crop", bad, "--out", str(tmp_path / "x")],
                               cwd=ROOT, capture_output=True, text=True)

@@ -12,8 +12,11 @@
 The photometric effects run in a random order at random strengths; the homography runs first
 (it moves the corner labels: corners it pushes out of the frame become invisible). An optional
 random crop follows the homography: a network that sees 160x120 crops trains ~4x faster on a
-CPU and, being fully convolutional, runs unchanged on whole frames. Every draw comes from the
-``rng`` passed in. Images are float32 (H, W) in [0, 1].
+CPU and, being fully convolutional, runs unchanged on whole frames. Beyond the paper,
+``shadow_edge_p`` (``train.charuconet --shadow-edges``, default 0) then lays on that share of
+the images the edge of a cast shadow through a visible corner (`datagen.shadow_edge`), before the
+photometric effects: renders seldom put one on a corner, and the point head went silent there.
+Every draw comes from the ``rng`` passed in. Images are float32 (H, W) in [0, 1].
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from datagen.shadow_edge import random_shadow_edge
 
 PROBABILITIES = {"gaussian_noise": 0.5, "motion_blur": 0.5, "gaussian_blur": 0.25, "speckle": 0.5,
                  "brightness": 0.5, "shadow_or_spotlight": 0.5}
@@ -36,6 +41,7 @@ class AugmentConfig:
     min_brightness: float = 0.02
     crop: tuple[int, int] | None = None  # (width, height) of a random crop, None: whole frames
     crop_on_corner_p: float = 0.75  # how often the crop is placed to hold a random visible corner
+    shadow_edge_p: float = 0.0  # share of images with a cast shadow's edge through a visible corner (0: the paper's)
 
 
 def random_homography(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
@@ -109,6 +115,16 @@ def shadow_or_spotlight(image: np.ndarray, rng: np.random.Generator) -> np.ndarr
     return image * (ambient + (1.0 - ambient) * mask)
 
 
+def shadow_edge_through_corner(image: np.ndarray, corners: np.ndarray, visible: np.ndarray, rng: np.random.Generator,
+                               probability: float) -> np.ndarray:
+    """With ``probability``, ``image`` (H, W) under a cast shadow's edge passing near a random visible corner of
+    ``corners`` (C, 2); unchanged when none is visible."""
+    shown = np.flatnonzero(visible & np.all(np.isfinite(corners), axis=1))
+    if not len(shown) or rng.random() >= probability:
+        return image
+    return random_shadow_edge(image, corners[shown[rng.integers(len(shown))]], rng)
+
+
 def photometric(name: str, image: np.ndarray, rng: np.random.Generator, config: AugmentConfig) -> np.ndarray:
     if name == "gaussian_noise":
         return image + rng.normal(0.0, rng.uniform(0.005, 0.08), image.shape).astype(np.float32)
@@ -142,6 +158,8 @@ def augment(image: np.ndarray, corners: np.ndarray, visible: np.ndarray, has_boa
         x0, y0 = crop_origin(rng, (width, height), config.crop, corners, visible, config.crop_on_corner_p)
         image = image[y0:y0 + config.crop[1], x0:x0 + config.crop[0]]
         corners, visible = crop_labels(corners, visible, (x0, y0), config.crop)
+    if config.shadow_edge_p:  # no draw at 0: runs without it augment as they always did
+        image = shadow_edge_through_corner(image, corners, visible, rng, config.shadow_edge_p)
     effects = list(config.probabilities)
     for index in rng.permutation(len(effects)):
         name, probability = effects[index]

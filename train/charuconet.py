@@ -46,6 +46,8 @@ class ChArUcoNetTask:
             raise DeepCharucoError("--label-sigma applies to RefineNet's targets; ChArUcoNet's are cell classes")
         if augmentation is not None and config.crop:
             augmentation = replace(augmentation, crop=parse_crop(config.crop))
+        if augmentation is not None and config.shadow_edges:
+            augmentation = replace(augmentation, shadow_edge_p=config.shadow_edges)
         if config.heads not in HEADS:
             raise DeepCharucoError(f"--heads {config.heads!r}: choose one of {', '.join(HEADS)}")
         self.points_only = config.heads == "points"

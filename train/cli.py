@@ -22,6 +22,8 @@ HELP = {
              "head is untrained, so Detector finds every board by its markers",
     "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell",
     "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames",
+    "shadow_edges": "ChArUcoNet only: share of training crops on which a cast shadow's edge passes within 2 px of a "
+                    "visible corner (0 = the paper's augmentation)",
     "resume": "continue the run in --out exactly where it stopped (the folder may have been moved; log.csv is cut "
               "back to the checkpoint's step)",
 }
@@ -48,6 +50,8 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
                 if getattr(config, name) < low]
     if config.lr <= 0:
         problems.append("--lr must be > 0")
+    if not 0.0 <= config.shadow_edges <= 1.0:
+        problems.append("--shadow-edges is a share of the crops, from 0 to 1")
     if config.id_positive_weight <= 0:
         problems.append("--id-positive-weight must be > 0")
     if config.crop:

@@ -62,6 +62,7 @@ class TrainConfig:
     heads: str = "all"  # ChArUcoNet: "all" (point + ID heads) or "points" (point head alone: any boards, a family model)
     label_sigma: float = 2.0  # RefineNet: Gaussian target width in grid cells (1/8 px); 0 = one-hot
     crop: str = ""  # ChArUcoNet: train on random WxH crops ("160x120"); "" = whole frames
+    shadow_edges: float = 0.0  # ChArUcoNet: share of crops with a cast shadow's edge through a corner
     val_fraction: float = 0.1
     val_every: int = 1000
     val_batches: int = 50

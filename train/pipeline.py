@@ -143,8 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="share of rendered frames (with a lamp) where an object casts its shadow on the board "
                            "(default: datagen.render's)")
     look.add_argument("--shadow-edges", type=float, default=None,
-                      help="share of RefineNet's patches laid under a cast shadow's edge near the corner "
-                           "(default: datagen.patches')")
+                      help="share of ChArUcoNet's training crops and of RefineNet's patches laid under a cast "
+                           "shadow's edge near a corner (default: train.charuconet's and datagen.patches', 0)")
     look.add_argument("--batch-size", type=int, default=32, help="ChArUcoNet batch size")
     look.add_argument("--crop", default=None, help="ChArUcoNet training crops, WxH (default: half the frame size)")
     look.add_argument("--workers", type=int, default=2, help="DataLoader workers of the ChArUcoNet trainer")
@@ -536,7 +536,7 @@ class Pipeline:
 
     # -- stage commands
     def patch_args(self) -> list[str]:
-        """datagen.patches' optional arguments given to the pipeline (its sizes and seed aside)."""
+        """The shadow edges laid on training data (datagen.patches' and train.charuconet's --shadow-edges)."""
         return [] if self.args.shadow_edges is None else ["--shadow-edges", str(self.args.shadow_edges)]
 
     def render_args(self) -> list[str]:
@@ -628,7 +628,7 @@ class Pipeline:
         common = ["--data", str(renders), "--width", self.args.width, "--batch-size", str(self.args.batch_size),
                   "--crop", self.crop, "--heads", self.target.heads, "--workers", str(self.args.workers),
                   "--seed", str(self.args.seed), "--device", self.trainer_device(), "--val-batches", "4",
-                  *(["--quiet"] if self.args.quiet else [])]
+                  *self.patch_args(), *(["--quiet"] if self.args.quiet else [])]
         if self.from_scratch and not points:
             plain = max(1, round(0.3 * s.charuconet_steps))
             parts = [("charuconet-a", plain, "", "1", "2e-3", "plain loss: the point head first"),
@@ -1079,7 +1079,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.shadow_probability is not None and not 0.0 <= args.shadow_probability <= 1.0:
             raise PipelineError(f"--shadow-probability {args.shadow_probability}: give a probability in [0, 1]")
         if args.shadow_edges is not None and not 0.0 <= args.shadow_edges <= 1.0:
-            raise PipelineError(f"--shadow-edges {args.shadow_edges}: give a share of the patches in [0, 1]")
+            raise PipelineError(f"--shadow-edges {args.shadow_edges}: give a share of the crops and patches in [0, 1]")
         if args.init.lower() not in ("none", "shipped") and not Path(args.init).is_file():
             raise PipelineError(f"--init {args.init} does not exist: give a bundle or checkpoint, or 'none' to "
                                 "train from scratch")

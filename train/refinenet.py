@@ -58,6 +58,9 @@ class RefineNetTask:
     def __init__(self, config: TrainConfig):
         if config.crop:
             raise DeepCharucoError("--crop applies to ChArUcoNet's frames; RefineNet trains on whole 24x24 patches")
+        if config.shadow_edges:
+            raise DeepCharucoError("--shadow-edges applies to ChArUcoNet's crops; RefineNet's patches get shadow edges "
+                                   "when they are made: python -m datagen.patches --shadow-edges P")
         if config.heads != TrainConfig.heads:
             raise DeepCharucoError("--heads chooses ChArUcoNet's heads; RefineNet has one")
         if config.id_positive_weight != 1.0:
