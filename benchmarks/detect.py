@@ -30,7 +30,6 @@ around the last board, the whole frame every 30), in good light and dark.
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -46,6 +45,7 @@ from deepcharuco.runtime import int8_model, onnxruntime_available
 from deepcharuco.synthetic import look_at_pose, render_board_view
 from deepcharuco.tracking import BoardTracker
 from evaluate.data import TestSetError, load_frames, select_well_lit
+from evaluate.machine import cpu_description
 from evaluate.protocols import TestFrame, darken, score_corners, time_pipelines
 from evaluate.unseen_boards import UNSEEN_BOARDS
 
@@ -156,7 +156,7 @@ def main() -> None:
     deep = Detector(board)
     if onnxruntime_available() and int8_model(deep.checkpoint) is not None:
         configurations["deep onnx-int8"] = Detector(board, backend="onnx-int8")
-    print(f"# {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch "
+    print(f"# {cpu_description()}, {torch.get_num_threads()} threads, torch "
           f"{torch.__version__}, OpenCV {cv2.__version__}; default backend: {deep.runner.name}")
     print(f"# frames: {source}; full pipeline: detect + estimate_pose")
 

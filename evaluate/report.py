@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shlex
 import sys
 import time
@@ -35,6 +34,7 @@ from deepcharuco.opencv_detector import OpenCVDetector
 from evaluate import captures as real_captures
 from evaluate import calibration_eval, documents, experiments, false_positives, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
+from evaluate.machine import cpu_description
 from evaluate.protocols import LEVELS
 
 DEFAULT_SEQUENCES = Path("data/sequences")
@@ -163,7 +163,7 @@ def run_report(args: argparse.Namespace) -> dict:
     timing_frames = timing_pool[:: max(1, len(timing_pool) // 40)][:40]
     results["timing"] = experiments.timing_experiment(detectors, timing_frames, 1.0 if quick else args.timing_seconds,
                                                       args.quiet)
-    results["timing"]["machine"] = f"{platform.processor() or platform.machine()}, {_cores()} cores"
+    results["timing"]["machine"] = f"{cpu_description()}, {_cores()} cores"
 
     if gallery_source is not None:
         names = [n for n in ("deep", "opencv") if n in gallery_source["_scores"]]

@@ -14,6 +14,7 @@ from deepcharuco import BoardSpec, Detection, OpenCVDetector, estimate_pose
 from deepcharuco.models import ChArUcoNet, ChArUcoNetConfig, RefineNet, RefineNetConfig, save_checkpoint
 from evaluate import report
 from evaluate.data import TestSetError, load_frames, select_well_lit
+from evaluate.machine import cpu_description
 from evaluate.protocols import (
     TestFrame, accuracy_vs_threshold, apply_effect, darken, motion_blur, score_corners, score_pose, summarize_poses,
     synthetic_curve, time_pipelines,
@@ -265,3 +266,13 @@ def test_unseen_boards_only_refuses_a_board_it_does_not_know(capsys, tmp_path):
     code = unseen_boards.main(["--no-render", "--root", str(tmp_path), "--only", "5x5 DICT_9X9"])
     err = capsys.readouterr().err
     assert code == 2 and "--only names no unseen board: 5x5 dict_9x9" in err and '"4x5 DICT_4X4_1000 inverted"' in err
+
+
+def test_timings_name_the_cpu_and_its_widest_vector_extension():
+    intel = ("processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Platinum 8375C CPU @ 2.90GHz\n"
+             "flags\t\t: fpu sse4_2 avx avx2 avx512f avx512_vnni\n\nprocessor\t: 1\nmodel name\t: other\n")
+    amd = "processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse4_2 avx avx2 fma\n"
+    assert cpu_description(intel).startswith("Intel(R) Xeon(R) Platinum 8375C CPU @ 2.90GHz (")
+    assert cpu_description(intel).endswith("AVX-512 VNNI)")  # the first processor's, the widest only
+    assert cpu_description(amd).startswith("AMD EPYC (") and cpu_description(amd).endswith("AVX2)")
+    assert "AVX" not in cpu_description("")  # no /proc/cpuinfo: the architecture alone, no guessed extension
