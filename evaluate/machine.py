@@ -1,7 +1,7 @@
 """The CPU a timing was taken on, named in every timing table.
 
 Frames per second from different CPUs do not compare: this project's own 2-core VM once came up on an
-AMD EPYC with AVX2 only, where OpenCV and the deep detector both ran at about half their earlier fps
+AMD EPYC with AVX2 only, where OpenCV and the deep detector both ran at 0.5-0.8x their earlier fps
 (README, "Speed"). A table that names the CPU and its widest vector extension says which of its numbers
 may be set beside which.
 """
