@@ -3,6 +3,7 @@ the synthetic protocols' well-lit images."""
 
 from __future__ import annotations
 
+import hashlib
 from collections import OrderedDict
 from pathlib import Path
 
@@ -54,6 +55,20 @@ def load_frames(directory: str | Path, board: BoardSpec | None = None, limit: in
                 return frames
         reader.close()
     return frames
+
+
+FINGERPRINT_CHARS = 16
+
+
+def frames_fingerprint(frames: list[TestFrame]) -> str:
+    """A short sha256 over the frames' images and corner labels, in order: which pixels a table was measured
+    on. A test set re-rendered from the same seed gives the same fingerprint on one machine; on another CPU
+    Cycles may give other pixels, and the fingerprint says so where the numbers alone would not."""
+    digest = hashlib.sha256()
+    for frame in frames:
+        digest.update(np.ascontiguousarray(frame.image).tobytes())
+        digest.update(np.ascontiguousarray(frame.corners, np.float32).tobytes())
+    return digest.hexdigest()[:FINGERPRINT_CHARS]
 
 
 def board_of(directory: str | Path) -> BoardSpec:

@@ -23,7 +23,7 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.opencv_detector import OpenCVDetector
 from evaluate import experiments
-from evaluate.data import load_frames, select_well_lit
+from evaluate.data import frames_fingerprint, load_frames, select_well_lit
 from evaluate.protocols import LEVELS
 
 DEFAULT_ROOT = Path("data/unseen")
@@ -122,7 +122,7 @@ def unseen_boards_experiment(root: Path = DEFAULT_ROOT, weights: str | None = No
         summary = board_summary(list(detectors), synthetic, sequences)
         boards[name] = {"board": board.to_dict(), "geometry": detectors["deep"].geometry,
                         "weights": _shown(detectors["deep"].weights),
-                        "frames": len(kept), "summary": summary,
+                        "frames": len(kept), "data_fingerprint": frames_fingerprint(frames), "summary": summary,
                         "synthetic": {k: v for k, v in synthetic.items() if not k.startswith("_")},
                         "sequences": {k: v for k, v in sequences.items() if not k.startswith("_")}}
     return {"boards": boards, "targets": TARGETS}
@@ -171,6 +171,11 @@ def sections(unseen: dict, labels: dict) -> list[tuple[str, str, list[list[str]]
             "paper's weights beside a family model). Each board's 26 rendered sequences (40 frames each) give the "
             "synthetic protocol (20 well-lit images: corner accuracy over all the board's corners) and the pose "
             "accuracy (eps_re < 3 px); OpenCV + cornerSubPix runs on the same frames.")
+    prints = [f"{name} {result['data_fingerprint']}" for name, result in unseen["boards"].items()
+              if result.get("data_fingerprint")]
+    if prints:
+        text += (" The frames' fingerprints (`evaluate.data.frames_fingerprint`: the same on a re-render from the "
+                 "same seed on one machine; another CPU may render other pixels): " + ", ".join(prints) + ".")
     return [("Boards never seen in training", text, rows, [])]
 
 
@@ -201,6 +206,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for row in sections(result, experiments.LABELS)[0][2]:
         print(" | ".join(row))
+    for name, board_result in result["boards"].items():
+        print(f"{name}: {board_result['frames']} frames from {folder_of(Path(args.root), name)}, data fingerprint "
+              f"{board_result['data_fingerprint']}")
     for what, value, goal, met in targets(result):
         print(f"{what}: {value:.3f} (goal {goal}) {'MET' if met else 'not met'}")
     if args.out:

@@ -2,6 +2,7 @@
 
 import json
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -12,8 +13,8 @@ from conftest import VIEW_POSES, make_view
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, Detection, OpenCVDetector, estimate_pose
 from deepcharuco.models import ChArUcoNet, ChArUcoNetConfig, RefineNet, RefineNetConfig, save_checkpoint
-from evaluate import report
-from evaluate.data import TestSetError, load_frames, select_well_lit
+from evaluate import report, unseen_boards
+from evaluate.data import TestSetError, frames_fingerprint, load_frames, select_well_lit
 from evaluate.machine import cpu_description
 from evaluate.protocols import (
     TestFrame, accuracy_vs_threshold, apply_effect, darken, motion_blur, score_corners, score_pose, summarize_poses,
@@ -261,8 +262,6 @@ def test_quick_takes_an_explicit_synthetic_images(tmp_path, capsys, frames, came
 
 
 def test_unseen_boards_only_refuses_a_board_it_does_not_know(capsys, tmp_path):
-    from evaluate import unseen_boards
-
     code = unseen_boards.main(["--no-render", "--root", str(tmp_path), "--only", "5x5 DICT_9X9"])
     err = capsys.readouterr().err
     assert code == 2 and "--only names no unseen board: 5x5 dict_9x9" in err and '"4x5 DICT_4X4_1000 inverted"' in err
@@ -276,3 +275,19 @@ def test_timings_name_the_cpu_and_its_widest_vector_extension():
     assert cpu_description(intel).endswith("AVX-512 VNNI)")  # the first processor's, the widest only
     assert cpu_description(amd).startswith("AMD EPYC (") and cpu_description(amd).endswith("AVX2)")
     assert "AVX" not in cpu_description("")  # no /proc/cpuinfo: the architecture alone, no guessed extension
+
+
+def test_a_test_sets_fingerprint_names_its_pixels_and_labels(frames):
+    same = frames_fingerprint(frames)
+    assert same == frames_fingerprint(list(frames)) and len(same) == 16
+    assert frames_fingerprint(frames[::-1]) != same  # order is part of the set
+    changed = frames[0].image.copy()
+    changed[0, 0] ^= 1  # one pixel, one bit
+    assert frames_fingerprint([replace(frames[0], image=changed)] + frames[1:]) != same
+    moved = frames[0].corners + np.float32(1e-3)
+    assert frames_fingerprint([replace(frames[0], corners=moved)] + frames[1:]) != same
+    board = {"board": BOARD.to_dict(), "frames": 1, "data_fingerprint": same, "summary": {
+        "deep": {"k0": 1.0, "blur10": 1.0, "dark9": 1.0, "pose_accuracy": 1.0, "confidently_wrong": 0,
+                 "mean_eps_re_good_light": 0.1}}}
+    text = unseen_boards.sections({"boards": {"5x5 test": board}}, {})[0][1]
+    assert f"5x5 test {same}" in text
