@@ -16,6 +16,7 @@ from evaluate.protocols import TestFrame
 
 WELL_LIT_LUX = 100.0  # the paper's "good lighting" (its normal-light videos are 3..700 lux)
 STATIC_BLUR_PX = 0.5  # "random static pose, minimum motion blur"
+FINGERPRINT_CHARS = 16  # hex digits of a test set's sha256 shown: 64 bits tell sets apart
 
 
 class TestSetError(DeepCharucoError):
@@ -55,9 +56,6 @@ def load_frames(directory: str | Path, board: BoardSpec | None = None, limit: in
                 return frames
         reader.close()
     return frames
-
-
-FINGERPRINT_CHARS = 16
 
 
 def frames_fingerprint(frames: list[TestFrame]) -> str:
