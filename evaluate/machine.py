@@ -31,8 +31,9 @@ def cpu_description(cpuinfo: str | None = None) -> str:
         key, colon, value = line.partition(":")
         if colon:
             fields.setdefault(key.strip().lower(), value.strip())
-    name = fields.get("model name") or fields.get("cpu model") or platform.processor() or platform.machine() or "CPU"
+    machine = platform.machine()
+    name = fields.get("model name") or fields.get("cpu model") or platform.processor() or machine or "CPU"
     flags = set((fields.get("flags") or fields.get("features") or "").split())
-    details = [platform.machine()] if platform.machine() and platform.machine() not in name else []
+    details = [machine] if machine and machine not in name else []
     details += [label for flag, label in VECTOR_EXTENSIONS if flag in flags][:1]
     return f"{name} ({', '.join(details)})" if details else name

@@ -535,7 +535,7 @@ class Pipeline:
         return Path(tempfile.mkdtemp(dir=folder))
 
     # -- stage commands
-    def patch_args(self) -> list[str]:
+    def shadow_edge_args(self) -> list[str]:
         """The shadow edges laid on training data (datagen.patches' and train.charuconet's --shadow-edges)."""
         return [] if self.args.shadow_edges is None else ["--shadow-edges", str(self.args.shadow_edges)]
 
@@ -579,7 +579,7 @@ class Pipeline:
                                 f"4 per corner + {s.synthetic_patches} synthetic", eta["patches"],
                                 [*self.module("datagen.patches"), "--renders", str(renders), "--out", str(patches),
                                  "--per-corner", "4", "--synthetic", str(s.synthetic_patches), "--seed",
-                                 str(self.args.seed), "--overwrite", *self.patch_args()]))
+                                 str(self.args.seed), "--overwrite", *self.shadow_edge_args()]))
         stages += self.charuconet_stages(eta["charuconet"], renders)
         last = stages[-1].folder
         # --refinenet-steps 0: the initial weights' RefineNet as it is (RefineNet is board-agnostic).
@@ -628,7 +628,7 @@ class Pipeline:
         common = ["--data", str(renders), "--width", self.args.width, "--batch-size", str(self.args.batch_size),
                   "--crop", self.crop, "--heads", self.target.heads, "--workers", str(self.args.workers),
                   "--seed", str(self.args.seed), "--device", self.trainer_device(), "--val-batches", "4",
-                  *self.patch_args(), *(["--quiet"] if self.args.quiet else [])]
+                  *self.shadow_edge_args(), *(["--quiet"] if self.args.quiet else [])]
         if self.from_scratch and not points:
             plain = max(1, round(0.3 * s.charuconet_steps))
             parts = [("charuconet-a", plain, "", "1", "2e-3", "plain loss: the point head first"),
@@ -684,7 +684,7 @@ class Pipeline:
             parts += ["--samples", str(a.samples)]
         if a.shadow_probability is not None:
             parts += ["--shadow-probability", str(a.shadow_probability)]
-        parts += self.patch_args()
+        parts += self.shadow_edge_args()
         if s is not None:
             parts += ["--frames", str(s.frames), "--charuconet-steps", str(s.charuconet_steps),
                       "--refinenet-steps", str(s.refinenet_steps), "--synthetic-patches", str(s.synthetic_patches),
