@@ -964,12 +964,13 @@ def _metric(part: dict, key: str) -> str:
 
 
 def hardware() -> str:
-    import platform
-
+    """What the stages ran on, for the model card: its timings compare only on the same CPU (`evaluate.machine`)."""
     import torch
 
+    from evaluate.machine import cpu_description
+
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return f"{os.cpu_count()}-core {platform.machine()} CPU, {gpu}; torch {torch.__version__}"
+    return f"{os.cpu_count()}-core {cpu_description()}, {gpu}; torch {torch.__version__}"
 
 
 # ---------------------------------------------------------------------------------------------- cluster
