@@ -27,6 +27,7 @@ import numpy as np
 from deepcharuco.detection import no_corners
 from deepcharuco.models.cells import CellCandidates
 from deepcharuco.pose import MIN_SPREAD_RATIO
+from deepcharuco.vectors import pairwise_distances
 
 GEOMETRY_MODES = ("repair", "filter", "none")
 # A homography has 8 degrees of freedom: 4 pairs fit any 4 points exactly. One more pair is one check,
@@ -116,10 +117,10 @@ def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates
         & (predicted[:, 0] < width - 0.5) & (predicted[:, 1] < height - 0.5)
     if len(candidates) == 0 or not in_view.any():
         return no_corners()
-    spacing = np.linalg.norm(predicted[:, None] - predicted[None], axis=2)
+    spacing = pairwise_distances(predicted, predicted)
     np.fill_diagonal(spacing, np.inf)
     reach = np.minimum(tolerance_px, MAX_SPACING_FRACTION * spacing.min(axis=1))
-    distance = np.linalg.norm(predicted[:, None] - candidates.pixels[None].astype(np.float64), axis=2)  # (N, M)
+    distance = pairwise_distances(predicted, candidates.pixels.astype(np.float64))  # (N, M)
     distance[~in_view] = np.inf
     nearest_candidate = distance.argmin(axis=1)
     nearest_corner = distance.argmin(axis=0)

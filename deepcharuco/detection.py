@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deepcharuco.vectors import lengths
+
 
 def no_corners() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ids (0,) int64, corners (0, 2) float32, scores (0,) float32): the decoders' answer when nothing is found."""
@@ -61,6 +63,6 @@ def corner_spacing(corners: np.ndarray) -> float:
     0 for fewer than 2."""
     if len(corners) < 2:
         return 0.0
-    distance = np.linalg.norm(corners[:, None].astype(np.float64) - corners[None], axis=2)
+    distance = lengths(corners[:, None].astype(np.float64) - corners[None])
     np.fill_diagonal(distance, np.inf)
     return float(np.median(distance.min(axis=1)))

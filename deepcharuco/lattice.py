@@ -20,6 +20,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from deepcharuco.vectors import lengths, pairwise_distances
+
 NEIGHBOURS = 8  # nearest candidates a corner pairs up: its 4 lattice neighbours and 4 diagonals
 # d may miss b + c - a by this fraction of the shorter side (perspective, lens distortion, jitter).
 CLOSURE_TOLERANCE = 0.25
@@ -51,7 +53,7 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     cross = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
     b, c = np.where(cross > 0, b, c), np.where(cross > 0, c, b)  # right-handed: (b - a) x (c - a) > 0
     ab, ac = points[b] - points[a], points[c] - points[a]
-    side_ab, side_ac = np.linalg.norm(ab, axis=1), np.linalg.norm(ac, axis=1)
+    side_ab, side_ac = lengths(ab), lengths(ac)
     shorter = np.minimum(side_ab, side_ac)
     sine = np.abs(ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]) / np.maximum(side_ab * side_ac, 1e-9)
     plausible = (shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter) & (sine > 0.3)
@@ -59,7 +61,7 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     expected = points[b] + points[c] - points[a]
     # d is a's diagonal neighbour: look for it among a's nearest candidates only, O(P k) not O(P N).
     options = near[a]  # (P, k)
-    gap = np.linalg.norm(expected[:, None] - points[options], axis=2)
+    gap = lengths(expected[:, None] - points[options])
     nearest = gap.argmin(axis=1)
     d = options[np.arange(len(options)), nearest]
     closes = gap[np.arange(len(d)), nearest] <= CLOSURE_TOLERANCE * shorter
@@ -95,7 +97,7 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     corners = points[quads]  # (Q, 4, 2), around the quad
     ahead, behind = np.roll(corners, -1, axis=1) - corners, np.roll(corners, 1, axis=1) - corners
     cosine = (np.abs(np.sum(ahead * behind, axis=2)) / np.maximum(
-        np.linalg.norm(ahead, axis=2) * np.linalg.norm(behind, axis=2), 1e-12)).max(axis=1)
+        lengths(ahead) * lengths(behind), 1e-12)).max(axis=1)
     area = quad_areas(corners)
     # Each quad's four directed sides a -> b as integers a * n + b (n: one more than the largest index): (Q, 4).
     sides = (quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)).tolist()
@@ -127,7 +129,7 @@ def _nearest(points: np.ndarray, k: int, block: int = 1024) -> np.ndarray:
     near = np.empty((len(points), k), np.int64)
     for start in range(0, len(points), block):
         rows = np.arange(start, min(start + block, len(points)))
-        distance = np.linalg.norm(points[rows, None] - points[None], axis=2)
+        distance = pairwise_distances(points[rows], points)
         distance[np.arange(len(rows)), rows] = np.inf
         part = np.argpartition(distance, k - 1, axis=1)[:, :k] if k < len(points) - 1 else \
             np.argsort(distance, axis=1)[:, :k]

@@ -178,15 +178,20 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     inside = (corners[:, :, 2] > 0).all(axis=1) & np.isfinite(corner_xy).all(axis=(1, 2)) \
         & (corner_xy >= 0).all(axis=(1, 2)) & (corner_xy[:, :, 0] <= width - 1).all(axis=1) \
         & (corner_xy[:, :, 1] <= height - 1).all(axis=1)
-    # Every sample through every square's homography as one (P, 3) x (3, 3R) product: (R, P, 3).
+    # Every sample through every square's homography as one (P, 3) x (3, 3R) product: (P, R, 3), divided and
+    # sampled as (P, R) maps where they lie (a (R, P, 2) copy of the points cost twice the sampling).
     stacked = homographies[inside].astype(np.float32).transpose(2, 0, 1).reshape(3, -1)
-    mapped = (np.c_[local, np.ones(len(local))].astype(np.float32) @ stacked).reshape(len(local), -1, 3).transpose(1, 0, 2)
-    image_points = mapped[:, :, :2] / mapped[:, :, 2:]  # float32
+    mapped = (np.c_[local, np.ones(len(local))].astype(np.float32) @ stacked).reshape(len(local), -1, 3)
     values = np.zeros((count, len(local)), np.float32)
     if inside.any():
-        values[inside] = _sample(gray, image_points.reshape(-1, 2)).reshape(image_points.shape[:2])
+        w = mapped[:, :, 2]
+        values[inside] = _sample_maps(gray, mapped[:, :, 0] / w, mapped[:, :, 1] / w).T
     samples = bit_points.shape[1]
-    bits = values[:, :grid * grid * samples].reshape(count, grid, grid, samples).mean(axis=3)
+    sampled = values[:, :grid * grid * samples].reshape(count, grid, grid, samples)
+    bits = sampled[..., 0]  # the mean over each bit's samples, summed in np.mean's order
+    for k in range(1, samples):
+        bits = bits + sampled[..., k]
+    bits = bits / np.float32(samples)
     ring = values[:, grid * grid * samples:]
     border = np.concatenate([bits[:, 0, :], bits[:, -1, :], bits[:, 1:-1, 0], bits[:, 1:-1, -1]], axis=1)
     dark = np.median(border, axis=1)
@@ -239,6 +244,9 @@ def learned_bits(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: f
     return np.tanh(out / MAX_BIT_LOGIT)
 
 
+MAX_REMAP_SIDE = 32767  # cv2.remap's maps take at most this many rows or columns
+
+
 def _sample(gray: np.ndarray, points: np.ndarray, row: int = 4096) -> np.ndarray:
     """(H, W) image, (P, 2) float32 x, y -> (P,) float32 bilinear samples. ``cv2.remap`` maps take at most
     32767 rows or columns: the points go through as rows of ``row``."""
@@ -248,6 +256,13 @@ def _sample(gray: np.ndarray, points: np.ndarray, row: int = 4096) -> np.ndarray
     grid = padded.reshape(-1, row, 2)
     values = cv2.remap(gray, grid[:, :, 0], grid[:, :, 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return values.reshape(-1)[:count].astype(np.float32)
+
+
+def _sample_maps(gray: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(H, W) image, (A, B) float32 x and y -> (A, B) float32 bilinear samples (`_sample`'s values)."""
+    if max(x.shape) > MAX_REMAP_SIDE:
+        return _sample(gray, np.stack([x.ravel(), y.ravel()], axis=1)).reshape(x.shape)
+    return cv2.remap(gray, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
 
 
 def _normalised(values: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ from deepcharuco.detection import no_corners
 from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
 from deepcharuco.models.cells import CellCandidates
+from deepcharuco.vectors import lengths
 
 # Two distinct markers in agreement: one read can be a fluke (4x4 markers have 16 bits), two that also
 # agree on where the board is are not.
@@ -374,7 +375,7 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
                                               pixels.astype(np.float64)[slots[fittable]])
         agree = np.all(misfit <= LOCAL_FIT_PX, axis=1)  # where its neighbours disagree, no fill-in
         for corner, place in zip(missing[fittable][agree].tolist(), predicted[agree]):
-            gap = np.linalg.norm(candidates - place, axis=1)
+            gap = lengths(candidates - place)
             best = int(np.argmin(gap))
             if gap[best] <= WEAK_REACH_PX:
                 extra.append((corner, best))
@@ -423,7 +424,7 @@ def settle_corners(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, s
         scatter = _scatter(misfit, weight[checked])
         limit = np.where(weak[checked], np.maximum(FILL_IN_AGREE_PX, FILL_IN_NOISE * scatter),
                          np.maximum(OUTLYING_PX, OUTLYING_NOISE * scatter))
-        keep[checked] = np.linalg.norm(predicted - corners[checked], axis=1) <= limit
+        keep[checked] = lengths(predicted - corners[checked]) <= limit
     return ids[keep], corners[keep], scores[keep]
 
 

@@ -24,17 +24,36 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import warnings
-from typing import Protocol
+from dataclasses import replace
+from functools import cache
+from typing import ContextManager, Protocol
 
 import numpy as np
 import torch
+from threadpoolctl import ThreadpoolController
 
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.charuconet import ChArUcoNet
+from deepcharuco.models.charuconet import ChArUcoNet, PointHeadOnly
 from deepcharuco.models.refinenet import PATCH, RefineNet
 
 BACKENDS = ("auto", "torch", "onnx", "onnx-int8")
 INT8_KEY = "int8"  # in a ChArUcoNet checkpoint: {"onnx": bytes, "calibration": ..., "validation": ...}
+
+
+@cache
+def _numpy_blas() -> ThreadpoolController:
+    return ThreadpoolController().select(user_api="blas")
+
+
+def single_threaded_blas() -> ContextManager:
+    """A context in which numpy's BLAS (OpenBLAS) runs on the calling thread alone, restored on exit.
+
+    Why: after a threaded BLAS call (the marker reader's correlation is one) OpenBLAS's idle workers spin
+    on the other core for milliseconds, and the next network run in ONNX Runtime's 2-thread pool waits for
+    that core: on the 11x8 board at 320x240 (AVX2 host, fresh processes) RefineNet took 11 ms a frame
+    instead of 6 and a frame 40-49 ms instead of 34-36. The decoding's matrices are small; one thread
+    costs them nothing measurable."""
+    return _numpy_blas().limit(limits=1)
 
 
 class Runner(Protocol):
@@ -42,9 +61,9 @@ class Runner(Protocol):
 
     name: str
 
-    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(1, 1, H, W) float32 in [0, 1], H and W multiples of 8 -> point logits (65, H/8, W/8), ID logits
-        (N+1, H/8, W/8)."""
+        (N+1, H/8, W/8); None for the ID logits where the runner was made ``points_only``."""
 
     def refinenet(self, patches: np.ndarray) -> torch.Tensor:
         """(B, 1, 24, 24) float32 in [0, 1] -> (B, 4096) logits."""
@@ -103,8 +122,10 @@ class TorchRunner:
 
     name = "torch"
 
-    def __init__(self, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device):
+    def __init__(self, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device,
+                 points_only: bool = False):
         self.device = device
+        self.points_only = points_only
         self.memory_format = torch.channels_last if device.type == "cpu" else torch.contiguous_format
         self._charuconet = charuconet.to(device, memory_format=self.memory_format)
         self._refinenet = None if refinenet is None else refinenet.to(device, memory_format=self.memory_format)
@@ -113,7 +134,9 @@ class TorchRunner:
         return torch.from_numpy(array).to(self.device).contiguous(memory_format=self.memory_format)
 
     @torch.inference_mode()
-    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
+        if self.points_only:
+            return self._charuconet.points(self._tensor(image))[0].float().cpu().contiguous(), None
         points, ids = self._charuconet(self._tensor(image))
         return points[0].float().cpu().contiguous(), ids[0].float().cpu().contiguous()
 
@@ -138,37 +161,43 @@ def _session(model: bytes, threads: int):
 _EXPORTS: dict[str, bytes] = {}  # weights fingerprint -> float32 ONNX: one export per process and weights
 
 
-def float_onnx(model: ChArUcoNet | RefineNet) -> bytes:
-    """A loaded ChArUcoNet or RefineNet as float32 ONNX (exported once per process and weights)."""
+def float_onnx(model: ChArUcoNet | RefineNet, points_only: bool = False) -> bytes:
+    """A loaded ChArUcoNet or RefineNet as float32 ONNX (exported once per process and weights); with
+    ``points_only`` a ChArUcoNet without its ID head (one output, "point_logits")."""
     from deepcharuco.export import network_specs, onnx_bytes
 
-    fingerprint = weights_fingerprint(model)
-    if fingerprint not in _EXPORTS:
-        kind = "charuconet" if isinstance(model, ChArUcoNet) else "refinenet"
+    kind = "charuconet" if isinstance(model, ChArUcoNet) else "refinenet"
+    points_only = points_only and kind == "charuconet"
+    key = weights_fingerprint(model) + ("-points" if points_only else "")
+    if key not in _EXPORTS:
         example = torch.zeros(1, 1, 240, 320) if kind == "charuconet" else torch.zeros(1, 1, PATCH, PATCH)
-        _EXPORTS[fingerprint] = onnx_bytes(model.cpu(), example, network_specs((320, 240))[kind])
-    return _EXPORTS[fingerprint]
+        spec = network_specs((320, 240))[kind]
+        if points_only:
+            spec = replace(spec, output_names=spec.output_names[:1],
+                           dynamic_axes={k: v for k, v in spec.dynamic_axes.items() if k != "id_logits"})
+        _EXPORTS[key] = onnx_bytes(PointHeadOnly(model.cpu()) if points_only else model.cpu(), example, spec)
+    return _EXPORTS[key]
 
 
 class OnnxRunner:
     """ONNX Runtime on the CPU with as many threads as PyTorch uses (``torch.get_num_threads()``, which
     follows OMP_NUM_THREADS); ChArUcoNet from ``charuconet_model`` (serialized ONNX, e.g. the bundle's int8
-    model) or exported from ``charuconet``."""
+    model) or exported from ``charuconet`` (without its ID head when ``points_only``)."""
 
     def __init__(self, charuconet: ChArUcoNet, refinenet: RefineNet | None, charuconet_model: bytes | None = None,
-                 name: str = "onnx"):
+                 name: str = "onnx", points_only: bool = False):
         self.name = name
         threads = torch.get_num_threads()
-        self._charuconet = _session(charuconet_model or float_onnx(charuconet), threads)
+        self._charuconet = _session(charuconet_model or float_onnx(charuconet, points_only), threads)
         self._charuconet_input = self._charuconet.get_inputs()[0].name
         self._refinenet = None
         if refinenet is not None:
             self._refinenet = _session(float_onnx(refinenet), threads)
             self._refinenet_input = self._refinenet.get_inputs()[0].name
 
-    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        points, ids = self._charuconet.run(None, {self._charuconet_input: image})
-        return torch.from_numpy(points[0]), torch.from_numpy(ids[0])
+    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
+        points, *ids = self._charuconet.run(None, {self._charuconet_input: image})
+        return torch.from_numpy(points[0]), torch.from_numpy(ids[0][0]) if ids else None
 
     def refinenet(self, patches: np.ndarray) -> torch.Tensor:
         (logits,) = self._refinenet.run(None, {self._refinenet_input: patches})
@@ -176,13 +205,14 @@ class OnnxRunner:
 
 
 def make_runner(backend: str, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device,
-                checkpoint: dict) -> Runner:
-    """The `Runner` for ``backend`` (resolved by `resolve_backend`) over the loaded networks."""
+                checkpoint: dict, points_only: bool = False) -> Runner:
+    """The `Runner` for ``backend`` (resolved by `resolve_backend`) over the loaded networks; ``points_only``:
+    ChArUcoNet runs without its ID head (float backends; the int8 model is run whole) and returns None for it."""
     backend = resolve_backend(backend, device, checkpoint)
     if backend == "torch":
-        return TorchRunner(charuconet, refinenet, device)
+        return TorchRunner(charuconet, refinenet, device, points_only)
     if backend == "onnx-int8":
         model = int8_model(checkpoint, weights_fingerprint(charuconet))
         if model is not None:
             return OnnxRunner(charuconet, refinenet, model, name="onnx-int8")
-    return OnnxRunner(charuconet, refinenet)
+    return OnnxRunner(charuconet, refinenet, points_only=points_only)

@@ -4,12 +4,14 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from conftest import make_view
 from deepcharuco import BoardSpec
 from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.runtime import INT8_KEY, int8_model, onnxruntime_available, resolve_backend, weights_fingerprint
+from deepcharuco.runtime import (INT8_KEY, int8_model, make_runner, onnxruntime_available, resolve_backend,
+                                 weights_fingerprint)
 from evaluate.protocols import TestFrame
 from train import quantize as quantize_module
 
@@ -94,3 +96,47 @@ def test_quantize_stores_an_accepted_int8_model_and_refuses_a_worse_one(tmp_path
     assert len(found) >= 14
     with pytest.raises(quantize_module.QuantizeError, match="--force"):
         quantize_module.quantize(DEFAULT_WEIGHTS, views, out, calibration_frames=2, quiet=True)
+
+
+@pytest.mark.parametrize("backend", ["torch", "onnx"])
+def test_points_only_runner_gives_the_same_point_logits(backend):
+    if backend == "onnx" and not onnxruntime_available():
+        pytest.skip("ONNX Runtime not installed")
+    detector = Detector(backend=backend)
+    image = (EXAMPLE[None, None] / np.float32(255.0)).astype(np.float32)
+    points, ids = detector.runner.charuconet(image)
+    only = make_runner(backend, detector.charuconet, None, detector.device, detector.checkpoint, points_only=True)
+    only_points, no_ids = only.charuconet(image)
+    assert ids is not None and ids.shape[0] == detector.charuconet.config.num_corners + 1 and no_ids is None
+    np.testing.assert_allclose(only_points.numpy(), points.numpy(), atol=1e-5)
+
+
+def test_a_board_found_by_markers_runs_charuconet_without_its_id_head():
+    other = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    assert Detector(board=other).runner.charuconet(np.zeros((1, 1, 64, 64), np.float32))[1] is None
+    assert Detector().runner.charuconet(np.zeros((1, 1, 64, 64), np.float32))[1] is not None
+
+
+def test_detect_runs_numpy_blas_single_threaded_and_restores_it():
+    def threads():
+        return [info["num_threads"] for info in ThreadpoolController().select(user_api="blas").info()]
+
+    if not threads():
+        pytest.skip("no BLAS that threadpoolctl controls")
+    before = threads()
+    with threadpool_limits(2, user_api="blas"):
+        limited = threads()
+        if max(limited) < 2:
+            pytest.skip("BLAS runs one thread here whatever it is asked: nothing to limit or restore")
+        detector, seen = Detector(backend="torch"), []
+        run = detector.runner.charuconet
+
+        def recording(image):
+            seen.append(threads())
+            return run(image)
+
+        detector.runner.charuconet = recording
+        assert len(detector.detect(EXAMPLE)) >= 15
+        assert seen and all(during == [1] * len(during) for during in seen)
+        assert threads() == limited
+    assert threads() == before
