@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -59,6 +61,9 @@ MIN_SQUARE_PX = 16
 # MIN_PREVIEW_SQUARE_PX there; anything less and the full image is searched as without a preview.
 # Chosen on validation renders (datagen.render --n 160 --seed 2000): no protocol level lost more than 0.001.
 MIN_PREVIEW_SQUARE_PX = 12
+# A board found by its markers: RefineNet starts on the confident candidates on a second thread while the markers
+# are read (`EarlyRefinement`), unless they number more than this per board corner.
+MAX_EARLY_PER_CORNER = 2
 # A preview's corners are centred by cornerSubPix (5x5 window there, 10x10 at full size), at most 1.5 px,
 # before RefineNet refines them at full resolution: one RefineNet pass instead of two. Chosen on validation
 # (renders seed 2000, all protocol levels within 0.002 of two RefineNet passes, 213 vs 233 wrong corners;
@@ -113,6 +118,39 @@ def _within(refined: np.ndarray, pixels: np.ndarray, max_move: float) -> np.ndar
     far = lengths(refined - pixels) > max_move
     refined[far] = pixels[far]
     return refined
+
+
+def _patches(gray: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) integer corner pixels -> (their patches' top-left pixels (N, 2) int64, (N, 1, 24, 24) float32
+    patches in [0, 1] whose pixel 12 is each corner pixel; the image's border replicated beyond its edges)."""
+    border = PATCH
+    padded = cv2.copyMakeBorder(gray, border, border, border, border, cv2.BORDER_REPLICATE)
+    origins = pixels.astype(np.int64) - PATCH_ORIGIN
+    patches = np.stack([padded[y + border:y + border + PATCH, x + border:x + border + PATCH] for x, y in origins])
+    return origins, patches[:, None] / np.float32(255.0)
+
+
+@dataclass(frozen=True)
+class EarlyRefinement:
+    """RefineNet run on a second thread for the confident candidates of one search level while its markers are
+    read (the decoding is numpy on one core, the other idle): ``gray`` the level's image, ``pixels`` (N, 2)
+    integer candidate pixels, ``origins`` (N, 2) their patches' top-left pixels, ``logits`` the future of
+    RefineNet's (N, 4096) logits."""
+
+    gray: np.ndarray
+    pixels: np.ndarray
+    origins: np.ndarray
+    logits: Future
+
+    def lookup(self, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 2) pixels -> ((M,) bool whether each was refined here, (K,) its rows in ``self.pixels``)."""
+        width = self.gray.shape[1] + 2 * PATCH  # keys stay distinct for pixels a little outside the image too
+        keys = self.pixels[:, 1].astype(np.int64) * width + self.pixels[:, 0].astype(np.int64)
+        wanted = pixels[:, 1].astype(np.int64) * width + pixels[:, 0].astype(np.int64)
+        order = np.argsort(keys, kind="stable")
+        at = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
+        done = (keys[order][at] == wanted) & (pixels == np.rint(pixels)).all(axis=1)
+        return done, order[at[done]]
 
 
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
@@ -274,12 +312,12 @@ class Detector:
         if found is None:
             return Detection.empty()
         height, width = full.shape
-        gray, ids, pixels, scores, preview = found
+        gray, ids, pixels, scores, preview, early = found
         # Refined where found, then again at full resolution: a single full-resolution pass from the reduced
         # level's cell pixel (up to ~1.5 px off) fitted a pose less well in good light (validation sequences,
         # seed 2001: corner error 0.082 vs 0.075 px). A preview's squares are >= 12 px wide: there
         # cornerSubPix centres the corners as well as RefineNet does, for a tenth of its cost.
-        corners = _nudged(gray, pixels) if preview and self.refine == "refinenet" else self._refine(gray, pixels)
+        corners = _nudged(gray, pixels) if preview and self.refine == "refinenet" else self._refine(gray, pixels, early=early)
         if gray is not full:
             ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
             corners = (corners + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
@@ -290,19 +328,20 @@ class Detector:
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
 
     def _search(self, full: np.ndarray, working_size: int | None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool] | None:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, EarlyRefinement | None] | None:
         """The board searched level by level (`_search_levels`) in the canonical image ``full`` -> (the level's
-        image, ids, integer pixels there, scores, whether it is the preview), or None where no level found it."""
+        image, ids, integer pixels there, scores, whether it is the preview, its `EarlyRefinement` or None), or
+        None where no level found it."""
         found = None
         for gray, preview in self._search_levels(full, working_size):
-            ids, pixels, scores = self._find(gray, full)
+            ids, pixels, scores, early = self._find(gray, full)
             spacing = corner_spacing(pixels)
             if preview:
                 if spacing >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
-                    return gray, ids, pixels, scores, preview
+                    return gray, ids, pixels, scores, preview, early
                 continue  # part of the board, or squares too small to trust: the full image decides alone
             if len(ids):
-                found = (gray, ids, pixels, scores, preview)
+                found = (gray, ids, pixels, scores, preview, early)
                 if spacing >= MIN_SQUARE_PX:
                     break  # squares large enough here: a finer level would cost more and find no more
         return found
@@ -351,25 +390,41 @@ class Detector:
         else:  # the network never sees more than MAX_SEARCH_SIZE: memory and time stay bounded
             yield _reduced(full, MAX_SEARCH_SIZE / longest), False
 
-    def _find(self, gray: np.ndarray, full: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``;
-        markers are read in ``full``, the same image at full resolution."""
+    def _find(self, gray: np.ndarray, full: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None]:
+        """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``, and
+        the `EarlyRefinement` started for them (or None); markers are read in ``full``, the same image at full
+        resolution."""
         height, width = gray.shape
         point_logits, id_logits = self.runner.charuconet(network_input(gray))
         if self.geometry == "markers":
             # Weaker cells too: they may only fill in corners of the view the confident ones found (`placement`).
             candidates = _inside(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE)), (width, height))
-            return corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
-                                        threshold=self.threshold)[0]
-        return self.decode(point_logits, id_logits, (width, height), gray, full)
+            early = self._refine_early(gray, candidates.pixels[candidates.confidence >= self.threshold])
+            found = corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
+                                         threshold=self.threshold)[0]
+            return (*found, early)
+        return (*self.decode(point_logits, id_logits, (width, height), gray, full), None)
 
-    def _refine(self, gray: np.ndarray, pixels: np.ndarray, window_scale: float = 1.0) -> np.ndarray:
+    def _refine_early(self, gray: np.ndarray, pixels: np.ndarray) -> EarlyRefinement | None:
+        """RefineNet started on ``pixels`` of ``gray`` on the runner's background thread, or None where the
+        runner cannot, RefineNet does not refine, or the pixels are more than `MAX_EARLY_PER_CORNER` per
+        board corner (a noisy frame's: refining them would take the core the next work needs)."""
+        if self.refine != "refinenet" or not 0 < len(pixels) <= MAX_EARLY_PER_CORNER * len(self._board_xy):
+            return None
+        origins, patches = _patches(gray, pixels)
+        future = self.runner.refinenet_in_background(patches)
+        return None if future is None else EarlyRefinement(gray=gray, pixels=pixels, origins=origins, logits=future)
+
+    def _refine(self, gray: np.ndarray, pixels: np.ndarray, window_scale: float = 1.0,
+                early: EarlyRefinement | None = None) -> np.ndarray:
         """(N, 2) corner pixels -> (N, 2) float32 refined in ``gray`` by ``self.refine``; ``window_scale``
-        widens cornerSubPix's window when the pixels come from a reduced image."""
+        widens cornerSubPix's window when the pixels come from a reduced image; ``early``: RefineNet's output
+        for some of these pixels, started while the markers were read."""
         if self.refine == "refinenet":
             # The limit holds for the point head's own pixels; corners scaled up from a reduced level may be
             # a few pixels off at full resolution, which is what RefineNet is there to correct.
-            return self._refinenet(gray, pixels, MAX_REFINE_MOVE_PX if window_scale == 1.0 else np.inf)
+            return self._refinenet(gray, pixels, MAX_REFINE_MOVE_PX if window_scale == 1.0 else np.inf, early)
         if self.refine == "subpix":
             window = max(3, round(3 * window_scale))
             criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
@@ -413,15 +468,26 @@ class Detector:
             return no_corners()  # enough corners to check, and they fit no view
         return ids, pixels, scores
 
-    def _refinenet(self, gray: np.ndarray, pixels: np.ndarray, max_move: float = np.inf) -> np.ndarray:
+    def _refinenet(self, gray: np.ndarray, pixels: np.ndarray, max_move: float = np.inf,
+                   early: EarlyRefinement | None = None) -> np.ndarray:
         """Batched RefineNet over 24x24 patches whose pixel 12 is each candidate pixel; a corner it moves
-        more than ``max_move`` px keeps its candidate pixel."""
-        border = PATCH
-        padded = cv2.copyMakeBorder(gray, border, border, border, border, cv2.BORDER_REPLICATE)
-        origins = pixels.astype(np.int64) - PATCH_ORIGIN  # patch top-left in image pixels
-        patches = np.stack([padded[y + border:y + border + PATCH, x + border:x + border + PATCH] for x, y in origins])
-        offsets = decode_offsets(self.runner.refinenet(patches[:, None] / np.float32(255.0)), self.soft_radius).numpy()
-        return _within((origins + offsets).astype(np.float32), pixels, max_move)
+        more than ``max_move`` px keeps its candidate pixel. Pixels that ``early`` refined in this ``gray``
+        take its result; only the others run now."""
+        refined = np.zeros((len(pixels), 2), np.float32)
+        todo = np.ones(len(pixels), bool)
+        if early is not None and early.gray is gray:
+            done, rows = early.lookup(pixels)
+            if done.any():
+                refined[done] = self._corners(early.origins, early.logits.result())[rows]
+                todo = ~done
+        if todo.any():
+            origins, patches = _patches(gray, pixels[todo])
+            refined[todo] = self._corners(origins, self.runner.refinenet(patches))
+        return _within(refined, pixels, max_move)
+
+    def _corners(self, origins: np.ndarray, logits: torch.Tensor) -> np.ndarray:
+        """Patch top-left pixels (N, 2), RefineNet's logits (N, 4096) -> (N, 2) float32 refined corners."""
+        return (origins + decode_offsets(logits, self.soft_radius).numpy()).astype(np.float32)
 
     def estimate_pose(self, detection: Detection, K: np.ndarray, dist: np.ndarray | None = None, **kwargs) -> Pose | None:
         """`deepcharuco.estimate_pose` for this detector's board.

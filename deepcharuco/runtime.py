@@ -25,8 +25,10 @@ import hashlib
 import importlib.util
 import warnings
 from dataclasses import replace
+import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import cache
-from typing import ContextManager, Protocol
+from typing import Callable, ContextManager, Protocol
 
 import numpy as np
 import torch
@@ -67,6 +69,10 @@ class Runner(Protocol):
 
     def refinenet(self, patches: np.ndarray) -> torch.Tensor:
         """(B, 1, 24, 24) float32 in [0, 1] -> (B, 4096) logits."""
+
+    def refinenet_in_background(self, patches: np.ndarray) -> Future | None:
+        """`refinenet` started on a background thread on one core, for the caller to do other work on the
+        other: the future of its logits; None where the runner cannot (PyTorch, one thread in all)."""
 
 
 def onnxruntime_available() -> bool:
@@ -144,6 +150,9 @@ class TorchRunner:
     def refinenet(self, patches: np.ndarray) -> torch.Tensor:
         return self._refinenet(self._tensor(patches)).float().cpu()
 
+    def refinenet_in_background(self, patches: np.ndarray) -> None:
+        return None  # PyTorch's intra-op pool is the process's: a second caller would only queue on it
+
 
 def _session(model: bytes, threads: int):
     import onnxruntime
@@ -190,10 +199,13 @@ class OnnxRunner:
         threads = torch.get_num_threads()
         self._charuconet = _session(charuconet_model or float_onnx(charuconet, points_only), threads)
         self._charuconet_input = self._charuconet.get_inputs()[0].name
-        self._refinenet = None
+        self._refinenet = self._refinenet_one_thread = None
         if refinenet is not None:
             self._refinenet = _session(float_onnx(refinenet), threads)
             self._refinenet_input = self._refinenet.get_inputs()[0].name
+            if threads > 1:
+                self._refinenet_one_thread = _session(float_onnx(refinenet), 1)
+        self._background = BackgroundThread()
 
     def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
         points, *ids = self._charuconet.run(None, {self._charuconet_input: image})
@@ -202,6 +214,31 @@ class OnnxRunner:
     def refinenet(self, patches: np.ndarray) -> torch.Tensor:
         (logits,) = self._refinenet.run(None, {self._refinenet_input: patches})
         return torch.from_numpy(logits)
+
+    def refinenet_in_background(self, patches: np.ndarray) -> Future | None:
+        if self._refinenet_one_thread is None:
+            return None  # one thread in all: nothing runs beside the caller
+
+        def run() -> torch.Tensor:
+            (logits,) = self._refinenet_one_thread.run(None, {self._refinenet_input: patches})
+            return torch.from_numpy(logits)
+
+        return self._background.submit(run)
+
+
+class BackgroundThread:
+    """One worker thread, made on first use and again in a forked child (which has none of its parent's threads:
+    a `ThreadPoolExecutor` inherited across a fork would queue work that never runs)."""
+
+    def __init__(self):
+        self._pid: int | None = None
+        self._executor: ThreadPoolExecutor | None = None
+
+    def submit(self, function: Callable[[], torch.Tensor]) -> Future:
+        if self._pid != os.getpid():
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deepcharuco-background")
+            self._pid = os.getpid()
+        return self._executor.submit(function)
 
 
 def make_runner(backend: str, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device,
