@@ -14,6 +14,11 @@ The float32 ONNX models are exported from the loaded networks in memory when the
 (``charuconet["int8"]``) with what it was calibrated and checked on. Both runners take and return
 the same arrays, so the decoding never knows which one ran.
 
+Threads: ONNX Runtime runs each network on as many threads as PyTorch would (idle workers sleep);
+`OnnxRunner.refinenet_in_background` runs RefineNet on one thread of its own while the caller's numpy
+decoding holds the other core (`deep_detector.EarlyRefinement`), and the detector runs numpy's BLAS on
+one thread (`single_threaded_blas`): its spinning workers would take that core from the networks.
+
 Measured on this project's 2-core CPU (``python benchmarks/detect.py``): PyTorch's default NCHW
 convolutions are the slowest path here, channels-last halves them, ONNX Runtime is faster still
 and int8 (VNNI) faster again; the README's speed table has the numbers.
