@@ -218,3 +218,15 @@ def test_agreement_test_is_the_pixel_distance_without_division():
     with np.errstate(invalid="ignore"):
         assert not placement._lands_within(at_infinity, np.zeros((1, 2)), np.array([1e9]))[0, 0]
         assert not placement._lands_within(np.ones((1, 3, 1)), np.full((1, 2), np.inf), np.array([1e9]))[0, 0]
+
+
+def test_sampled_maps_equal_the_point_list_sampler_at_any_map_size():
+    from deepcharuco.marker_reader import MAX_REMAP_SIDE, _sample, _sample_maps
+
+    rng = np.random.default_rng(4)
+    gray = rng.integers(0, 256, (60, 80), dtype=np.uint8)
+    for shape in [(7, 13), (2, MAX_REMAP_SIDE + 5)]:  # the second goes through `_sample`'s rows
+        x = rng.uniform(-3, 83, shape).astype(np.float32)
+        y = rng.uniform(-3, 63, shape).astype(np.float32)
+        expected = _sample(gray, np.stack([x.ravel(), y.ravel()], axis=1)).reshape(shape)
+        np.testing.assert_array_equal(_sample_maps(gray, x, y), expected)
