@@ -28,10 +28,10 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
-import warnings
-from dataclasses import replace
 import os
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
 from functools import cache
 from typing import Callable, ContextManager, Protocol
 
