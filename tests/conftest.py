@@ -1,6 +1,7 @@
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from deepcharuco import BoardSpec, Camera, project_corners
 from deepcharuco.synthetic import look_at_pose, render_board_view
@@ -68,3 +69,12 @@ def unwritable_dir(tmp_path):
             pytest.skip("no folder here refuses writes")
     finally:
         folder.chmod(0o755)
+
+
+@pytest.fixture
+def torch_threads():
+    """``torch_threads(n)`` sets torch's thread count for one test (ONNX Runtime runners take theirs from it when
+    made); the suite's count is restored after the test."""
+    before = torch.get_num_threads()
+    yield torch.set_num_threads
+    torch.set_num_threads(before)

@@ -80,16 +80,8 @@ def test_family_bits_are_opencv_markers_with_their_border():
     assert np.array_equal(markers[5, 1:-1, 1:-1], dictionary.getBitsFromByteList(dictionary.bytesList[5:6], 4).astype(bool))
 
 
-@pytest.fixture
-def one_torch_thread():
-    """One torch thread for the test (deterministic and quick on 2 cores); the suite's setting back after."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path, one_torch_thread):
+def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path, torch_threads):
+    torch_threads(1)
     first = train(tmp_path / "run", steps=10, batch=24, seed=3, validate_every=10, quiet=True)
     # Resuming the same run to more steps is refused (the schedule depends on the total), another --out trains on.
     with pytest.raises(SystemExit, match="resume with the same"):

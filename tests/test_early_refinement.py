@@ -4,7 +4,6 @@ import multiprocessing
 
 import numpy as np
 import pytest
-import torch
 
 from conftest import VIEW_POSES, make_view
 from deepcharuco import BoardSpec
@@ -15,14 +14,10 @@ BOARD = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.
 
 
 @pytest.mark.skipif(not onnxruntime_available(), reason="ONNX Runtime not installed")
-def test_early_refinement_gives_the_corners_refinenet_gives_after_the_search(camera):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)  # the runners take ONNX Runtime's threads from torch; one thread in all has no background
-    try:
-        early = Detector(board=BOARD, backend="onnx")
-        late = Detector(board=BOARD, backend="onnx")
-    finally:
-        torch.set_num_threads(threads)
+def test_early_refinement_gives_the_corners_refinenet_gives_after_the_search(camera, torch_threads):
+    torch_threads(2)  # the runners take ONNX Runtime's threads from torch; one thread in all has no background
+    early = Detector(board=BOARD, backend="onnx")
+    late = Detector(board=BOARD, backend="onnx")
     late.runner.refinenet_in_background = lambda patches: None  # RefineNet after the marker search only
     patches_now = []
     run = early.runner.refinenet
