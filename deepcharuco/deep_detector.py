@@ -30,14 +30,15 @@ from deepcharuco.board_check import (
 from deepcharuco.detection import Detection, corner_spacing, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
+from deepcharuco.junction import locate_by_pattern
 from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidates
 from deepcharuco.models.charuconet import CELL
 from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH, decode_offsets
 from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.placement import (WEAK_CONFIDENCE, corners_from_markers, drop_isolated, marker_view_verified,
-                                   settle_corners)
+from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers, drop_isolated,
+                                   marker_view_verified, settle_corners)
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
 from deepcharuco.runtime import make_runner, single_threaded_blas
@@ -313,19 +314,36 @@ class Detector:
             return Detection.empty()
         height, width = full.shape
         gray, ids, pixels, scores, preview, early = found
+        by_pattern = scores == PATTERN_SCORE if self.geometry == "markers" else np.zeros(len(ids), bool)
         # Refined where found, then again at full resolution: a single full-resolution pass from the reduced
         # level's cell pixel (up to ~1.5 px off) fitted a pose less well in good light (validation sequences,
         # seed 2001: corner error 0.082 vs 0.075 px). A preview's squares are >= 12 px wide: there
         # cornerSubPix centres the corners as well as RefineNet does, for a tenth of its cost.
-        corners = _nudged(gray, pixels) if preview and self.refine == "refinenet" else self._refine(gray, pixels, early=early)
-        if gray is not full:
-            ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
-            corners = (corners + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
-            corners = self._refine(full, corners, window_scale=float(ratio.max()))
+        ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
+        corners = (pixels.astype(np.float32) + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
+        seen = ~by_pattern
+        if seen.any():
+            refined = _nudged(gray, pixels[seen]) if preview and self.refine == "refinenet" else \
+                self._refine(gray, pixels[seen], early=early)
+            if gray is not full:
+                refined = self._refine(full, (refined + 0.5) * ratio - 0.5, window_scale=float(ratio.max()))
+            corners[seen] = refined
+        if by_pattern.any():  # corners the point head missed (a shadow's edge): where the printed pattern fits
+            corners[by_pattern] = self._placed_by_pattern(full, ids, corners, by_pattern)
         if self.geometry == "markers":  # corners refined away from where their neighbours put them go
             ids, corners, scores = settle_corners(self._board_xy, ids, corners, scores, self.threshold)
             ids, corners, scores = drop_isolated(self._board_xy, ids, corners, scores)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
+
+    def _placed_by_pattern(self, full: np.ndarray, ids: np.ndarray, corners: np.ndarray, placing: np.ndarray
+                           ) -> np.ndarray:
+        """The corners ``placing`` (bool (N,)) of (ids (N,), corners (N, 2)) located where the board's printed
+        pattern fits ``full`` best (`junction.locate_by_pattern`) in the view the others fit (least squares)."""
+        homography, _ = cv2.findHomography(self.board.corner_points()[ids[~placing], :2],
+                                           corners[~placing].astype(np.float64), 0)
+        if homography is None:
+            return corners[placing]
+        return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
     def _search(self, full: np.ndarray, working_size: int | None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, EarlyRefinement | None] | None:

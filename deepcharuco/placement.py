@@ -22,12 +22,13 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.board_check import BoardView, assign_ids
-from deepcharuco.detection import no_corners
+from deepcharuco.board_check import BoardView, apply_homography, assign_ids
+from deepcharuco.detection import corner_spacing, no_corners
+from deepcharuco.junction import pattern_evidence
 from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
 from deepcharuco.models.cells import CellCandidates
-from deepcharuco.vectors import lengths
+from deepcharuco.vectors import lengths, pairwise_distances
 
 # Two distinct markers in agreement: one read can be a fluke (4x4 markers have 16 bits), two that also
 # agree on where the board is are not.
@@ -58,6 +59,24 @@ MIN_RANK_Z = 5.0
 # corner, the point head need only say that one is there.
 WEAK_CONFIDENCE = 0.05
 WEAK_REACH_PX = 3.0
+# Corners the verified view predicts where the point head gave no candidate at all (a cast shadow's edge across them
+# silences it) are filled in where the board's printed pattern shows around the place their found neighbours put them
+# (`junction.pattern_evidence` >= PATTERN_MIN_T, a t-statistic: the pattern's contrast on both sides of the best
+# fitting shadow edge) and no found corner lies within PATTERN_APART corner spacings of it; the detector places them
+# by the pattern (`junction.locate_by_pattern`), not RefineNet, which the shadow's edge pulls off. Validation (15
+# boards of DICT_4X4/5X5/6X6, 5 inverted, none of the report's: data seeds 3101-3103 and 3201-3212, `evaluate.sequences
+# --only shadow-1 shadow-2 shadow-3 --frames 40`; and 131 family renders, `datagen.render --family
+# DICT_4X4,DICT_5X5,DICT_6X6 --seed 9137 --n 150`, with occluders and lens distortion), without -> with:
+# a shadow's edge drawn (`datagen.shadow_edge`) through each visible corner of the sequences' first frames, 909 in
+# turn: that corner found 779 -> 798, right corners 22,496 -> 22,559, off (> 3 px) 4 -> 4; every second frame of the
+# rendered shadow sequences: right 17,799 -> 17,802, off 6 -> 6; the renders: right 5,903 -> 5,931, off 87 -> 87.
+# 12 is the lowest threshold at which no set gains a wrong corner (fill-ins tried at 0, by their evidence: at 10 the
+# renders gain 1, 3.6 px off under a k1 = -0.31 lens, at 8 two, at 3 eight; corners the point head found score
+# 17-170 in well-lit validation frames). Without the spacing rule a fill-in carried past a wide lens' bent board edge took a found
+# corner's place, one diagonal away (the same checker there: 18.8).
+PATTERN_MIN_T = 12.0
+PATTERN_APART = 0.5
+PATTERN_SCORE = 0.0  # the score of a corner placed by the pattern: the point head gave it no evidence
 LOCAL_FIT_PX = 2.0  # ... when those corners fit their homography this well (cell pixels: integer, +-1 px)
 LOCAL_SQUARES = 2  # a weak candidate is sought where the found corners within this many squares put its corner
 # After refinement a filled-in corner must lie within FILL_IN_AGREE_PX, or FILL_IN_NOISE times its refined confident
@@ -322,9 +341,11 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     else:
         return no_corners(), None
     (ids, pixels, scores), view = verified
-    if weak is not None and len(weak):
+    if weak is not None:
         height, width = gray.shape
-        ids, pixels, scores = _fill_in(view, board_xy, (ids, pixels, scores), weak, (width, height))
+        if len(weak):
+            ids, pixels, scores = _fill_in(view, board_xy, (ids, pixels, scores), weak, (width, height))
+        ids, pixels, scores = _fill_in_by_pattern(gray, board, view, board_xy, (ids, pixels, scores))
     return (ids, pixels, scores), MarkerView(view=view, marker_ids=found.marker_ids, reads=found.reads)
 
 
@@ -392,6 +413,40 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
     scores = np.concatenate([scores, confidence[cells]]).astype(np.float32)
     order = np.argsort(-scores, kind="stable")
     return ids[order], pixels[order], scores[order]
+
+
+def _fill_in_by_pattern(gray: np.ndarray, board: BoardSpec, view: BoardView, board_xy: np.ndarray,
+                        found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``found`` (ids, pixels, scores) and the corners of the verified ``view`` in ``gray`` that no candidate took,
+    where their found neighbours agree on a place (as `_fill_in`) and the board's printed pattern lies around it,
+    a cast shadow's edge allowed (`junction.pattern_evidence` >= `PATTERN_MIN_T`): the point head loses corners
+    under a shadow's edge. Each takes the pixel nearest that place and score 0 (no point head evidence)."""
+    ids, pixels, scores = found
+    if len(ids) < 4:
+        return found
+    height, width = gray.shape
+    predicted, w = apply_homography(view.homography, board_xy)
+    in_view = (w > 0) & np.all(predicted >= 0, axis=1) & (predicted[:, 0] <= width - 1) & (predicted[:, 1] <= height - 1)
+    missing = np.flatnonzero(in_view & ~np.isin(np.arange(len(board_xy)), ids))
+    if len(missing) == 0:
+        return found
+    offsets, weight, slots = _neighbourhoods(board_xy, missing, ids)
+    fittable = _fittable(offsets, weight)
+    if not fittable.any():
+        return found
+    places, misfit = local_predictions(offsets[fittable], weight[fittable], pixels.astype(np.float64)[slots[fittable]])
+    agree = np.all(misfit <= LOCAL_FIT_PX, axis=1)
+    # A lens bends a board's edge away from a fit carried past its corners, onto the next corner along a diagonal:
+    # the pattern there fits as well (the same checker), so no corner is put where another was found.
+    apart = pairwise_distances(places, pixels.astype(np.float64)).min(axis=1) >= PATTERN_APART * corner_spacing(pixels)
+    targets, places = missing[fittable][agree & apart], places[agree & apart]
+    evidence = pattern_evidence(gray, board, view.homography, targets, places)
+    shown = evidence >= PATTERN_MIN_T
+    if not shown.any():
+        return found
+    new_pixels = np.rint(places[shown]).astype(np.float32)
+    return (np.concatenate([ids, targets[shown]]), np.concatenate([pixels.astype(np.float32), new_pixels]),
+            np.concatenate([scores, np.full(int(shown.sum()), PATTERN_SCORE, np.float32)]).astype(np.float32))
 
 
 def settle_corners(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, scores: np.ndarray,
