@@ -35,7 +35,7 @@ EDGE_OFFSETS = (-0.3, -0.15, 0.0, 0.15, 0.3)  # ... each at these distances from
 # true one, would otherwise count against the pattern.
 EDGE_GUARD = 0.08
 MIN_SIDE = 0.15  # a side of the edge with less of the window than this is not judged
-LOCATE_REACH_PX = 1.5  # `locate_by_pattern` tries shifts this far each way ...
+LOCATE_REACH_PX = 1.0  # `locate_by_pattern` tries shifts this far each way ...
 LOCATE_STEP_PX = 0.5  # ... this far apart, then a quarter of that around the best
 
 
@@ -175,28 +175,33 @@ def locate_by_pattern(gray: np.ndarray, board: BoardSpec, homography: np.ndarray
     pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
     if len(ids) == 0:
         return pixels
-    values, _ = _sample(gray, window_pixels(homography, board, ids, pixels))
+    window = window_pixels(homography, board, ids, pixels)  # (N, S2, 2)
+    values, _ = _sample(gray, window)
     pattern = corner_patterns(board, ids)  # (N, S2)
     variance = _fit(values[:, None], pattern[:, None], EDGE_SIDES[None])[0]
     lines = EDGE_LINES[np.argmin(variance, axis=1)]  # (N, 3) in squares about the starting pixel
-    # Squares per pixel of each corner's window: shifts are tried in pixels, the pattern and the edge live in squares.
-    centre = window_pixels(homography, board, ids, pixels, np.zeros((len(ids), 3, 2)) + np.array([[0, 0], [1, 0], [0, 1]]))
-    to_squares = np.linalg.inv(np.stack([centre[:, 1] - centre[:, 0], centre[:, 2] - centre[:, 0]], axis=2))  # (N,2,2)
+    # Over a shift of a pixel or two the window moves as a whole (its perspective changes by far less than a
+    # sample); the edge stays put in the image, so each sample's side moves by the shift, in squares.
+    across = lines[:, :2] @ WINDOW.T - lines[:, 2:]  # (N, S2)
+    axes = window_pixels(homography, board, ids, pixels, np.broadcast_to(np.array([[1.0, 0.0], [0.0, 1.0]]),
+                                                                          (len(ids), 2, 2))) - pixels[:, None]
+    to_squares = np.linalg.inv(np.transpose(axes, (0, 2, 1)))  # (N, 2, 2): pixels -> squares
     shift = np.zeros((len(ids), 2))
+    rows = np.arange(len(ids))
     for step, count in ((LOCATE_STEP_PX, int(round(reach_px / LOCATE_STEP_PX))), (LOCATE_STEP_PX / 4, 2)):
         grid = np.arange(-count, count + 1) * step
         moves = shift[:, None] + np.stack(np.meshgrid(grid, grid), axis=-1).reshape(1, -1, 2)  # (N, G, 2) px
-        moved = np.einsum("nij,ngj->ngi", to_squares, moves)  # (N, G, 2) squares
-        offsets = moved[:, :, None] + WINDOW[None, None]  # (N, G, S2, 2) about the starting pixel
-        where = window_pixels(homography, board, ids, pixels, offsets.reshape(len(ids), -1, 2))
-        values, _ = _sample(gray, where.reshape(*offsets.shape))
-        rss = _fit(values, pattern[:, None], _sides(offsets, lines[:, None]))[0]  # (N, G)
+        moved_across = np.einsum("nij,ngj,ni->ng", to_squares, moves, lines[:, :2])  # (N, G) squares along the normal
+        values, _ = _sample(gray, window[:, None] + moves[:, :, None])  # (N, G, S2)
+        total = across[:, None] + moved_across[:, :, None]
+        sides = np.where(total > EDGE_GUARD, 1.0, np.where(total < -EDGE_GUARD, -1.0, 0.0))
+        variance = _fit(values, pattern[:, None], sides)[0]  # (N, G)
         side_count = len(grid)
-        best = np.argmin(rss, axis=1)
+        best = np.argmin(variance, axis=1)
         row, column = np.divmod(best, side_count)
-        fraction = np.stack([_vertex(rss.reshape(-1, side_count, side_count)[np.arange(len(ids)), row], column),
-                             _vertex(rss.reshape(-1, side_count, side_count)[np.arange(len(ids)), :, column], row)], axis=1)
-        shift = moves[np.arange(len(ids)), best] + (fraction * step if step < LOCATE_STEP_PX else 0.0)
+        surface = variance.reshape(-1, side_count, side_count)
+        fraction = np.stack([_vertex(surface[rows, row], column), _vertex(surface[rows, :, column], row)], axis=1)
+        shift = moves[rows, best] + (fraction * step if step < LOCATE_STEP_PX else 0.0)
     return pixels + shift
 
 
