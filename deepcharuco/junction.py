@@ -54,16 +54,14 @@ def _edge_lines() -> np.ndarray:
     return np.array(lines)
 
 
-def _sides(offsets: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """(..., M, 2) board offsets in squares, (..., 3) edges -> (..., M): +1 beyond the edge, -1 before it, 0 within
-    `EDGE_GUARD` of it."""
-    across = np.einsum("...mk,...k->...m", offsets, lines[..., :2]) - lines[..., None, 2]
+def _side(across: np.ndarray) -> np.ndarray:
+    """Signed distances beyond an edge (squares) -> +1 beyond it, -1 before it, 0 within `EDGE_GUARD` of it."""
     return np.where(across > EDGE_GUARD, 1.0, np.where(across < -EDGE_GUARD, -1.0, 0.0))
 
 
 WINDOW = _window()
 EDGE_LINES = _edge_lines()
-EDGE_SIDES = _sides(WINDOW[None], EDGE_LINES)  # (L, S*S)
+EDGE_SIDES = _side(EDGE_LINES[:, :2] @ WINDOW.T - EDGE_LINES[:, 2:])  # (L, S*S)
 
 
 @lru_cache(maxsize=8)
@@ -193,9 +191,7 @@ def locate_by_pattern(gray: np.ndarray, board: BoardSpec, homography: np.ndarray
         moves = shift[:, None] + np.stack(np.meshgrid(grid, grid), axis=-1).reshape(1, -1, 2)  # (N, G, 2) px
         moved_across = np.einsum("nij,ngj,ni->ng", to_squares, moves, lines[:, :2])  # (N, G) squares along the normal
         values, _ = _sample(gray, window[:, None] + moves[:, :, None])  # (N, G, S2)
-        total = across[:, None] + moved_across[:, :, None]
-        sides = np.where(total > EDGE_GUARD, 1.0, np.where(total < -EDGE_GUARD, -1.0, 0.0))
-        variance = _fit(values, pattern[:, None], sides)[0]  # (N, G)
+        variance = _fit(values, pattern[:, None], _side(across[:, None] + moved_across[:, :, None]))[0]  # (N, G)
         side_count = len(grid)
         best = np.argmin(variance, axis=1)
         row, column = np.divmod(best, side_count)
