@@ -30,7 +30,7 @@ from deepcharuco.board_check import (
 from deepcharuco.detection import Detection, corner_spacing, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
-from deepcharuco.junction import locate_by_pattern
+from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidates
 from deepcharuco.models.charuconet import CELL
@@ -269,6 +269,8 @@ class Detector:
         self.reader = reader
         self._opencv = OpenCVDetector(self.board, refine="subpix") if mode == "hybrid" else None
         self._board_xy = self.board.corner_points()[:, :2]
+        if geometry == "markers":  # drawn now, not in the first frame that fills a corner in (~50 ms for 11x8 squares)
+            printed_pattern(self.board)
         self.refinenet = None
         if refine == "refinenet":
             self.refinenet, _ = load_refinenet(refine_weights or weights)

@@ -65,15 +65,16 @@ EDGE_SIDES = _side(EDGE_LINES[:, :2] @ WINDOW.T - EDGE_LINES[:, 2:])  # (L, S*S)
 
 
 @lru_cache(maxsize=8)
-def _texture(board: BoardSpec) -> BoardTexture:
-    """The board as the canonical view shows it (`print_face`: black ink on white, the printed side)."""
+def printed_pattern(board: BoardSpec) -> BoardTexture:
+    """The board as the canonical view shows it (`print_face`: black ink on white, the printed side), drawn once
+    per board and kept."""
     face = dataclasses.replace(board, inverted=False, mirrored=False)
     return BoardTexture.render(face, TEXTURE_PX_PER_SQUARE / board.square_length)
 
 
 def corner_patterns(board: BoardSpec, ids: np.ndarray) -> np.ndarray:
     """(N,) corner IDs -> (N, S*S) the printed pattern (1 paper, 0 ink) at each `WINDOW` sample around them."""
-    texture = _texture(board)
+    texture = printed_pattern(board)
     points = board.corner_points()[np.asarray(ids, np.int64), :2]  # (N, 2) metres
     uv = texture.board_to_texture(points[:, None] + WINDOW[None] * board.square_length)  # (N, S*S, 2)
     maps = uv.astype(np.float32).reshape(-1, uv.shape[-2], 2)
