@@ -100,7 +100,7 @@ def _sample(gray: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray
     """(H, W) image, (N, ..., 2) pixels -> (bilinear values (N, ...) float64, (N,) whether all lie in the image)."""
     height, width = gray.shape
     inside = np.all((where >= 0) & (where <= np.array([width - 1, height - 1])), axis=tuple(range(1, where.ndim)))
-    maps = where.astype(np.float32).reshape(-1, where.shape[-2], 2)  # rows of one window: cv2.remap takes < 32767 a side
+    maps = where.astype(np.float32).reshape(-1, where.shape[-2], 2)  # a window a row: cv2.remap takes < 32767 a side
     values = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return values.reshape(where.shape[:-1]).astype(np.float64), inside
 

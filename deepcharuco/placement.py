@@ -72,8 +72,8 @@ WEAK_REACH_PX = 3.0
 # rendered shadow sequences: right 17,799 -> 17,802, off 6 -> 6; the renders: right 5,903 -> 5,929, off 87 -> 87.
 # 12 is the lowest threshold at which no set gains a wrong corner (fill-ins tried at 0, by their evidence: at 10 the
 # renders gain 1, 3.6 px off under a k1 = -0.31 lens, at 8 two, at 3 eight; corners the point head found score
-# 17-170 in well-lit validation frames). Without the spacing rule a fill-in carried past a wide lens' bent board edge took a found
-# corner's place, one diagonal away (the same checker there: 18.8).
+# 17-170 in well-lit validation frames). Without the spacing rule a fill-in carried past a wide lens' bent board edge
+# took a found corner's place, one diagonal away (the same checker there: 18.8).
 PATTERN_MIN_T = 12.0
 PATTERN_APART = 0.5
 PATTERN_SCORE = 0.0  # the score of a corner placed by the pattern: the point head gave it no evidence
@@ -426,7 +426,8 @@ def _fill_in_by_pattern(gray: np.ndarray, board: BoardSpec, view: BoardView, boa
         return found
     height, width = gray.shape
     predicted, w = apply_homography(view.homography, board_xy)
-    in_view = (w > 0) & np.all(predicted >= 0, axis=1) & (predicted[:, 0] <= width - 1) & (predicted[:, 1] <= height - 1)
+    in_view = (w > 0) & np.all(predicted >= 0, axis=1) & (predicted[:, 0] <= width - 1) \
+        & (predicted[:, 1] <= height - 1)
     missing = np.flatnonzero(in_view & ~np.isin(np.arange(len(board_xy)), ids))
     if len(missing) == 0:
         return found
