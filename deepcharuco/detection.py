@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deepcharuco.vectors import lengths
+from deepcharuco.vectors import pairwise_distances
 
 
 def no_corners() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -63,6 +63,6 @@ def corner_spacing(corners: np.ndarray) -> float:
     0 for fewer than 2."""
     if len(corners) < 2:
         return 0.0
-    distance = lengths(corners[:, None].astype(np.float64) - corners[None])
+    distance = pairwise_distances(corners.astype(np.float64), corners)
     np.fill_diagonal(distance, np.inf)
     return float(np.median(distance.min(axis=1)))

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec, BoardTexture
+from deepcharuco.marker_reader import sample_maps
 
 SAMPLES = 16  # samples along each board axis of the window around a corner
 HALF_WINDOW = 0.5  # ... which spans this many squares each way: half of each of the four squares at the corner
@@ -78,8 +79,7 @@ def corner_patterns(board: BoardSpec, ids: np.ndarray) -> np.ndarray:
     points = board.corner_points()[np.asarray(ids, np.int64), :2]  # (N, 2) metres
     uv = texture.board_to_texture(points[:, None] + WINDOW[None] * board.square_length)  # (N, S*S, 2)
     maps = uv.astype(np.float32).reshape(-1, uv.shape[-2], 2)
-    return cv2.remap(texture.image, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-                     ).reshape(uv.shape[:-1]) / 255.0
+    return sample_maps(texture.image, maps[..., 0], maps[..., 1]).reshape(uv.shape[:-1]).astype(np.float64) / 255.0
 
 
 def window_pixels(homography: np.ndarray, board: BoardSpec, ids: np.ndarray, pixels: np.ndarray,
@@ -100,9 +100,8 @@ def _sample(gray: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray
     """(H, W) image, (N, ..., 2) pixels -> (bilinear values (N, ...) float64, (N,) whether all lie in the image)."""
     height, width = gray.shape
     inside = np.all((where >= 0) & (where <= np.array([width - 1, height - 1])), axis=tuple(range(1, where.ndim)))
-    maps = where.astype(np.float32).reshape(-1, where.shape[-2], 2)  # a window a row: cv2.remap takes < 32767 a side
-    values = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return values.reshape(where.shape[:-1]).astype(np.float64), inside
+    maps = where.astype(np.float32).reshape(-1, where.shape[-2], 2)  # a window a row
+    return sample_maps(gray, maps[..., 0], maps[..., 1]).reshape(where.shape[:-1]).astype(np.float64), inside
 
 
 def _fit(values: np.ndarray, pattern: np.ndarray, side: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

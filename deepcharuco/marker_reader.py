@@ -185,7 +185,7 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     values = np.zeros((count, len(local)), np.float32)
     if inside.any():
         w = mapped[:, :, 2]
-        values[inside] = _sample_maps(gray, mapped[:, :, 0] / w, mapped[:, :, 1] / w).T
+        values[inside] = sample_maps(gray, mapped[:, :, 0] / w, mapped[:, :, 1] / w).T
     samples = bit_points.shape[1]
     sampled = values[:, :grid * grid * samples].reshape(count, grid, grid, samples)
     bits = sampled[..., 0]  # the mean over each bit's samples, summed in np.mean's order
@@ -258,7 +258,7 @@ def _sample(gray: np.ndarray, points: np.ndarray, row: int = 4096) -> np.ndarray
     return values.reshape(-1)[:count].astype(np.float32)
 
 
-def _sample_maps(gray: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def sample_maps(gray: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(H, W) image, (A, B) float32 x and y -> (A, B) float32 bilinear samples (`_sample`'s values)."""
     if max(x.shape) > MAX_REMAP_SIDE:
         return _sample(gray, np.stack([x.ravel(), y.ravel()], axis=1)).reshape(x.shape)

@@ -387,19 +387,13 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
         return found
     candidates, confidence = weak.pixels.astype(np.float64), weak.confidence
     own_ids, _, _ = assign_ids(view, board_xy, weak, image_size)  # corners the view lets take a weak candidate
-    missing = own_ids[~np.isin(own_ids, ids)]
-    offsets, weight, slots = _neighbourhoods(board_xy, missing, ids)
-    fittable = _fittable(offsets, weight)
+    targets, places = _agreed_places(board_xy, own_ids[~np.isin(own_ids, ids)], ids, pixels)
     extra: list[tuple[int, int]] = []
-    if fittable.any():
-        predicted, misfit = local_predictions(offsets[fittable], weight[fittable],
-                                              pixels.astype(np.float64)[slots[fittable]])
-        agree = np.all(misfit <= LOCAL_FIT_PX, axis=1)  # where its neighbours disagree, no fill-in
-        for corner, place in zip(missing[fittable][agree].tolist(), predicted[agree]):
-            gap = lengths(candidates - place)
-            best = int(np.argmin(gap))
-            if gap[best] <= WEAK_REACH_PX:
-                extra.append((corner, best))
+    for corner, place in zip(targets.tolist(), places):
+        gap = lengths(candidates - place)
+        best = int(np.argmin(gap))
+        if gap[best] <= WEAK_REACH_PX:
+            extra.append((corner, best))
     if not extra:
         return found
     chosen: dict[int, int] = {}
@@ -415,6 +409,21 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
     return ids[order], pixels[order], scores[order]
 
 
+def _agreed_places(board_xy: np.ndarray, targets: np.ndarray, ids: np.ndarray, pixels: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Where the found corners (``ids`` (N,) at ``pixels`` (N, 2)) put each of ``targets`` (T,): a homography fitted
+    to those within `LOCAL_SQUARES` squares of it on the board (`local_predictions`; a lens bends the board away
+    from the view's one homography). -> (the targets with a fit that all its corners meet within `LOCAL_FIT_PX`
+    (K,), their places (K, 2) float64 pixels); where the neighbours disagree, no place."""
+    offsets, weight, slots = _neighbourhoods(board_xy, targets, ids)
+    fittable = _fittable(offsets, weight)
+    if not fittable.any():
+        return targets[:0], np.zeros((0, 2))
+    places, misfit = local_predictions(offsets[fittable], weight[fittable], pixels.astype(np.float64)[slots[fittable]])
+    agree = np.all(misfit <= LOCAL_FIT_PX, axis=1)
+    return targets[fittable][agree], places[agree]
+
+
 def _fill_in_by_pattern(gray: np.ndarray, board: BoardSpec, view: BoardView, board_xy: np.ndarray,
                         found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``found`` (ids, pixels, scores) and the corners of the verified ``view`` in ``gray`` that no candidate took,
@@ -428,19 +437,14 @@ def _fill_in_by_pattern(gray: np.ndarray, board: BoardSpec, view: BoardView, boa
     predicted, w = apply_homography(view.homography, board_xy)
     in_view = (w > 0) & np.all(predicted >= 0, axis=1) & (predicted[:, 0] <= width - 1) \
         & (predicted[:, 1] <= height - 1)
-    missing = np.flatnonzero(in_view & ~np.isin(np.arange(len(board_xy)), ids))
-    if len(missing) == 0:
+    targets, places = _agreed_places(board_xy, np.flatnonzero(in_view & ~np.isin(np.arange(len(board_xy)), ids)),
+                                     ids, pixels)
+    if len(targets) == 0:
         return found
-    offsets, weight, slots = _neighbourhoods(board_xy, missing, ids)
-    fittable = _fittable(offsets, weight)
-    if not fittable.any():
-        return found
-    places, misfit = local_predictions(offsets[fittable], weight[fittable], pixels.astype(np.float64)[slots[fittable]])
-    agree = np.all(misfit <= LOCAL_FIT_PX, axis=1)
     # A lens bends a board's edge away from a fit carried past its corners, onto the next corner along a diagonal:
     # the pattern there fits as well (the same checker), so no corner is put where another was found.
     apart = pairwise_distances(places, pixels.astype(np.float64)).min(axis=1) >= PATTERN_APART * corner_spacing(pixels)
-    targets, places = missing[fittable][agree & apart], places[agree & apart]
+    targets, places = targets[apart], places[apart]
     evidence = pattern_evidence(gray, board, view.homography, targets, places)
     shown = evidence >= PATTERN_MIN_T
     if not shown.any():

@@ -221,7 +221,7 @@ def test_agreement_test_is_the_pixel_distance_without_division():
 
 
 def test_sampled_maps_equal_the_point_list_sampler_at_any_map_size():
-    from deepcharuco.marker_reader import MAX_REMAP_SIDE, _sample, _sample_maps
+    from deepcharuco.marker_reader import MAX_REMAP_SIDE, _sample, sample_maps
 
     rng = np.random.default_rng(4)
     gray = rng.integers(0, 256, (60, 80), dtype=np.uint8)
@@ -229,4 +229,4 @@ def test_sampled_maps_equal_the_point_list_sampler_at_any_map_size():
         x = rng.uniform(-3, 83, shape).astype(np.float32)
         y = rng.uniform(-3, 63, shape).astype(np.float32)
         expected = _sample(gray, np.stack([x.ravel(), y.ravel()], axis=1)).reshape(shape)
-        np.testing.assert_array_equal(_sample_maps(gray, x, y), expected)
+        np.testing.assert_array_equal(sample_maps(gray, x, y), expected)
