@@ -104,21 +104,28 @@ def _sample(gray: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return sample_maps(gray, maps[..., 0], maps[..., 1]).reshape(where.shape[:-1]).astype(np.float64), inside
 
 
-def _fit(values: np.ndarray, pattern: np.ndarray, side: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least squares of ``values`` (..., M) on an offset + contrast * ``pattern`` (..., M) of their own on each
-    ``side`` (..., M: -1, +1; 0 leaves a sample out) of an edge (broadcast together): one straight-line regression
-    per side, in closed form. -> (residual variance (...): the residual sum of squares over the samples used less
-    4; the two sides' contrasts (..., 2); 1 / each side's pattern's sum of squared deviations (..., 2): a
-    contrast's variance is this times the residual variance; inf for a side without pattern variation, whose
-    contrast is 0)."""
-    values, pattern, side = np.broadcast_arrays(values, pattern, side)
-    per_side = []
-    for weight in (side < 0, side > 0):
-        w = weight.astype(np.float64)
-        wp, wy = w * pattern, w * values
-        per_side.append(np.stack([w.sum(-1), wp.sum(-1), (wp * pattern).sum(-1), wy.sum(-1), (wp * values).sum(-1),
-                                  (wy * values).sum(-1)], -1))
-    n, sp, spp, sy, spy, syy = np.moveaxis(np.stack(per_side, -2), -1, 0)  # each (..., 2)
+def _moments(values: np.ndarray, pattern: np.ndarray) -> np.ndarray:
+    """``values`` and ``pattern`` (..., M), broadcast together -> (..., 6, M): 1, p, p^2, y, p y, y^2 at each sample,
+    whose sums over one side of an edge are all that side's regression needs."""
+    values, pattern = np.broadcast_arrays(values, pattern)
+    return np.stack([np.ones_like(values), pattern, pattern * pattern, values, pattern * values, values * values], -2)
+
+
+def _side_masks(side: np.ndarray) -> np.ndarray:
+    """(..., M) sides (-1, +1; 0 leaves a sample out) -> (..., 2, M) float64: the samples of side -1, then of +1."""
+    return np.stack([side < 0, side > 0], -2).astype(np.float64)
+
+
+EDGE_MASKS = _side_masks(EDGE_SIDES)  # (L, 2, S*S)
+
+
+def _fit(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares of the values on an offset + contrast * pattern of their own on each side of an edge: one
+    straight-line regression per side, in closed form, from ``sums`` (..., 2, 6): each side's sums of `_moments`.
+    -> (residual variance (...): the residual sum of squares over the samples used less 4; the two sides'
+    contrasts (..., 2); 1 / each side's pattern's sum of squared deviations (..., 2): a contrast's variance is
+    this times the residual variance; inf for a side without pattern variation, whose contrast is 0)."""
+    n, sp, spp, sy, spy, syy = np.moveaxis(sums, -1, 0)  # each (..., 2)
     count = np.maximum(n, 1.0)
     sxx, sxy, syy_centred = spp - sp * sp / count, spy - sp * sy / count, syy - sy * sy / count
     varied = sxx > 1e-9 * count
@@ -126,6 +133,13 @@ def _fit(values: np.ndarray, pattern: np.ndarray, side: np.ndarray) -> tuple[np.
     rss = np.maximum(syy_centred - contrast * sxy, 0.0).sum(-1)
     variance = rss / np.maximum(n.sum(-1) - 4.0, 1.0)
     return variance, contrast, np.where(varied, 1.0 / np.where(varied, sxx, 1.0), np.inf)
+
+
+def _fit_every_edge(values: np.ndarray, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_fit` of windows ``values`` (N, M) on their ``pattern`` (N, M) for every edge in `EDGE_SIDES` -> (N, L),
+    (N, L, 2), (N, L, 2). The edges' sides are the same for every window: one matrix product sums them all."""
+    sums = np.tensordot(_moments(values, pattern), EDGE_MASKS, axes=([2], [2]))  # (N, 6, L, 2)
+    return _fit(np.transpose(sums, (0, 2, 3, 1)))
 
 
 def pattern_evidence(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids: np.ndarray,
@@ -147,7 +161,7 @@ def pattern_evidence(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
         return np.zeros(0)
     values, inside = _sample(gray, window_pixels(homography, board, ids, pixels))  # (N, S2)
     pattern = corner_patterns(board, ids)
-    variance, contrast, spread = _fit(values[:, None], pattern[:, None], EDGE_SIDES[None])  # (N, L), (N, L, 2) x2
+    variance, contrast, spread = _fit_every_edge(values, pattern)  # (N, L), (N, L, 2) x2
     best = np.argmin(variance, axis=1)  # (N,) the edge that explains the window best
     rows = np.arange(len(ids))
     spread, variance = spread[rows, best], variance[rows, best, None]
@@ -176,7 +190,7 @@ def locate_by_pattern(gray: np.ndarray, board: BoardSpec, homography: np.ndarray
     window = window_pixels(homography, board, ids, pixels)  # (N, S2, 2)
     values, _ = _sample(gray, window)
     pattern = corner_patterns(board, ids)  # (N, S2)
-    variance = _fit(values[:, None], pattern[:, None], EDGE_SIDES[None])[0]
+    variance = _fit_every_edge(values, pattern)[0]
     lines = EDGE_LINES[np.argmin(variance, axis=1)]  # (N, 3) in squares about the starting pixel
     # Over a shift of a pixel or two the window moves as a whole (its perspective changes by far less than a
     # sample); the edge stays put in the image, so each sample's side moves by the shift, in squares.
@@ -191,7 +205,8 @@ def locate_by_pattern(gray: np.ndarray, board: BoardSpec, homography: np.ndarray
         moves = shift[:, None] + np.stack(np.meshgrid(grid, grid), axis=-1).reshape(1, -1, 2)  # (N, G, 2) px
         moved_across = np.einsum("nij,ngj,ni->ng", to_squares, moves, lines[:, :2])  # (N, G) squares along the normal
         values, _ = _sample(gray, window[:, None] + moves[:, :, None])  # (N, G, S2)
-        variance = _fit(values, pattern[:, None], _side(across[:, None] + moved_across[:, :, None]))[0]  # (N, G)
+        sides = _side_masks(_side(across[:, None] + moved_across[:, :, None]))  # (N, G, 2, S2)
+        variance = _fit(sides @ np.swapaxes(_moments(values, pattern[:, None]), -1, -2))[0]  # (N, G)
         side_count = len(grid)
         best = np.argmin(variance, axis=1)
         row, column = np.divmod(best, side_count)

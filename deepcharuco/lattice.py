@@ -17,7 +17,6 @@ unit frame differs from the board's square frame by a rotation of 0-3 quarter tu
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from deepcharuco.vectors import lengths, pairwise_distances
@@ -105,11 +104,14 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     kept: dict[int, list[int]] = {}  # the quads kept so far on each directed side (visited squarest first)
     keep = np.zeros(len(quads), bool)
     for q in np.argsort(cosine, kind="stable").tolist():
-        squarer, size = cosine[q] - SQUARER_BY, SAME_AREA * area[q]
-        if not any(cosine[r] < squarer and abs(area[r] - area[q]) <= size for side in sides[q] for r in kept.get(side, ())):
-            keep[q] = True
-            for side in sides[q]:
-                kept.setdefault(side, []).append(q)
+        rivals = [r for side in sides[q] if side in kept for r in kept[side]]  # most quads have none: no test
+        if rivals:
+            squarer, own, size = cosine[q] - SQUARER_BY, area[q], SAME_AREA * area[q]
+            if any(cosine[r] < squarer and abs(area[r] - own) <= size for r in rivals):
+                continue
+        keep[q] = True
+        for side in sides[q]:
+            kept.setdefault(side, []).append(q)
     # Quads of two or four cells (squares of a lattice's diagonals, near the edge of the candidates) share a side with
     # a smaller quad as square as they are, which they contain.
     for q in np.flatnonzero(keep).tolist():
@@ -139,8 +141,23 @@ def _nearest(points: np.ndarray, k: int, block: int = 1024) -> np.ndarray:
 
 
 def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
-    """(N, 2) pixels, (Q, 4) quads -> (Q, 3, 3) homographies from each cell's unit square to the image."""
-    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
-    points = np.asarray(pixels, np.float32)
-    return np.stack([cv2.getPerspectiveTransform(unit, points[quad]) for quad in quads]) if len(quads) \
-        else np.zeros((0, 3, 3))
+    """(N, 2) pixels, (Q, 4) quads -> (Q, 3, 3) homographies from each cell's unit square to the image.
+
+    The unit square's map has a closed form (Heckbert, "Fundamentals of Texture Mapping", 1989): no 8x8
+    solve per cell. A degenerate quad (three corners on a line) gives a non-finite map."""
+    if len(quads) == 0:
+        return np.zeros((0, 3, 3))
+    # float32 pixels, as the detector's candidates are; the map itself in float64.
+    x, y = np.moveaxis(np.asarray(pixels, np.float32).astype(np.float64)[quads], -1, 0)  # each (Q, 4)
+    (x0, x1, x2, x3), (y0, y1, y2, y3) = x.T, y.T
+    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = dx1 * dy2 - dx2 * dy1
+        g = (dx3 * dy2 - dx2 * dy3) / det
+        h = (dx1 * dy3 - dx3 * dy1) / det
+    maps = np.empty((len(quads), 3, 3))
+    maps[:, 0] = np.stack([x1 - x0 + g * x1, x3 - x0 + h * x3, x0], axis=1)
+    maps[:, 1] = np.stack([y1 - y0 + g * y1, y3 - y0 + h * y3, y0], axis=1)
+    maps[:, 2] = np.stack([g, h, np.ones_like(g)], axis=1)
+    return maps

@@ -275,10 +275,12 @@ def marker_view_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndar
 def _support(marker: np.ndarray, ncc: np.ndarray, agrees: np.ndarray) -> np.ndarray:
     """The evidence of each hypothesis' agreeing proposals: ``marker``, ``ncc`` (K,) per proposal, ``agrees``
     (H, K) bool -> (H,): each distinct marker counts once, by its best correlation (at least 0)."""
-    order = np.argsort(marker, kind="stable")
-    _, starts = np.unique(marker[order], return_index=True)
-    values = np.where(agrees, np.maximum(ncc.astype(np.float64), 0.0)[None], 0.0)[:, order]
-    return np.maximum.reduceat(values, starts, axis=1).sum(axis=1)
+    distinct, rank = np.unique(marker, return_inverse=True)
+    # Few pairs agree (the centres' test leaves 0.3-5 %): the best per (hypothesis, marker) over those pairs only.
+    hypothesis, proposal = np.nonzero(agrees)
+    best = np.zeros((len(agrees), len(distinct)))
+    np.maximum.at(best, (hypothesis, rank[proposal]), np.maximum(ncc[proposal].astype(np.float64), 0.0))
+    return best.sum(axis=1)
 
 
 def _lands_within(mapped: np.ndarray, observed: np.ndarray, reach: np.ndarray) -> np.ndarray:
@@ -293,9 +295,9 @@ def _lands_within(mapped: np.ndarray, observed: np.ndarray, reach: np.ndarray) -
 
 def _square_sides(squares: np.ndarray) -> np.ndarray:
     """(R, 3, 3) unit-square frames -> (R,) square root of each square's area in the image (pixels)."""
-    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
-    corners = np.stack([_apply_each(squares, np.tile(point, (len(squares), 1))) for point in unit], axis=1)
-    return np.sqrt(quad_areas(corners))
+    unit = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], np.float64)
+    corners = unit @ np.transpose(squares, (0, 2, 1))  # (R, 4, 3)
+    return np.sqrt(quad_areas(corners[:, :, :2] / corners[:, :, 2:]))
 
 
 def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:

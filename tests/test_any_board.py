@@ -7,7 +7,7 @@ import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, deep_detector, project_corners
 from deepcharuco import placement
-from deepcharuco.lattice import find_cells, squarest_cells
+from deepcharuco.lattice import cell_homographies, find_cells, squarest_cells
 from deepcharuco.marker_reader import board_markers, correlate, read_squares
 from deepcharuco.placement import marker_agreement
 from deepcharuco.synthetic import look_at_pose, render_board_view, texture_homography
@@ -59,6 +59,22 @@ def test_cells_of_a_perspective_lattice_each_once_right_handed():
         ab, ac = points[b] - points[a], points[c] - points[a]
         assert ab[0] * ac[1] - ab[1] * ac[0] > 0
         assert np.allclose(points[b] + points[c] - points[a], points[d], atol=0.25 * min(np.hypot(*ab), np.hypot(*ac)))
+
+
+def test_cell_maps_carry_the_unit_square_onto_each_quad_as_opencv_does():
+    rng = np.random.default_rng(7)
+    centres = rng.uniform(20, 300, (200, 1, 2))
+    # Convex quads, perspective-distorted squares of 5-40 px with corners jittered, (a, b, d, c) order.
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    pixels = (centres + rng.uniform(5, 40, (200, 1, 1)) * (unit - 0.5) + rng.normal(0, 1.5, (200, 4, 2))).reshape(-1, 2)
+    quads = np.arange(800).reshape(200, 4)
+    maps = cell_homographies(pixels.astype(np.float32), quads)
+    mapped = np.c_[unit, np.ones(4)] @ np.transpose(maps, (0, 2, 1))  # (Q, 4, 3)
+    assert np.allclose(mapped[:, :, :2] / mapped[:, :, 2:], pixels.astype(np.float32).reshape(-1, 4, 2), atol=1e-6)
+    for quad, found in zip(quads[:20], maps):
+        opencv = cv2.getPerspectiveTransform(unit.astype(np.float32), pixels[quad].astype(np.float32))
+        assert np.allclose(found, opencv, rtol=1e-9, atol=1e-9)
+    assert cell_homographies(pixels, np.zeros((0, 4), np.int64)).shape == (0, 3, 3)
 
 
 def lattice(homography: np.ndarray, columns: int = 6, rows: int = 5) -> tuple[np.ndarray, np.ndarray]:
