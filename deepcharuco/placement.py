@@ -173,7 +173,9 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     # (H, K); the first corners then only for the pairs whose centres agree (0.3-5 % of them on the report's boards).
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         centres = np.c_[square_xy + 0.5, np.ones(len(square_xy))]
-        agrees = _lands_within(proposals[hypotheses] @ centres.T, _apply_each(proposals, centres[:, :2]), reach)
+        # (H, 3, K): one matrix product for all hypotheses (a stacked matmul of H 3x3s is 2x slower, same numbers).
+        mapped = (proposals[hypotheses].reshape(-1, 3) @ centres.T).reshape(len(hypotheses), 3, -1)
+        agrees = _lands_within(mapped, _apply_each(proposals, centres[:, :2]), reach)
         pair_h, pair_k = np.nonzero(agrees)
         firsts = np.c_[square_xy, np.ones(len(square_xy))]
         mapped = np.einsum("nij,nj->ni", proposals[hypotheses[pair_h]], firsts[pair_k])[:, :, None]  # (n, 3, 1)
