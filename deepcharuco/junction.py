@@ -169,7 +169,7 @@ def pattern_evidence(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
     with np.errstate(invalid="ignore"):  # inf * 0 where nothing varies: taken as inf by the where
         error = np.where(np.isinf(spread), np.inf, np.sqrt(np.maximum(spread * variance, 1e-12)))
     t = contrast[rows, best] / error  # (N, 2): side -1, side +1
-    share = np.stack([EDGE_SIDES[best] < 0, EDGE_SIDES[best] > 0], axis=1).mean(axis=2)
+    share = EDGE_MASKS[best].mean(axis=2)  # (N, 2): each side's fraction of the window
     evidence = np.where(share >= MIN_SIDE, t, np.inf).min(axis=1)
     return np.where(inside, evidence, -np.inf)
 
