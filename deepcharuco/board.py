@@ -20,6 +20,8 @@ from deepcharuco.errors import BoardSpecError
 
 # The fields a board file must spell out; the flags default to false.
 REQUIRED_FIELDS = ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")
+# A board file is a few lines; anything larger is the wrong file, and is not read further than this.
+MAX_BOARD_FILE_BYTES = 64 * 1024
 # Textures larger than this per side are almost certainly a units mistake (px/mm vs px/m).
 MAX_TEXTURE_SIDE = 16384
 
@@ -47,6 +49,25 @@ MARKER_FAMILIES: dict[str, tuple[str, ...]] = {
     "DICT_7X7": ("DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000"),
     "APRILTAG_36H11": ("DICT_APRILTAG_36h11",),
 }
+
+
+def dictionary_size(name: str) -> int:
+    """How many markers the OpenCV dictionary ``name`` holds."""
+    return int(cv2.aruco.getPredefinedDictionary(_dictionary_id(name)).bytesList.shape[0])
+
+
+def _more_markers_advice(dictionary: str, needed: int, otherwise: str = "fewer squares") -> str:
+    """What to use when ``dictionary`` holds fewer than ``needed`` markers: the smallest larger dictionary of its
+    family that holds them, else ``otherwise`` (never the same or a smaller dictionary)."""
+    family = marker_family(dictionary)
+    names = MARKER_FAMILIES.get(family, ()) if family else ()
+    larger = [name for name in names if dictionary_size(name) >= needed]
+    if larger:
+        return f"use the larger dictionary {larger[0]} or {otherwise}"
+    if names:
+        return (f"no {family} dictionary holds {needed} (the largest, {names[-1]}, has {dictionary_size(names[-1])}): "
+                f"use {otherwise}")
+    return f"use {otherwise}"
 
 
 def marker_family(dictionary: str) -> str | None:
@@ -117,22 +138,21 @@ class BoardSpec:
         if not isinstance(self.dictionary, str):
             raise BoardSpecError(f"dictionary must be a name such as 'DICT_5X5_50', got {self.dictionary!r}")
         object.__setattr__(self, "dictionary", self.dictionary.upper())
-        dictionary_size = self.cv_dictionary().bytesList.shape[0]
+        holds = dictionary_size(self.dictionary)
         first = self.first_marker_id
         if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
             raise BoardSpecError(f"first_marker_id must be an integer >= 0, got {first!r}")
         object.__setattr__(self, "first_marker_id", int(first))
-        if first and first + self.num_markers > dictionary_size:
-            raise BoardSpecError(
-                f"a {self.squares_x}x{self.squares_y} board with markers from ID {first} needs IDs up to "
-                f"{first + self.num_markers - 1} but {self.dictionary} has only {dictionary_size} markers; use a "
-                f"larger dictionary (e.g. {self.dictionary.rsplit('_', 1)[0]}_1000) or a smaller first_marker_id"
-            )
-        if self.num_markers > dictionary_size:
+        if self.num_markers > holds:
             raise BoardSpecError(
                 f"a {self.squares_x}x{self.squares_y} board needs {self.num_markers} markers but "
-                f"{self.dictionary} has only {dictionary_size}; use a larger dictionary "
-                f"(e.g. {self.dictionary.rsplit('_', 1)[0]}_250) or fewer squares"
+                f"{self.dictionary} has only {holds}; {_more_markers_advice(self.dictionary, self.num_markers)}"
+            )
+        if first and first + self.num_markers > holds:
+            raise BoardSpecError(
+                f"a {self.squares_x}x{self.squares_y} board with markers from ID {first} needs IDs up to "
+                f"{first + self.num_markers - 1} but {self.dictionary} has only {holds} markers; "
+                f"{_more_markers_advice(self.dictionary, first + self.num_markers, 'a smaller first_marker_id')}"
             )
         for name in ("legacy", "inverted", "mirrored"):
             value = getattr(self, name)
@@ -229,9 +249,11 @@ class BoardSpec:
         if not isinstance(data, dict):
             raise BoardSpecError(f"{source} must be a mapping of board fields, got {type(data).__name__}")
         known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(map(str, set(data) - known))
         if unknown:
-            raise BoardSpecError(f"{source}: unknown board field(s) {unknown}; known fields: {sorted(known)}")
+            listed = [name[:40] for name in unknown[:5]]  # a file of a million keys gets a message of one line
+            more = f" and {len(unknown) - 5:,} more" if len(unknown) > 5 else ""
+            raise BoardSpecError(f"{source}: unknown board field(s) {listed}{more}; known fields: {sorted(known)}")
         missing = [name for name in REQUIRED_FIELDS if name not in data]
         if missing:
             raise BoardSpecError(
@@ -273,28 +295,42 @@ class BoardSpec:
         if not path.is_file():
             raise BoardSpecError(f"board file {path} does not exist")
         suffix = path.suffix.lower()
+        if suffix not in (".json", ".yaml", ".yml"):
+            raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
+        text = _read_board_text(path)
         if suffix == ".json":
             try:
-                data = json.loads(path.read_text())
+                data = json.loads(text)
             except json.JSONDecodeError as exc:
                 raise BoardSpecError(f"{path} is not valid JSON: {exc}") from exc
+            except RecursionError:  # nesting deeper than Python's stack: no board is written so
+                raise BoardSpecError(f"{path} nests too deeply to be a board file: a board is one flat mapping of "
+                                     f"fields ({', '.join(REQUIRED_FIELDS)}, ...)") from None
             return cls.from_dict(data, source=str(path))
-        if suffix in (".yaml", ".yml"):
-            return cls.from_dict(_read_flat_yaml(path), source=str(path))
-        raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
+        return cls.from_dict(_read_flat_yaml(text, path), source=str(path))
 
 
-def _read_flat_yaml(path: Path) -> dict:
+def _read_board_text(path: Path) -> str:
+    """The text of a board file, refused when larger than `MAX_BOARD_FILE_BYTES` (read no further) or not text."""
+    with open(path, "rb") as handle:
+        data = handle.read(MAX_BOARD_FILE_BYTES + 1)
+    if len(data) > MAX_BOARD_FILE_BYTES:
+        raise BoardSpecError(f"{path} is over {MAX_BOARD_FILE_BYTES // 1024} KiB, too large for a board file (a few "
+                             f"lines of 'field: value'): is it the right file?")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise BoardSpecError(f"{path} is not a text file ({exc}): a board file is YAML or JSON text") from None
+
+
+def _read_flat_yaml(text: str, path: Path) -> dict:
     """Read a board file: a flat YAML mapping of scalars, ``#`` comments allowed anywhere.
 
     OpenCV's FileStorage YAML (``%YAML:1.0`` / ``---`` header, quoted strings) reads too. Its own
     parser is not used because it keeps trailing comments in values and fails on an empty file
     with an assertion instead of a reason.
     """
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError as exc:
-        raise BoardSpecError(f"{path} is not a text file ({exc}): a board file is YAML or JSON text") from exc
+    lines = text.splitlines()
     data: dict = {}
     for number, raw in enumerate(lines, start=1):
         line = _strip_comment(raw).rstrip()
@@ -302,11 +338,11 @@ def _read_flat_yaml(path: Path) -> dict:
             continue
         where = f"{path}, line {number}"
         if line[0].isspace() or line.lstrip().startswith("-"):
-            raise BoardSpecError(f"{where}: a board file is a flat list of 'field: value' lines; got {raw.strip()!r}")
+            raise BoardSpecError(f"{where}: a board file is a flat list of 'field: value' lines; got {_shown(raw)}")
         key, colon, value = line.partition(":")
         key, value = key.strip(), value.strip()
         if not colon or not key.isidentifier():
-            raise BoardSpecError(f"{where}: expected 'field: value', got {raw.strip()!r}")
+            raise BoardSpecError(f"{where}: expected 'field: value', got {_shown(raw)}")
         if not value or value[0] in "[{|>":
             raise BoardSpecError(f"{where}: field {key!r} must be a single value (a number, name or true/false)")
         if key in data:
@@ -316,6 +352,12 @@ def _read_flat_yaml(path: Path) -> dict:
         raise BoardSpecError(f"{path} holds no board fields; write e.g. 'squares_x: 5' lines "
                              f"for {', '.join(REQUIRED_FIELDS)}")
     return data
+
+
+def _shown(line: str, limit: int = 60) -> str:
+    """A line of the file as an error message quotes it: at most ``limit`` characters."""
+    line = line.strip()
+    return repr(line if len(line) <= limit else line[:limit] + "...")
 
 
 def _strip_comment(line: str) -> str:

@@ -201,3 +201,44 @@ def test_texture_size_guard():
         BoardSpec().render_texture(px_per_m=0)
     with pytest.raises(BoardSpecError, match="margin"):
         BoardSpec().render_texture(px_per_m=1000, margin=-0.1)
+
+
+def test_board_file_nested_deeply_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "deep.json"
+    path.write_text("[" * 30_000 + "]" * 30_000)  # under the size cap; deeper than Python's recursion limit
+    with pytest.raises(BoardSpecError, match="nests too deeply"):
+        BoardSpec.load(path)
+
+
+def test_huge_board_file_is_refused_unread_and_briefly(tmp_path):
+    path = tmp_path / "huge.yaml"
+    with open(path, "w") as handle:
+        for number in range(300_000):
+            handle.write(f"key_{number}: {number}\n")
+    with pytest.raises(BoardSpecError, match="too large for a board file") as error:
+        BoardSpec.load(path)
+    assert len(str(error.value)) < 300
+    # Many unknown keys under the cap: five named, the rest counted.
+    small = tmp_path / "many.json"
+    small.write_text(json.dumps({f"key_{n}": n for n in range(2000)}))
+    with pytest.raises(BoardSpecError, match="and 1,995 more") as error:
+        BoardSpec.load(small)
+    assert len(str(error.value)) < 400
+
+
+@pytest.mark.parametrize("dictionary, squares, advice", [
+    ("DICT_6X6_250", (1000, 3), "no DICT_6X6 dictionary holds 1500 (the largest, DICT_6X6_1000, has 1000): use fewer squares"),
+    ("DICT_4X4_1000", (1000, 3), "no DICT_4X4 dictionary holds 1500"),
+    ("DICT_6X6_250", (30, 30), "use the larger dictionary DICT_6X6_1000 or fewer squares"),
+    ("DICT_5X5_50", (11, 11), "use the larger dictionary DICT_5X5_100 or fewer squares"),
+])
+def test_too_many_markers_suggests_a_dictionary_that_holds_them(dictionary, squares, advice):
+    with pytest.raises(BoardSpecError) as error:
+        BoardSpec(*squares, 0.04, 0.03, dictionary)
+    assert advice in str(error.value)
+    assert f"larger dictionary {dictionary}" not in str(error.value)
+
+
+def test_first_marker_id_past_the_dictionary_suggests_a_larger_one():
+    with pytest.raises(BoardSpecError, match="use the larger dictionary DICT_4X4_100 or a smaller first_marker_id"):
+        BoardSpec(5, 5, 0.04, 0.03, "DICT_4X4_50", first_marker_id=40)
