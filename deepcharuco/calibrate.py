@@ -27,9 +27,11 @@ from deepcharuco.calibration import (
     MODELS, VIEW_WEIGHT_SPREAD, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, border_margin,
     calibrate, sharpness,
 )
-from deepcharuco.camera import write_camera
+from deepcharuco.camera import camera_file_text, is_camera_file
 from deepcharuco.detect import make_detector, open_source
+from deepcharuco.cli import run_command
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8
 
 DETECTORS = ("opencv", "deep", "hybrid")
@@ -70,15 +72,13 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
     return detections, size
 
 
-def write_calibration(path: str | Path, result: CalibrationResult, board: BoardSpec, detector: str) -> Path:
+def calibration_text(result: CalibrationResult, board: BoardSpec, detector: str, name: str = "camera.yaml") -> str:
     """The camera file: `write_camera`'s four nodes (what `read_camera` and OpenCV's samples read), then
     the model, the RMS, the standard deviations, the views, and the per-corner uncertainty
     (``corner_sigma_px``, `CalibrationResult.corner_sigma`) with every corner's residual
-    (``corner_residuals``: frame, ID, dx, dy), appended as a second YAML document."""
-    path = Path(path)
-    write_camera(path, result.camera)
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_APPEND)
-    try:
+    (``corner_residuals``: frame, ID, dx, dy). ``name``'s suffix picks the format (YAML, XML, JSON)."""
+
+    def calibration_nodes(storage: cv2.FileStorage) -> None:
         if result.camera.model == "pinhole":  # write_camera names the fisheye model itself
             storage.write("distortion_model", result.model)
         storage.write("avg_reprojection_error", float(result.rms))
@@ -103,9 +103,8 @@ def write_calibration(path: str | Path, result: CalibrationResult, board: BoardS
         storage.write("view_frames", np.array([v.index for v in result.views], np.int32).reshape(-1, 1))
         storage.write("detector", detector)
         storage.write("board", json.dumps(board.to_dict()))
-    finally:
-        storage.release()
-    return path
+
+    return camera_file_text(result.camera, name, extra=calibration_nodes)
 
 
 def default_report_path(out: str | Path) -> Path:
@@ -122,13 +121,32 @@ def check_writable(path: Path) -> None:
         raise DeepCharucoError(f"cannot write {path}: {existing} is not a writable folder; choose another --out")
 
 
+# How every calibration report begins (evaluate.calibration_report, titled "Calibration of ..."): what --out's
+# report may overwrite without --force.
+REPORT_START = b"<!doctype html><html><head><meta charset='utf-8'><title>Calibration"
+
+
 def run(args: argparse.Namespace) -> CalibrationResult:
-    for path in [Path(args.out)] + ([] if args.no_report else [Path(args.report) if args.report else default_report_path(args.out)]):
+    out = Path(args.out)
+    report = None if args.no_report else Path(args.report) if args.report else default_report_path(out)
+    for path in [out] + ([report] if report else []):
         check_writable(path)
+    refuse_foreign(out, is_camera_file, "camera file", args.force)
+    if report is not None:
+        refuse_foreign(report, starts_with(REPORT_START), "calibration report", args.force,
+                       "--report" if args.report else "--out's report")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out, "another calibrate"):
+        return _calibrate_into(args, out, report)
+
+
+def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
     board = BoardSpec.load(args.board) if args.board else BoardSpec()
     detector = make_calibration_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source, args.max_frames)
     frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet)
+    for line in source.problems():  # damaged stretches of a video, unreadable images: said, then calibrated without
+        print(f"warning: {line}", file=sys.stderr)
     if size is None:
         raise CalibrationError(f"no frames could be read from {args.source}: give a video, a folder of images or a "
                                f"camera index that delivers frames")
@@ -136,18 +154,18 @@ def run(args: argparse.Namespace) -> CalibrationResult:
                                border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin,
                                select_terms=not args.all_terms, weight_views=not args.equal_weights)
     result = calibrate(frames, board, size, args.model, options, fix_k3=args.fix_k3)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_calibration(out, result, board, args.detector)
-    report = None if args.no_report else Path(args.report) if args.report else default_report_path(out)
+    files = {out: calibration_text(result, board, args.detector, out.name)}
     if report is not None:
         try:
-            from evaluate.calibration_report import write_report
+            from evaluate.calibration_report import report_html
         except ImportError as exc:  # matplotlib is an extra
             print(f"no report ({exc}): pip install 'deepcharuco[eval]' for it", file=sys.stderr)
+            report = None
         else:
-            write_report(report, result, board, title=f"Calibration of {source.stem} ({args.detector} detector)",
-                         command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+            report.parent.mkdir(parents=True, exist_ok=True)
+            files[report] = report_html(result, board, title=f"Calibration of {source.stem} ({args.detector} detector)",
+                                        command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+    write_together(files)  # both or neither: a full disk leaves the previous files as they were
     K, std = result.camera.K, result.std
     deviation = (lambda name: f" +- {std[name]:.2f}" if name in std else "")  # noqa: E731
     print(f"{len(result.views)} views of {result.frames} frames ({sum(d.corners > 0 for d in result.decisions)} with "
@@ -191,6 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
     parser.add_argument("--report", default=None, help="HTML report to write (default: <out>_report.html)")
     parser.add_argument("--no-report", action="store_true", help="write the camera file only")
+    parser.add_argument("--force", action="store_true",
+                        help="overwrite --out (or the report) even where it is not a camera file (report)")
     parser.add_argument("--max-views", type=int, default=80, help="at most this many views are calibrated")
     parser.add_argument("--min-views", type=int, default=6, help="fewer usable views is an error")
     parser.add_argument("--min-corners", type=int, default=6, help="a view needs this many corners")
@@ -212,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
                 for name, low in (("max_views", 4), ("min_views", 4), ("min_corners", 4), ("step", 1))
                 if getattr(args, name) < low]
+    if args.max_frames is not None and args.max_frames < 1:
+        problems.append(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.border_margin is not None and args.border_margin < 0:
         problems.append(f"--border-margin must be >= 0, got {args.border_margin:g}")
     if args.source.isdigit() and not Path(args.source).exists() and args.max_frames is None:
@@ -222,12 +244,14 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--max-views ({args.max_views}) must be >= --min-views ({args.min_views})")
     if problems:
         parser.error("; ".join(problems))
-    try:
+    def body() -> None:
         run(args)
-    except DeepCharucoError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+
+    try:
+        return run_command(body)
+    except KeyboardInterrupt:  # Ctrl-C while detecting or solving: the files are written last, whole or not at all
+        print(f"interrupted: nothing written ({args.out} is as it was); rerun to calibrate", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

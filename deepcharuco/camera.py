@@ -6,11 +6,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
 
 from deepcharuco.errors import CameraFileError
+from deepcharuco.files import write_atomic
 
 # "pinhole": OpenCV's standard model (cv2.projectPoints; 4, 5, 8, 12 or 14 coefficients, the rational
 # model included); "fisheye": cv2.fisheye's equidistant model (k1..k4), which cv2.projectPoints would
@@ -163,18 +165,36 @@ def read_camera(path: str | Path) -> Camera:
                   model=model)
 
 
-def write_camera(path: str | Path, camera: Camera) -> Path:
+def write_camera(path: str | Path, camera: Camera,
+                 extra: Callable[[cv2.FileStorage], None] | None = None) -> Path:
     """Write intrinsics in OpenCV's FileStorage format (YAML unless the suffix says .xml/.json); a fisheye
-    camera's file says so in ``distortion_model`` (else its 4 coefficients read as k1 k2 p1 p2)."""
+    camera's file says so in ``distortion_model`` (else its 4 coefficients read as k1 k2 p1 p2). ``extra``
+    writes further nodes after these. The file is composed in memory and written by
+    `deepcharuco.files.write_atomic`: a failed write (a full disk) raises and leaves an existing file as it was."""
     path = Path(path)
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    return write_atomic(path, camera_file_text(camera, path.name, extra))
+
+
+def camera_file_text(camera: Camera, name: str = "camera.yaml",
+                     extra: Callable[[cv2.FileStorage], None] | None = None) -> str:
+    """The text of `write_camera`'s file named ``name`` (its suffix picks YAML, XML or JSON)."""
+    # OpenCV's FileStorage does not report failed writes; in memory it cannot fail half-way.
+    storage = cv2.FileStorage(name, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    storage.write("image_width", camera.image_size[0])
+    storage.write("image_height", camera.image_size[1])
+    storage.write("camera_matrix", camera.K)
+    storage.write("distortion_coefficients", camera.dist.reshape(-1, 1))
+    if camera.model != "pinhole":
+        storage.write("distortion_model", camera.model)
+    if extra is not None:
+        extra(storage)
+    return storage.releaseAndGetString()
+
+
+def is_camera_file(path: str | Path) -> bool:
+    """True when ``path`` reads as a camera file (`read_camera`): what a command may overwrite."""
     try:
-        storage.write("image_width", camera.image_size[0])
-        storage.write("image_height", camera.image_size[1])
-        storage.write("camera_matrix", camera.K)
-        storage.write("distortion_coefficients", camera.dist.reshape(-1, 1))
-        if camera.model != "pinhole":
-            storage.write("distortion_model", camera.model)
-    finally:
-        storage.release()
-    return path
+        read_camera(path)
+    except (CameraFileError, cv2.error, SystemError):
+        return False
+    return True

@@ -30,12 +30,16 @@ _ADVICE = {
 }
 
 
+def explain_os_error(error: OSError) -> str:
+    """Why an OSError happened and what to do: ``reason (advice)``."""
+    advice = _ADVICE.get(error.errno, "check the path, its permissions and the free space")
+    return f"{error.strerror or error} ({advice})"
+
+
 def describe_os_error(error: OSError) -> str:
     """One line naming what failed (the file, when known), why, and what to do."""
     where = f" {error.filename}" if error.filename else ""
-    reason = error.strerror or str(error)
-    advice = _ADVICE.get(error.errno, "check the path, its permissions and the free space")
-    return f"cannot access{where}: {reason} ({advice})"
+    return f"cannot access{where}: {explain_os_error(error)}"
 
 
 def run_command(body: Callable[[], int | None]) -> int:

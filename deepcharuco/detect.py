@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -32,10 +33,12 @@ from deepcharuco.cli import output_folder, run_command
 from deepcharuco.detection import Detection
 from deepcharuco.draw import draw_detection
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.pose import Pose
 from deepcharuco.runtime import BACKENDS
 from deepcharuco.tracking import BoardTracker
+from deepcharuco.video import VideoFrames
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
@@ -58,6 +61,17 @@ class Source:
     total: int | None
     skipped: list[str] = field(default_factory=list)
     overlay_names: dict[str, str] = field(default_factory=dict)  # folder: image file name -> overlay file name
+    video: VideoFrames | None = None  # a video or camera: what was read, skipped as undecodable, or stopped
+
+    def problems(self) -> list[str]:
+        """What could not be read, one line each: a folder's unreadable images (counted), a video's damaged
+        stretches, a camera that stopped delivering frames."""
+        lines = [f"{self.stem}: {len(self.skipped)} unreadable image(s) skipped"] if self.skipped else []
+        if self.video is not None and self.video.skipped:
+            lines.append(self.video.describe_skipped(self.stem))
+        if self.video is not None and self.video.stopped_at is not None:
+            lines.append(f"{self.stem} stopped delivering frames after {self.video.stopped_at}: is it still connected?")
+        return lines
 
 
 def overlay_names(images: list[Path]) -> dict[str, str]:
@@ -87,17 +101,10 @@ def _read_image(path: Path) -> np.ndarray:
     return image
 
 
-def _video_frames(capture: cv2.VideoCapture, max_frames: int | None) -> Iterator[tuple[str, np.ndarray]]:
-    index = 0
-    try:
-        while max_frames is None or index < max_frames:
-            ok, frame = capture.read()
-            if not ok:
-                break
-            yield str(index), frame
-            index += 1
-    finally:
-        capture.release()
+def _named(frames: VideoFrames) -> Iterator[tuple[str, np.ndarray]]:
+    """A video's frames named by their number in the recording (a damaged stretch skipped leaves a gap)."""
+    for index, frame in frames:
+        yield str(index), frame
 
 
 def open_source(source: str, max_frames: int | None = None) -> Source:
@@ -106,8 +113,9 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
         capture = cv2.VideoCapture(int(source))
         if not capture.isOpened():
             raise SourceError(f"cannot open camera {source}: is it connected and not in use?")
-        return Source(f"camera{source}", "camera", _video_frames(capture, max_frames),
-                      capture.get(cv2.CAP_PROP_FPS) or 30.0, max_frames)
+        video = VideoFrames(capture, limit=max_frames, live=True)
+        return Source(f"camera{source}", "camera", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, max_frames,
+                      video=video)
     path = Path(source)
     if not path.exists():
         raise SourceError(f"{path} does not exist: give an image, a folder of images, a video or a camera index")
@@ -123,9 +131,10 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise SourceError(f"cannot open {path} as a video: unknown format or codec")
-    count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    video = VideoFrames(capture, limit=max_frames)
+    count = video.count
     total = min(count, max_frames) if count and max_frames else count or max_frames
-    return Source(path.stem, "video", _video_frames(capture, max_frames), capture.get(cv2.CAP_PROP_FPS) or 30.0, total)
+    return Source(path.stem, "video", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, total, video=video)
 
 
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
@@ -178,6 +187,8 @@ def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
 
 
 def run(args: argparse.Namespace) -> dict:
+    """Detect in every frame of ``args.source`` and write the results into ``args.out``; returns the JSON summary,
+    whose ``complete`` is False when Ctrl-C stopped the run (what was done is written all the same)."""
     board = BoardSpec.load(args.board) if args.board else None  # deep: default to the weights' board
     camera = read_camera(args.camera) if args.camera else None
     detector = make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend)
@@ -187,16 +198,20 @@ def run(args: argparse.Namespace) -> dict:
     tracking = source.kind in ("video", "camera") and args.refresh_every > 1
     finder = BoardTracker(detector, args.refresh_every) if tracking else detector
     out = output_folder(args.out)
+    csv_path, json_path = out / f"{source.stem}.csv", out / f"{source.stem}.json"
+    refuse_foreign(csv_path, starts_with(",".join(CSV_FIELDS).encode()), "detection CSV", args.force)
+    refuse_foreign(json_path, starts_with(JSON_START), "detection JSON", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detector, "weights", None) is not None:
         print(f"weights: {detector.weights} (decoding: {detector.geometry})", file=sys.stderr)
 
     records: list[dict] = []
-    writer = None
-    overlay_dir = out / f"{source.stem}_overlay"
-    csv_path, json_path = out / f"{source.stem}.csv", out / f"{source.stem}.json"
-    with open(csv_path, "w", newline="") as csv_file:
+    overlays = _Overlays(out, source)
+    interrupted = False
+    # The CSV is written as frames arrive, under a temporary name renamed into place at the end (also after
+    # Ctrl-C): a full disk or a kill never leaves a cut-off <stem>.csv in place of a complete one.
+    with atomic_file(csv_path, "w", newline="") as csv_file:
         rows = csv.DictWriter(csv_file, fieldnames=CSV_FIELDS)
         rows.writeheader()
         detect_seconds, total_seconds = None, 0.0
@@ -215,53 +230,103 @@ def run(args: argparse.Namespace) -> dict:
                 record = frame_record(index, name, detection, pose)
                 records.append(record)
                 rows.writerow(_csv_row(record))
-                if args.no_overlay:
-                    continue
-                overlay = draw_detection(
-                    frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR),
-                    detection, pose, *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None), board,
-                )
-                if source.kind == "image":
-                    _write_image(out / f"{source.stem}_overlay.png", overlay)
-                elif source.kind == "images":
-                    overlay_dir.mkdir(exist_ok=True)
-                    _write_image(overlay_dir / source.overlay_names[name], overlay)
-                else:
-                    if writer is None:
-                        video = out / f"{source.stem}_overlay.mp4"
-                        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), source.fps,
-                                                 (overlay.shape[1], overlay.shape[0]))
-                        if not writer.isOpened():
-                            raise DeepCharucoError(f"cannot write the overlay video {video}: choose a writable --out "
-                                                   f"with free space, or pass --no-overlay")
-                    writer.write(overlay)
+                if not args.no_overlay:
+                    overlays.add(name, draw_detection(
+                        frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR),
+                        detection, pose, *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None), board))
         except KeyboardInterrupt:
-            print(f"interrupted after {len(records)} frames; writing what was done", file=sys.stderr)
+            interrupted = True
+            print(f"interrupted after {len(records)} frames; writing what was done (marked incomplete)", file=sys.stderr)
         finally:
-            if writer is not None:
-                writer.release()
-            summary = {
-                "board": board.to_dict(),
-                "detector": repr(detector),
-                "camera": None if camera is None else {"K": camera.K.tolist(), "dist": camera.dist.tolist(),
-                                                       "image_size": list(camera.image_size)},
-                "frames": records,
-                "skipped": source.skipped,
-                "detect_fps": len(records) / total_seconds if total_seconds > 0 else None,
-            }
-            json_path.write_text(json.dumps(summary))
+            overlays.close(keep=bool(records))
+    problems = source.problems()
+    summary = {
+        "board": board.to_dict(),
+        "detector": repr(detector),
+        "camera": None if camera is None else {"K": camera.K.tolist(), "dist": camera.dist.tolist(),
+                                               "image_size": list(camera.image_size)},
+        # False: stopped by Ctrl-C before the source's end; the frames listed are all that were looked at.
+        "complete": not interrupted,
+        "frames": records,
+        "skipped": source.skipped,
+        "problems": problems,
+        "detect_fps": len(records) / total_seconds if total_seconds > 0 else None,
+    }
+    write_atomic(json_path, json.dumps(summary))
     with_pose = sum(r["pose"] is not None for r in records)
-    skipped = f", {len(source.skipped)} unreadable image(s) skipped" if source.skipped else ""
-    print(f"{len(records)} frames, board corners in {sum(r['num_corners'] > 0 for r in records)}, "
-          f"pose in {with_pose}{skipped} -> {out}/")
+    for line in problems:
+        print(f"warning: {line}", file=sys.stderr)
+    found = sum(r["num_corners"] > 0 for r in records)
+    lost = [f"{len(source.skipped)} unreadable image(s) skipped"] if source.skipped else []
+    if source.video is not None and source.video.skipped:
+        lost.append(f"{source.video.skipped_frames} undecodable frame(s) skipped")
+    print(f"{len(records)} frames{' (incomplete: interrupted)' if interrupted else ''}, board corners in {found}, "
+          f"pose in {with_pose}{''.join(f', {line}' for line in lost)} -> {out}/")
     return summary
 
 
+# How every detection JSON of this command begins: what a rerun may overwrite without --force.
+JSON_START = b'{"board": '
+
+
+class _Overlays:
+    """The overlay of each frame: a PNG per image (each written whole or not at all), or one MP4 for a video or
+    camera, written under a temporary name and renamed into place only when it reads back complete."""
+
+    def __init__(self, out: Path, source: Source):
+        self.out, self.source = out, source
+        self.writer: cv2.VideoWriter | None = None
+        self.video = out / f"{source.stem}_overlay.mp4"
+        self.written = 0
+
+    def add(self, name: str, overlay: np.ndarray) -> None:
+        if self.source.kind == "image":
+            _write_image(self.out / f"{self.source.stem}_overlay.png", overlay)
+        elif self.source.kind == "images":
+            folder = self.out / f"{self.source.stem}_overlay"
+            folder.mkdir(exist_ok=True)
+            _write_image(folder / self.source.overlay_names[name], overlay)
+        else:
+            if self.writer is None:
+                self.writer = cv2.VideoWriter(str(temporary_name(self.video)), cv2.VideoWriter_fourcc(*"mp4v"),
+                                              self.source.fps, (overlay.shape[1], overlay.shape[0]))
+                if not self.writer.isOpened():
+                    self.writer = None
+                    raise DeepCharucoError(f"cannot write the overlay video {self.video}: choose a writable --out "
+                                           f"with free space, or pass --no-overlay")
+            self.writer.write(overlay)
+            self.written += 1
+
+    def close(self, keep: bool) -> None:
+        """Finish the overlay video: renamed into place when it reads back with every frame written, else
+        removed and reported (OpenCV's video writer does not report a full disk itself)."""
+        if self.writer is None:
+            return
+        self.writer.release()
+        self.writer = None
+        temporary = temporary_name(self.video)
+        if not keep:
+            temporary.unlink(missing_ok=True)
+            return
+        check = cv2.VideoCapture(str(temporary))
+        frames = int(check.get(cv2.CAP_PROP_FRAME_COUNT)) if check.isOpened() else 0
+        check.release()
+        if frames != self.written:
+            temporary.unlink(missing_ok=True)
+            raise DeepCharucoError(f"could not write the overlay video {self.video} (is the disk full?): free some "
+                                   f"space, choose another --out, or pass --no-overlay")
+        os.replace(temporary, self.video)
+
+
 def _write_image(path: Path, image: np.ndarray) -> None:
-    """cv2.imwrite, which reports a failed write (a full disk) only by returning False: an error here."""
-    if not cv2.imwrite(str(path), image):
-        raise DeepCharucoError(f"could not write the overlay {path} (is the disk full?): free some space, choose "
-                               f"another --out, or pass --no-overlay")
+    """The overlay image, whole or not at all (cv2.imwrite reports a full disk only by returning False)."""
+    ok, encoded = cv2.imencode(path.suffix, image)
+    if not ok:
+        raise DeepCharucoError(f"could not encode the overlay {path}: pass --no-overlay")
+    try:
+        write_atomic(path, encoded.tobytes(), "the overlay")
+    except DeepCharucoError as error:
+        raise DeepCharucoError(f"{error} (or pass --no-overlay)") from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -296,6 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     parser.add_argument("--no-overlay", action="store_true", help="write results only, no overlay images/video")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--force", action="store_true",
+                        help="overwrite <source>.csv / .json in --out even where they are not this command's files")
     return parser
 
 
@@ -304,9 +371,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.refresh_every < 1:
         parser.error(f"--refresh-every must be >= 1 (1: search whole frames always), got {args.refresh_every}")
+    if args.max_frames is not None and args.max_frames < 1:
+        parser.error(f"--max-frames must be >= 1 (leave it out for every frame), got {args.max_frames}")
 
-    def body() -> None:
-        run(args)
+    def body() -> int:
+        summary = run(args)
+        return 0 if summary["complete"] else 130  # Ctrl-C: the results so far are written, marked incomplete
 
     return run_command(body)
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibration import CalibrationResult
+from deepcharuco.files import write_atomic
 from evaluate.documents import html_page
 from evaluate.figures import _png, _pyplot
 
@@ -187,12 +188,17 @@ def report_sections(result: CalibrationResult, board: BoardSpec) -> list[tuple[s
     return out
 
 
-def write_report(path: str | Path, result: CalibrationResult, board: BoardSpec, *, title: str = "Calibration report",
-                 command: str = "") -> Path:
-    """Write the HTML report of ``result`` to ``path``."""
-    path = Path(path)
+def report_html(result: CalibrationResult, board: BoardSpec, *, title: str = "Calibration report",
+                command: str = "") -> str:
+    """The HTML report of ``result``: one self-contained page (figures inlined)."""
     figures = {"coverage": coverage_figure(result), "residuals": residual_figure(result),
                "distortion": distortion_figure(result), "view_errors": view_error_figure(result)}
+    return html_page(title, command, report_sections(result, board), figures)
+
+
+def write_report(path: str | Path, result: CalibrationResult, board: BoardSpec, *, title: str = "Calibration report",
+                 command: str = "") -> Path:
+    """Write the HTML report of ``result`` to ``path`` (whole or not at all: `write_atomic`)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(html_page(title, command, report_sections(result, board), figures))
-    return path
+    return write_atomic(path, report_html(result, board, title=title, command=command))

@@ -143,6 +143,9 @@ def test_video_frames_are_read_lazily(tmp_path, monkeypatch):
             calls["grab"] += 1
             return self.capture.grab()
 
+        def get(self, prop):
+            return self.capture.get(prop)
+
         def release(self):
             self.capture.release()
 

@@ -281,6 +281,7 @@ def evaluate_capture_set(captures: CaptureSet, detectors: dict[str, DetectorLike
     result = {"set": captures.name, "folder": str(captures.folder), "board": captures.board.to_dict(),
               "media": [m.path.name for m in captures.media], "camera": captures.has_camera,
               "truth": truth.kind, "truth_notes": truth.notes, "review": bool(captures.review),
+              "problems": captures.problems,
               "step": step, "limit": limit,
               "detectors": {name: summarize(measures, name) for name in names},
               "frames": [m.to_dict() for m in measures]}

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import itertools
 import re
+import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator
@@ -31,6 +32,7 @@ from deepcharuco.detect import IMAGE_SUFFIXES
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.video import VideoFrames
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
 BOARD_FILE, LABELS_FILE, REVIEW_FILE = "board.yaml", "labels.csv", "frames_review.csv"
@@ -76,6 +78,7 @@ class CaptureSet:
     media: list[Medium]
     labels: Path | None = None
     review: dict[str, str] = field(default_factory=dict)  # frame name -> verdict
+    problems: list[str] = field(default_factory=list)  # what `frames` could not read (damaged video stretches)
 
     @property
     def name(self) -> str:
@@ -87,8 +90,8 @@ class CaptureSet:
 
     def frames(self, step: int = 1, limit: int | None = None) -> Iterator[CaptureFrame]:
         """Every photo, and every ``step``-th frame of each video (0, step, 2 step, ...), at most ``limit`` a
-        video; one frame in memory at a time. An image or a video frame that cannot be decoded is a
-        `CaptureError` (a video that ends early just ends)."""
+        video; one frame in memory at a time. An image that cannot be decoded is a `CaptureError`; a video's
+        damaged stretch is skipped and said (``problems``, stderr), and a video that ends early just ends."""
         if step < 1 or (limit is not None and limit < 1):
             raise ValueError(f"step and limit must be >= 1, got step={step}, limit={limit}")
         for medium in self.media:
@@ -96,7 +99,7 @@ class CaptureSet:
                 image = read_image(medium.path)
                 yield self._frame(image, medium.path.name, medium, 0)
                 continue
-            for index, image in video_frames(medium.path, step, limit):
+            for index, image in video_frames(medium.path, step, limit, self.problems):
                 yield self._frame(image, f"{medium.path.name}#{index}", medium, index)
 
     def _frame(self, image: np.ndarray, name: str, medium: Medium, index: int) -> CaptureFrame:
@@ -257,23 +260,36 @@ def _unreadable_video(path: Path, why: str):
                        f"{path.stem}_h264.mp4) or remove it from the folder")
 
 
-def video_frames(path: Path, step: int, limit: int | None) -> Iterator[tuple[int, np.ndarray]]:
+def video_frames(path: Path, step: int, limit: int | None, problems: list[str] | None = None
+                 ) -> Iterator[tuple[int, np.ndarray]]:
     """(frame number, (H, W) uint8) of every ``step``-th frame, at most ``limit``; frames in between are
-    grabbed, not decoded into images, and one frame is held at a time."""
+    grabbed, not decoded into images, and one frame is held at a time. A damaged stretch is skipped
+    (`deepcharuco.video.VideoFrames`) and said in ``problems`` and on stderr."""
     capture = cv2.VideoCapture(str(path))
-    try:
-        if not capture.isOpened():
-            _unreadable_video(path, "OpenCV cannot open it (unknown container or codec)")
-        index = taken = 0
-        while limit is None or taken < limit:
-            if index % step == 0:
-                ok, frame = capture.read()
-                if not ok:
-                    return
-                yield index, to_gray_u8(frame)
-                taken += 1
-            elif not capture.grab():
-                return
-            index += 1
-    finally:
+    if not capture.isOpened():
         capture.release()
+        _unreadable_video(path, "OpenCV cannot open it (unknown container or codec)")
+    frames = VideoFrames(capture, step=step, limit=limit)
+    for index, frame in frames:
+        yield index, to_gray_u8(frame)
+    if frames.skipped:
+        line = frames.describe_skipped(path.name)
+        print(f"warning: {line}", file=sys.stderr)
+        if problems is not None:
+            problems.append(line)
+
+
+def frame_exists(captures: "CaptureSet", name: str) -> bool:
+    """Whether ``name`` (module docstring: a photo's file name or ``<video file name>#<index>``) is a frame of
+    the set; a video's index is checked against its frame count where the container gives one."""
+    media = {m.path.name: m for m in captures.media}
+    if name in media:
+        return media[name].kind == "image"
+    video, _, index = name.rpartition("#")
+    medium = media.get(video)
+    if medium is None or medium.kind != "video" or not index.isdigit():
+        return False
+    capture = cv2.VideoCapture(str(medium.path))
+    count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    capture.release()
+    return count <= 0 or int(index) < count

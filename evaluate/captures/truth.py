@@ -3,6 +3,7 @@ and board stand still (`evaluate.autolabel`); otherwise none. `SetTruth.descript
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -11,7 +12,9 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.detection import Detection
 from deepcharuco.pose import estimate_pose
 from evaluate.autolabel import AVERAGE_FRAMES, AutolabelError, autolabel
-from evaluate.captures.reader import CaptureFrame, CaptureSet, Medium, video_frames, read_labels
+from evaluate.captures.reader import (
+    CaptureError, CaptureFrame, CaptureSet, Medium, frame_exists, read_labels, video_frames,
+)
 
 
 @dataclass(frozen=True)
@@ -64,8 +67,17 @@ def build_truth(captures: CaptureSet, average: int = AVERAGE_FRAMES) -> SetTruth
     that has a camera file into memory (30 frames of 1280x720: 28 MB)."""
     if captures.labels is not None:
         labels = read_labels(captures.labels, captures.board)
-        return SetTruth("labels", [f"{captures.labels.name}: {len(labels)} labelled frames"], captures.board,
-                        by_frame=labels)
+        foreign = [name for name in labels if not frame_exists(captures, name)]
+        example = ", ".join(repr(name) for name in foreign[:3])
+        if labels and len(foreign) == len(labels):
+            raise CaptureError(f"{captures.labels} labels {len(labels)} frame(s), none of them in {captures.folder} "
+                               f"(e.g. {example}): name frames by the photo's file name or <video file name>#<frame "
+                               f"number from 0>")
+        notes = [f"{captures.labels.name}: {len(labels) - len(foreign)} labelled frames"]
+        if foreign:
+            notes.append(f"{len(foreign)} labelled frame(s) are not in the set and are ignored (e.g. {example})")
+            print(f"warning: {captures.labels}: {notes[-1]}", file=sys.stderr)
+        return SetTruth("labels", notes, captures.board, by_frame={n: c for n, c in labels.items() if n not in foreign})
     notes, by_medium = ["no labels.csv"], {}
     for medium in captures.media:
         if medium.kind == "image":
