@@ -257,3 +257,26 @@ def test_the_report_section_and_the_shipped_sample(capture_folder, tmp_path, cap
     assert report_folders(["x"], disabled=False) == (None, [Path("x")])
     with pytest.raises(CaptureError, match="contradict"):
         report_folders(["x"], disabled=True)
+
+
+def _labelled_copy(source: Path, folder: Path, rows: list[list]) -> Path:
+    folder.mkdir()
+    for path in source.iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    with open(folder / "labels.csv", "w", newline="") as handle:
+        csv.writer(handle).writerows([["frame", "id", "x", "y"], *rows])
+    return folder
+
+
+def test_labels_of_frames_that_are_not_in_the_set_are_refused_or_said(capture_folder, tmp_path, capsys):
+    source, _, names = capture_folder
+    corners = names["view0.png"]
+    only_foreign = _labelled_copy(source, tmp_path / "a", [["view9.png", i, x, y] for i, (x, y) in enumerate(corners)])
+    with pytest.raises(CaptureError, match=r"labels 1 frame\(s\), none of them in .*'view9.png'.*<video file name>#"):
+        build_truth(open_capture_set(only_foreign))
+    mixed = _labelled_copy(source, tmp_path / "b", [[name, i, x, y] for name in ("view0.png", "view9.png", "clip.mp4#3")
+                                                    for i, (x, y) in enumerate(corners)])
+    truth = build_truth(open_capture_set(mixed))
+    assert truth.notes[0] == "labels.csv: 1 labelled frames" and list(truth.by_frame) == ["view0.png"]
+    assert truth.notes[1].startswith("2 labelled frame(s) are not in the set and are ignored")
+    assert "warning:" in capsys.readouterr().err

@@ -1,0 +1,265 @@
+"""Faults a user meets with `detect` and `calibrate`: a full disk, a foreign --out, two runs on one file, Ctrl-C,
+a video damaged mid-stream, impossible options. Each: one clear line, the right exit code, and no file lost."""
+
+import json
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import deepcharuco.calibrate as calibrate_cli
+import deepcharuco.detect as detect_cli
+from conftest import VIEW_POSES, make_view
+from deepcharuco import BoardSpec, read_camera
+from deepcharuco.files import OutputError, OutputLock, write_atomic
+from deepcharuco.video import VideoFrames
+from test_calibrate import SIZE, waved  # noqa: F401 (the waved-board video's frames, a fixture)
+
+EXAMPLES = Path(__file__).parents[1] / "deepcharuco" / "examples"
+ROOT = Path(__file__).parents[1]
+
+
+def _limited(limit: int):
+    """A child's preexec_fn: files it writes may not grow past ``limit`` bytes (a full disk, as a write sees it;
+    Python ignores SIGXFSZ, so the write fails with EFBIG)."""
+    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+
+def _command(module: str, *args: str, limit: int | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True, cwd=ROOT,
+                          preexec_fn=_limited(limit) if limit else None)
+
+
+def _write_video(path: Path, images: list[np.ndarray], fourcc: str = "mp4v") -> Path:
+    height, width = images[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30.0, (width, height))
+    for image in images:
+        writer.write(image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    return path
+
+
+def _damage(path: Path, start: float = 0.35, stop: float = 0.38, seed: int = 5) -> Path:
+    """Overwrite bytes ``start``..``stop`` of the file (shares of its length) with seeded noise: a stretch of frames
+    in the middle that no decoder reads, the container (at the ends) intact."""
+    data = bytearray(path.read_bytes())
+    a, b = int(len(data) * start), int(len(data) * stop)
+    data[a:b] = np.random.default_rng(seed).integers(0, 256, b - a, dtype=np.uint8).tobytes()
+    damaged = path.with_name(f"damaged_{path.name}")
+    damaged.write_bytes(bytes(data))
+    return damaged
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".tmp-" in p.name or p.name.endswith(".lock"))
+
+
+# ------------------------------------------------------------------------------------------ atomic files
+
+def test_a_failed_write_leaves_the_previous_file_and_no_temporary(tmp_path):
+    path = tmp_path / "results.json"
+    path.write_text("the previous results")
+    code = ("import sys; from deepcharuco.files import write_atomic\n"
+            "try:\n    write_atomic(sys.argv[1], 'x' * 100_000)\n"
+            "except Exception as error:\n    print(type(error).__name__, error); sys.exit(2)\n")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, cwd=ROOT,
+                          preexec_fn=_limited(10_000))
+    assert done.returncode == 2 and done.stdout.startswith("OutputError could not write")
+    assert "the previous file is unchanged" in done.stdout
+    assert path.read_text() == "the previous results" and _leftovers(tmp_path) == []
+
+
+def test_an_output_lock_refuses_a_second_writer_and_is_released(tmp_path):
+    target = tmp_path / "cam.yaml"
+    with OutputLock(target, "another calibrate"):
+        with pytest.raises(OutputError, match=r"another calibrate is writing .*cam.yaml now \(process \d+\)"):
+            with OutputLock(target, "another calibrate"):
+                pass
+    assert _leftovers(tmp_path) == []
+    with OutputLock(target):  # free again
+        write_atomic(target, "ok")
+    assert target.read_text() == "ok"
+
+
+# ------------------------------------------------------------------------------------------ calibrate
+
+@pytest.fixture(scope="module")
+def wave_video(tmp_path_factory, waved):  # noqa: F811
+    return _write_video(tmp_path_factory.mktemp("wave") / "wave.mp4", waved[0])
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory, wave_video):
+    """A finished calibration: (folder, camera file, report), made by the command itself."""
+    folder = tmp_path_factory.mktemp("calibrated")
+    out = folder / "cam.yaml"
+    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 0
+    return folder, out, folder / "cam_report.html"
+
+
+def test_calibrate_onto_a_full_disk_keeps_the_previous_camera_file_and_report(calibrated, wave_video):
+    folder, out, report = calibrated
+    before = out.read_bytes(), report.read_bytes()
+    done = _command("deepcharuco.calibrate", str(wave_video), "--out", str(out), "--quiet", limit=20_000)
+    assert done.returncode == 2, done.stderr
+    assert "error: could not write" in done.stderr and "Traceback" not in done.stderr
+    assert "the previous file is unchanged" in done.stderr
+    assert (out.read_bytes(), report.read_bytes()) == before and _leftovers(folder) == []
+
+
+def test_calibrate_without_report_onto_a_full_disk_writes_nothing(tmp_path, wave_video):
+    out = tmp_path / "new.yaml"
+    done = _command("deepcharuco.calibrate", str(wave_video), "--out", str(out), "--no-report", "--quiet", limit=4_000)
+    assert done.returncode == 2 and "nothing was written" in done.stderr and "Traceback" not in done.stderr
+    assert not out.exists() and _leftovers(tmp_path) == []
+
+
+def test_calibrate_refuses_to_overwrite_a_file_that_is_not_a_camera_file(tmp_path, wave_video, capsys):
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    assert calibrate_cli.main([str(wave_video), "--out", str(notes), "--no-report", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: --out {notes} exists and is not a camera file: choose another --out, or pass --force to "
+                   f"overwrite it"]
+    assert notes.read_text() == "my notes"
+    report = tmp_path / "page.html"
+    report.write_text("<html>my page</html>")
+    assert calibrate_cli.main([str(wave_video), "--out", str(tmp_path / "c.yaml"), "--report", str(report),
+                               "--quiet"]) == 2
+    assert "--report" in capsys.readouterr().err and report.read_text() == "<html>my page</html>"
+    assert not (tmp_path / "c.yaml").exists()
+    assert calibrate_cli.main([str(wave_video), "--out", str(notes), "--no-report", "--quiet", "--force"]) == 0
+    assert read_camera(notes).image_size == SIZE
+
+
+def test_calibrate_may_overwrite_its_own_camera_file(calibrated, wave_video):
+    _, out, report = calibrated
+    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 0
+    assert read_camera(out).image_size == SIZE and report.read_bytes().startswith(calibrate_cli.REPORT_START)
+
+
+def test_two_calibrations_onto_one_file_the_second_is_refused(tmp_path, wave_video, capsys):
+    out = tmp_path / "cam.yaml"
+    with OutputLock(out, "another calibrate"):  # the first run, still writing
+        assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 2
+    assert "another calibrate is writing" in capsys.readouterr().err and not out.exists()
+
+
+def test_calibrate_stopped_by_ctrl_c_says_so_without_a_traceback(calibrated, wave_video, monkeypatch, capsys):
+    _, out, _ = calibrated
+    before = out.read_bytes()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate_cli, "calibrate", interrupted)  # Ctrl-C during the solve
+    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("interrupted: nothing written") and len(err) == 1
+    assert out.read_bytes() == before and _leftovers(out.parent) == []
+
+
+def test_calibrate_reads_past_a_damaged_stretch_of_video(tmp_path, wave_video, capsys):
+    damaged = _damage(wave_video, 0.30, 0.36)
+    out = tmp_path / "cam.yaml"
+    assert calibrate_cli.main([str(damaged), "--out", str(out), "--no-report", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "could not be decoded and were skipped" in err
+    storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    frames = storage.getNode("view_frames").mat().ravel()
+    storage.release()
+    assert frames.max() > 45  # views from past the damage (about frames 18-22 of 60)
+
+
+@pytest.mark.parametrize("module", ["deepcharuco.detect", "deepcharuco.calibrate"])
+def test_negative_max_frames_is_refused(module):
+    done = _command(module, str(EXAMPLES / "board_320x240.png"), "--max-frames", "-3")
+    assert done.returncode == 2 and "--max-frames must be >= 1" in done.stderr
+
+
+# ------------------------------------------------------------------------------------------ detect
+
+@pytest.fixture(scope="module")
+def board_video(tmp_path_factory, camera):
+    """111 frames of the default board, slowly moving, as mp4v (inter-frame coded, as phones and webcams write)."""
+    board = BoardSpec()
+    poses = [VIEW_POSES[i % 3] for i in range(111)]
+    images = [make_view(board, camera, **pose)[0] for pose in poses]
+    return _write_video(tmp_path_factory.mktemp("video") / "clip.mp4", images)
+
+
+def test_video_frames_skip_a_damaged_stretch_and_keep_the_frame_numbers(board_video):
+    damaged = _damage(board_video)
+    frames = VideoFrames(cv2.VideoCapture(str(damaged)))
+    numbers = [index for index, _ in frames]
+    assert frames.skipped, "the damage must cost frames, or this test tests nothing"
+    lost = {i for first, last in frames.skipped for i in range(first, last + 1)}
+    assert sorted(set(numbers) | lost) == list(range(111)) and not set(numbers) & lost
+    assert numbers[-1] == 110 and len(numbers) == 111 - frames.skipped_frames
+    assert "could not be decoded and were skipped" in frames.describe_skipped("clip.mp4")
+    whole = VideoFrames(cv2.VideoCapture(str(board_video)))
+    assert [i for i, _ in whole] == list(range(111)) and not whole.skipped and whole.describe_skipped("x") == ""
+
+
+def test_detect_reads_past_a_damaged_stretch_and_says_how_many_frames_it_skipped(tmp_path, board_video, capsys):
+    damaged = _damage(board_video)
+    out = tmp_path / "out"
+    assert detect_cli.main([str(damaged), "--out", str(out), "--no-overlay", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    result = json.loads((out / f"{damaged.stem}.json").read_text())
+    skipped = 111 - len(result["frames"])
+    assert 0 < skipped < 20 and result["frames"][-1]["source"] == "110"
+    assert f"{skipped} undecodable frame(s) skipped" in captured.out
+    assert "warning:" in captured.err and result["problems"] and result["complete"]
+
+
+def test_detect_stopped_by_ctrl_c_writes_what_it_did_marked_incomplete(tmp_path, board_video, monkeypatch, capsys):
+    made = detect_cli.make_detector
+
+    class StopsAtThird:
+        def __init__(self, detector):
+            self.detector, self.board, self.calls = detector, detector.board, 0
+
+        def detect(self, image):
+            self.calls += 1
+            if self.calls == 3:
+                raise KeyboardInterrupt
+            return self.detector.detect(image)
+
+        def estimate_pose(self, *args):
+            return self.detector.estimate_pose(*args)
+
+    monkeypatch.setattr(detect_cli, "make_detector", lambda *args: StopsAtThird(made(*args)))
+    out = tmp_path / "out"
+    assert detect_cli.main([str(board_video), "--out", str(out), "--refresh-every", "1", "--quiet"]) == 130
+    captured = capsys.readouterr()
+    assert "interrupted after 2 frames" in captured.err and "(incomplete: interrupted)" in captured.out
+    result = json.loads((out / "clip.json").read_text())
+    assert result["complete"] is False and len(result["frames"]) == 2
+    assert len((out / "clip.csv").read_text().splitlines()) == 3
+    assert cv2.VideoCapture(str(out / "clip_overlay.mp4")).get(cv2.CAP_PROP_FRAME_COUNT) == 2
+    assert _leftovers(out) == []
+
+
+def test_detect_onto_a_full_disk_keeps_the_previous_results(tmp_path):
+    image = str(EXAMPLES / "board_320x240.png")
+    assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet"]) == 0
+    before = {name: (tmp_path / name).read_bytes() for name in ("board_320x240.csv", "board_320x240.json")}
+    done = _command("deepcharuco.detect", image, "--out", str(tmp_path), "--no-overlay", "--quiet", limit=200)
+    assert done.returncode == 2 and "error: could not write" in done.stderr and "Traceback" not in done.stderr
+    assert {name: (tmp_path / name).read_bytes() for name in before} == before and _leftovers(tmp_path) == []
+
+
+def test_detect_refuses_to_overwrite_results_it_did_not_write(tmp_path, capsys):
+    image = str(EXAMPLES / "board_320x240.png")
+    (tmp_path / "board_320x240.csv").write_text("my,own,table\n1,2,3\n")
+    assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet"]) == 2
+    assert "exists and is not a detection CSV" in capsys.readouterr().err
+    assert (tmp_path / "board_320x240.csv").read_text() == "my,own,table\n1,2,3\n"
+    assert not (tmp_path / "board_320x240.json").exists()
+    assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet", "--force"]) == 0
+    assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet"]) == 0  # its own: overwritten
