@@ -34,6 +34,7 @@ import argparse
 import math
 import os
 import shutil
+import signal
 import sys
 from pathlib import Path
 
@@ -186,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         output_folder(out.parent, "--out's folder")
         staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
         staging.mkdir()
+        # SIGTERM (a pipeline stopped, a job preempted) ends the run as Ctrl-C does, through the clean-up below.
+        signal.signal(signal.SIGTERM, _stop_by_sigterm)
         try:
             total = write_patches(readers, staging, args)
             replace_shards(staging, out)
@@ -194,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"datagen.patches: {total} patches in {out}", file=sys.stderr)
 
     return run_command(body)
+
+
+def _stop_by_sigterm(signum, frame) -> None:
+    raise SystemExit(128 + signum)
 
 
 def write_patches(readers: list[ShardReader], out: Path, args: argparse.Namespace) -> int:

@@ -75,6 +75,19 @@ def output_folder(path: str | Path, option: str = "--out") -> Path:
     return path
 
 
+def check_output_folder(path: str | Path, option: str = "--out") -> Path:
+    """What `output_folder` checks, without creating anything (for a dry run): ``path`` is a folder or can be
+    made in a writable folder. Raises `DeepCharucoError` naming ``option`` otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise DeepCharucoError(f"{option} {path} is a file, not a folder: give a folder path")
+    existing = next(p for p in [path, *path.absolute().parents] if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise DeepCharucoError(f"{option} {path}: cannot write there ({existing} is not a writable folder): "
+                               f"choose a writable folder or fix its permissions")
+    return path
+
+
 def output_file(path: str | Path, option: str = "--out") -> Path:
     """Check that the file ``path`` can be written (its folder is created): not a folder, and its
     folder writable (files here are written to a temporary name and renamed, so the folder's

@@ -115,6 +115,43 @@ def test_pipeline_end_to_end_survives_kills(tmp_path):
     assert fourth.returncode == 0 and "== stage" not in fourth.stdout
     assert fourth.stdout.count(" done\n") == 8
 
+    # 5. Damage after the finish: a stage is done when its outputs read back, not when its marker exists.
+    #    A cut-off detector.pt, a render shard deleted (as the truncated-shard error advises), a cut-off last.pt.
+    cut_off(run / "detector.pt")
+    (renders / "shard-00002.h5").unlink()
+    cut_off(run / "charuconet" / "last.pt")
+    fifth = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    assert fifth.returncode == 0, fifth.stdout[-3000:] + fifth.stderr[-3000:]
+    assert "Traceback" not in fifth.stderr
+    assert f"{run / 'detector.pt'} is damaged" in fifth.stderr and "moved to detector.pt.damaged" in fifth.stderr
+    assert f"{run / 'charuconet' / 'last.pt'} is damaged" in fifth.stderr
+    assert "stage charuconet resumes from" in fifth.stderr and "its last good checkpoint" in fifth.stderr
+    assert f"stage render is not done ({renders} holds 3 of the plan's 4 frames)" in fifth.stderr
+    for number in (1, 5):  # render and bundle run again; the rest were verified and kept
+        assert f"== stage {number}/8" in fifth.stdout, fifth.stdout[-3000:]
+    assert "== stage 2/8" not in fifth.stdout and "== stage 7/8" not in fifth.stdout
+    # ChArUcoNet trains on from its best.pt's step; when that was its last step there is nothing left to train.
+    resumed_at = int(fifth.stderr.split("stage charuconet resumes from")[1].split("(step ")[1].split(")")[0])
+    assert ("== stage 3/8" in fifth.stdout) == (resumed_at < 30)
+    assert sorted(p.name for p in renders.glob("shard-*.h5")) == [f"shard-0000{i}.h5" for i in range(4)]
+    assert read_checkpoint(run / "detector.pt", "charuconet")["threshold"] == bundle["threshold"]
+    assert pipeline._checkpoint_step(run / "charuconet" / "last.pt") == 30
+
+    # 6. datagen.patches stopped by SIGTERM (the pipeline passes it on) removes its staging folder.
+    patches = subprocess.Popen([sys.executable, "-m", "datagen.patches", "--renders", str(renders), "--out",
+                                str(tmp_path / "patches"), "--synthetic", "2000000", "--seed", "0"], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_for(lambda: any(tmp_path.glob(".patches.tmp-*/*.h5")), patches)
+    patches.send_signal(signal.SIGTERM)
+    patches.communicate()
+    assert patches.returncode == 143 and not list(tmp_path.glob(".patches.tmp-*"))
+
+
+def cut_off(path: Path) -> None:
+    """Cut a file to half its length, as a full disk or an interrupted copy leaves it."""
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 2])
+
 
 # --------------------------------------------------------------------------------------------- refusals
 
@@ -168,6 +205,32 @@ def test_resuming_with_other_settings_is_refused(tmp_path, capsys):
     assert code == 2 and "other settings (frames)" in err
     code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--shadow-edges", "0.4"], capsys)
     assert code == 2 and "other settings (shadow_edges)" in err  # its patches and RefineNet were made without
+
+
+def test_plan_only_writes_nothing_and_damaged_records_are_said(tmp_path, capsys):
+    """--plan-only measures and prints, and leaves the folder as it was: none made for a new --out, nothing
+    added to an existing one. A cut-off plan.json is planned again (no --budget: the same sizes), a cut-off
+    rates.json measured again; with --budget a damaged plan is refused with what to do."""
+    board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
+    fresh = tmp_path / "new" / "run"
+    code, err = run_main(["--board", str(board_file), "--out", str(fresh), *TINY, "--plan-only"], capsys)
+    assert code == 0, err
+    assert not (tmp_path / "new").exists()
+    run = tmp_path / "run"
+    first = make_pipeline(["--board", str(board_file), "--out", str(run), *TINY])
+    first.sizes = pipeline.Sizes(**{**pipeline.asdict(pipeline.FULL["all"]), **first.fixed_sizes()})
+    first.save_plan()
+    (run / "plan.json").write_text((run / "plan.json").read_text()[:40])
+    (run / "rates.json").write_text('{"render_s_per_frame": {"val')
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--plan-only"], capsys)
+    assert code == 0, err
+    assert f"{run / 'plan.json'} is damaged (cut off or empty): planned again" in err
+    assert f"{run / 'rates.json'} is damaged and is ignored" in err
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--budget", "2h", "--plan-only"], capsys)
+    assert code == 2 and "plan.json is damaged" in err and "rerun with the sizes spelled out" in err
+    assert "Traceback" not in err
 
 
 def test_help_lists_defaults():

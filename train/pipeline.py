@@ -33,6 +33,7 @@ import math
 import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -42,8 +43,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from datagen.family import FamilyError, parse_families
+from datagen.shards import ShardReader, list_shards, read_patch_shard
 from deepcharuco.board import MARKER_FAMILIES, BoardSpec, marker_family
-from deepcharuco.cli import output_folder, run_command
+from deepcharuco.cli import check_output_folder, output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -211,11 +213,16 @@ def render_supports_family() -> bool:
 def load_rates(run: Path) -> dict:
     """Rates recorded by earlier stages or probes in this run folder (``rates.json``): {name: {value, source}}."""
     path = run / "rates.json"
-    return json.loads(path.read_text()) if path.is_file() else {}
+    rates = _read_json(path)
+    if rates is None and path.is_file():
+        print(f"note: {path} is damaged and is ignored (the rates are measured again)", file=sys.stderr)
+    return rates or {}
 
 
-def record_rate(run: Path, name: str, value: float, source: str) -> None:
-    """Remember a measured rate for later plans (a resumed run's ETA)."""
+def record_rate(run: Path | None, name: str, value: float, source: str) -> None:
+    """Remember a measured rate for later plans (a resumed run's ETA); None: a run that writes nothing (--plan-only)."""
+    if run is None:
+        return
     rates = load_rates(run)
     rates[name] = {"value": float(value), "source": source}
     _write_json(run / "rates.json", rates)
@@ -435,6 +442,9 @@ class Pipeline:
         self.sizes: Sizes | None = None
         self.notes: list[str] = []
         self.rate_sources: dict[str, str] = {}
+        # Files the plan itself needs (the board files its commands name, the render probe's scratch): in the run
+        # folder, or in a temporary folder removed at exit for --plan-only, which leaves nothing behind.
+        self.private = Path(tempfile.mkdtemp(prefix="deepcharuco-plan-")) if args.plan_only else self.run
 
     # -- settings, resumption
     def settings(self) -> Settings:
@@ -468,8 +478,18 @@ class Pipeline:
         saved_path = self.run / "plan.json"
         settings = self.settings()
         fixed = self.fixed_sizes()
-        if saved_path.is_file():
-            saved = json.loads(saved_path.read_text())
+        saved = _read_json(saved_path)
+        if saved_path.is_file() and not (isinstance(saved, dict) and isinstance(saved.get("settings"), dict)
+                                         and isinstance(saved["settings"].get("sizes"), dict)):
+            if self.args.budget:  # the sizes were fitted to rates that later stages have changed: not made again
+                raise PipelineError(
+                    f"{saved_path} is damaged (cut off or empty) and held the sizes --budget chose: rerun with the sizes "
+                    f"spelled out instead of --budget (each finished stage's command in {self.run / 'stages'} names "
+                    f"them, e.g. --frames, --charuconet-steps), after moving {saved_path.name} away")
+            print(f"note: {saved_path} is damaged (cut off or empty): planned again from this command (no --budget, so "
+                  f"the same sizes)", file=sys.stderr)
+            saved = None
+        if saved is not None:
             now = asdict(settings)
             differs = [k for k in now if k != "sizes" and saved["settings"].get(k) != now[k]]
             differs += [k for k, v in fixed.items() if saved["settings"]["sizes"].get(k) != v]
@@ -520,8 +540,8 @@ class Pipeline:
             print(f"measuring {name.replace('_', ' ')} ...", flush=True)
             rates[name] = probe()
             self.rate_sources[name] = "measured now"
-            record_rate(self.run, name, rates[name], f"measured {_now()}")
-        _remove_tree(self.run / "scratch")  # the render probe's frames: timed, not kept
+            record_rate(self.record_to, name, rates[name], f"measured {_now()}")
+        _remove_tree(self.scratch_root)  # the render probe's frames: timed, not kept
         if "eval_render_s_per_frame" not in recorded:
             # A sequence's frames share its renders (a static board): measured here, a frame cost about a
             # quarter of a training frame (31 frames in 17 s against 2.2 s a training frame, 160x120).
@@ -529,10 +549,18 @@ class Pipeline:
             self.rate_sources["eval_render_s_per_frame"] = f"{EVAL_RENDER_SHARE} x a training render"
         return rates
 
+    @property
+    def record_to(self) -> Path | None:
+        """Where measured rates are kept: the run folder, or nowhere for --plan-only (which writes nothing)."""
+        return None if self.args.plan_only else self.run
+
+    @property
+    def scratch_root(self) -> Path:
+        return self.private / "scratch"
+
     def scratch(self) -> Path:
-        folder = self.run / "scratch"
-        folder.mkdir(parents=True, exist_ok=True)
-        return Path(tempfile.mkdtemp(dir=folder))
+        self.scratch_root.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(dir=self.scratch_root))
 
     # -- stage commands
     def shadow_edge_args(self) -> list[str]:
@@ -556,7 +584,7 @@ class Pipeline:
 
     def board_file(self) -> Path:
         """The --board board, saved in the run folder (the run does not depend on the user's file staying put)."""
-        path = self.run / "board.yaml"
+        path = self.private / "board.yaml"
         if not path.is_file():
             path.parent.mkdir(parents=True, exist_ok=True)
             self.target.board.save(path)
@@ -665,7 +693,7 @@ class Pipeline:
         return [sys.executable, "-m", name]
 
     def eval_board_file(self, name: str, board: BoardSpec) -> Path:
-        path = self.run / "eval" / f"{slug(name)}.yaml"
+        path = self.private / "eval" / f"{slug(name)}.yaml"
         if not path.is_file():
             path.parent.mkdir(parents=True, exist_ok=True)
             board.save(path)
@@ -714,12 +742,101 @@ class Pipeline:
     def marker(self, stage: Stage) -> Path:
         return self.run / "stages" / f"{slug(stage.name)}.json"
 
-    def is_done(self, stage: Stage) -> bool:
-        """A stage is done when it recorded so; a trainer also when its last.pt reached its steps (trained elsewhere,
-        e.g. by the cluster job)."""
-        if self.marker(stage).is_file():
+    def finished(self, stage: Stage) -> bool:
+        """The stage recorded that it finished (a readable marker), or, for a trainer, its last.pt reached its
+        steps (trained elsewhere, e.g. by the cluster job)."""
+        if _read_json(self.marker(stage)) is not None:
             return True
         return bool(stage.folder and stage.steps and _checkpoint_step(stage.folder / "last.pt") >= stage.steps)
+
+    def is_done(self, stage: Stage) -> bool:
+        """A stage is done when it finished and its outputs read back complete: a marker alone is not enough (a
+        deleted shard, a cut-off checkpoint)."""
+        return self.finished(stage) and not self.damaged_files(stage) and self.missing_output(stage) is None
+
+    # -- what the stages left, checked
+    def outputs(self, stage: Stage) -> tuple[str, Path]:
+        """(kind, path) of what ``stage`` makes: "frames" / "patches" (a folder of shards), "checkpoints" (a
+        trainer's folder), "checkpoint", "json" or "text" (one file)."""
+        name = stage.name
+        if name == "render":
+            return "frames", self.run / "data" / "renders"
+        if name == "patches":
+            return "patches", self.run / "data" / "patches"
+        if stage.folder is not None:
+            return "checkpoints", stage.folder
+        if name == "bundle":
+            return "checkpoint", self.run / "detector.pt"
+        if name.startswith("eval-data "):
+            return "frames", self.run / "eval" / slug(name[len("eval-data "):])
+        if name == "evaluate":
+            return "json", self.run / "eval" / "results.json"
+        return "text", self.run / "MODEL_CARD.md"
+
+    def damaged_files(self, stage: Stage) -> list[tuple[Path, str]]:
+        """(file, why) for each file of ``stage``'s outputs that exists but does not read back."""
+        kind, path = self.outputs(stage)
+        if kind in ("frames", "patches"):
+            if not path.is_dir():
+                return []
+            read = ShardReader if kind == "frames" else read_patch_shard
+            return [(shard, why) for shard in list_shards(path) if (why := _unreadable(read, shard))]
+        if kind == "checkpoints":
+            return [(p, why) for p in (path / "last.pt", path / "best.pt") if p.is_file()
+                    and (why := _unreadable(_load_checkpoint, p))]
+        if not path.is_file():
+            return []
+        why = _unreadable(_load_checkpoint, path) if kind == "checkpoint" else (
+            None if kind == "text" or _read_json(path) is not None else "not valid JSON (cut off?)")
+        return [(path, why)] if why else []
+
+    def missing_output(self, stage: Stage) -> str | None:
+        """What a finished ``stage`` should have made and has not (a deleted shard, a missing file), or None."""
+        kind, path = self.outputs(stage)
+        if kind == "frames":
+            if not path.is_dir() or not list_shards(path):
+                return f"{path} holds no shards"
+            if stage.name == "render":
+                frames = sum(len(ShardReader(p)) for p in list_shards(path) if not _unreadable(ShardReader, p))
+                if frames < self.sizes.frames:
+                    return f"{path} holds {frames} of the plan's {self.sizes.frames} frames"
+            return None
+        if kind == "patches":
+            return None if path.is_dir() and list_shards(path) else f"{path} holds no patch shards"
+        if kind == "checkpoints":
+            missing = [p.name for p in (path / "last.pt", path / "best.pt") if not p.is_file()]
+            if missing:
+                return f"{path} has no {' or '.join(missing)}"
+            step = _checkpoint_step(path / "last.pt")
+            return None if step >= stage.steps else f"{path / 'last.pt'} is at step {step} of {stage.steps}"
+        if not path.is_file() or path.stat().st_size == 0:
+            return f"{path} is missing or empty"
+        return None
+
+    def repair(self, stages: list[Stage]) -> None:
+        """Before running: move each damaged output aside (``NAME.damaged``, kept for a look), and mark a stage
+        whose outputs do not verify as not done, saying what is redone. A trainer whose last.pt is damaged
+        resumes from its best.pt (a full checkpoint of an earlier step) where that reads, else starts again."""
+        for stage in stages:
+            damaged = self.damaged_files(stage)
+            for path, why in damaged:
+                aside = path.with_name(path.name + ".damaged")
+                os.replace(path, aside)
+                print(f"note: {path} is damaged ({why}): moved to {aside.name}; stage {stage.name} makes it again",
+                      file=sys.stderr)
+            if stage.folder is not None and any(p.name == "last.pt" for p, _ in damaged):
+                best = stage.folder / "best.pt"
+                if best.is_file():
+                    shutil.copyfile(best, stage.folder / "last.pt")
+                    print(f"note: stage {stage.name} resumes from {best} (step {_checkpoint_step(best)}), its last "
+                          f"good checkpoint", file=sys.stderr)
+                else:
+                    print(f"note: stage {stage.name} has no good checkpoint left: it starts again", file=sys.stderr)
+            marker = self.marker(stage)
+            if marker.exists() and (_read_json(marker) is None or damaged or self.missing_output(stage)):
+                why = self.missing_output(stage) or ("its record is damaged" if not damaged else "damaged outputs")
+                marker.unlink()
+                print(f"note: stage {stage.name} is not done ({why}): it runs again", file=sys.stderr)
 
     def execute(self, stages: list[Stage]) -> int:
         """Run the stages not done yet, in order; 0 when all are done, the stopping signal's 128 + n after a
@@ -760,6 +877,8 @@ class Pipeline:
             else:  # a kill before the first checkpoint: what it logged belongs to no checkpoint
                 for leftover in ("log.csv", "best.pt"):
                     (stage.folder / leftover).unlink(missing_ok=True)
+        for leftover in (self.run / "data").glob(".patches.tmp-*") if stage.name == "patches" else ():
+            _remove_tree(leftover)  # a patches stage killed before it could clean up (SIGKILL)
         before = self.progress(stage)
         print("$ " + shlex.join(command), flush=True)
         process = subprocess.Popen(command, cwd=ROOT, preexec_fn=stop_with_parent if sys.platform == "linux" else None)
@@ -1059,12 +1178,41 @@ def _write_json(path: Path, data) -> None:
 
 
 def _checkpoint_step(path: Path) -> int:
-    """The step a trainer's checkpoint reached; 0 without one."""
+    """The step a trainer's checkpoint reached; 0 without one or with one that does not read (`repair` says so)."""
     if not path.is_file():
         return 0
+    try:
+        return int(_load_checkpoint(path)["training"]["step"])
+    except Exception:  # noqa: BLE001 - any unreadable checkpoint: torch raises RuntimeError, EOFError, pickle errors
+        return 0
+
+
+def _load_checkpoint(path: Path) -> dict:
     import torch
 
-    return int(torch.load(path, map_location="cpu", weights_only=False)["training"]["step"])
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict):
+        raise ValueError("not a checkpoint of this project")
+    return state
+
+
+def _unreadable(read, path: Path) -> str | None:
+    """None when ``read(path)`` succeeds, else why it failed (one line)."""
+    try:
+        result = read(path)
+        if hasattr(result, "close"):
+            result.close()
+    except Exception as error:  # noqa: BLE001 - a damaged file can fail any way its reader does
+        return (str(error).splitlines() or [type(error).__name__])[0][:200]
+    return None
+
+
+def _read_json(path: Path):
+    """The JSON in ``path``; None when it is missing, empty, cut off or not JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1085,32 +1233,46 @@ def main(argv: list[str] | None = None) -> int:
             raise PipelineError(f"--init {args.init} does not exist: give a bundle or checkpoint, or 'none' to "
                                 "train from scratch")
         pipeline = Pipeline(args, target)
-        pipeline.fixed_sizes()
-        output_folder(args.out)
-        if target.family and not render_supports_family():
-            raise PipelineError("this checkout's datagen.render has no --family option yet (python -m datagen.render "
-                                "--help): render one board with --board B.yaml, or update the checkout")
-        pipeline.plan()
-        stages = pipeline.stages()
-        pipeline.print_plan(stages)
-        if args.cluster:
-            for path in write_cluster_scripts(pipeline, args.cluster, args.num_shards):
-                print(f"wrote {path}")
-            return 0
-        if args.plan_only:
-            return 0
-        pipeline.save_plan()
-        # Outside a stage's subprocess (which gets the signal passed on), a SIGTERM ends the run as Ctrl-C does:
-        # nothing half-made is recorded as done, and the exit code says which signal stopped it.
-        signal.signal(signal.SIGTERM, _stop_by_sigterm)
         try:
-            return pipeline.execute(stages)
-        except KeyboardInterrupt as stop:
-            print(f"stopped: rerun the same command to continue ({pipeline.run} keeps every finished stage)",
-                  file=sys.stderr)
-            return 143 if stop.args == ("SIGTERM",) else 130
+            return plan_and_run(args, target, pipeline)
+        finally:
+            if args.plan_only:
+                _remove_tree(pipeline.private)
 
     return run_command(body)
+
+
+def plan_and_run(args: argparse.Namespace, target: Target, pipeline: Pipeline) -> int:
+    """Plan the run in ``args.out``, then print it (--plan-only), write the cluster scripts (--cluster) or run it."""
+    pipeline.fixed_sizes()
+    if args.plan_only:
+        check_output_folder(args.out)
+    else:
+        output_folder(args.out)
+    if target.family and not render_supports_family():
+        raise PipelineError("this checkout's datagen.render has no --family option yet (python -m datagen.render "
+                            "--help): render one board with --board B.yaml, or update the checkout")
+    pipeline.plan()
+    stages = pipeline.stages()
+    if not args.plan_only and not args.cluster:
+        pipeline.repair(stages)
+    pipeline.print_plan(stages)
+    if args.cluster:
+        for path in write_cluster_scripts(pipeline, args.cluster, args.num_shards):
+            print(f"wrote {path}")
+        return 0
+    if args.plan_only:
+        return 0
+    pipeline.save_plan()
+    # Outside a stage's subprocess (which gets the signal passed on), a SIGTERM ends the run as Ctrl-C does:
+    # nothing half-made is recorded as done, and the exit code says which signal stopped it.
+    signal.signal(signal.SIGTERM, _stop_by_sigterm)
+    try:
+        return pipeline.execute(stages)
+    except KeyboardInterrupt as stop:
+        print(f"stopped: rerun the same command to continue ({pipeline.run} keeps every finished stage)",
+              file=sys.stderr)
+        return 143 if stop.args == ("SIGTERM",) else 130
 
 
 def _stop_by_sigterm(signum, frame) -> None:
@@ -1118,8 +1280,6 @@ def _stop_by_sigterm(signum, frame) -> None:
 
 
 def _remove_tree(path: Path) -> None:
-    import shutil
-
     shutil.rmtree(path, ignore_errors=True)
 
 
