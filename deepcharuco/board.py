@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.errors import BoardSpecError
+from deepcharuco.files import write_atomic
 
 # The fields a board file must spell out; the flags default to false.
 REQUIRED_FIELDS = ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")
@@ -277,13 +278,13 @@ class BoardSpec:
         path = Path(path)
         suffix = path.suffix.lower()
         if suffix == ".json":
-            path.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+            write_atomic(path, json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
         elif suffix in (".yaml", ".yml"):
             lines = ["%YAML:1.0", "---"]
             for key, value in self.to_dict().items():
                 text = ("true" if value else "false") if isinstance(value, bool) else value
                 lines.append(f"{key}: {text}")
-            path.write_text("\n".join(lines) + "\n")
+            write_atomic(path, "\n".join(lines) + "\n")
         else:
             raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
         return path

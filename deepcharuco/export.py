@@ -34,6 +34,7 @@ import torch
 
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import write_atomic
 from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH
 
@@ -84,7 +85,7 @@ def export_torchscript(model: torch.nn.Module, example: torch.Tensor, path: Path
 
 def export_onnx(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec, path: Path) -> Path:
     """Write ``model`` as ONNX with dynamic batch (and image size for ChArUcoNet)."""
-    path.write_bytes(onnx_bytes(model, example, spec))
+    write_atomic(path, onnx_bytes(model, example, spec))
     return path
 
 
@@ -211,7 +212,7 @@ def export(weights: str | Path, out: str | Path, refine_weights: str | Path | No
             "config": refinenet.config.to_dict(), "input": specs["refinenet"].input_name,
             "outputs": list(specs["refinenet"].output_names),
             "exports": export_network(refinenet, specs["refinenet"], out, formats, tolerance=tolerance)}
-    (out / "export.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    write_atomic(out / "export.json", json.dumps(manifest, indent=2) + "\n")
     return manifest
 
 

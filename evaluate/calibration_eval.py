@@ -27,6 +27,7 @@ from datagen.shards import ShardReader, list_shards
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibrate import detect_frames
 from deepcharuco.calibration import CalibrationError, CalibrationResult, SelectionOptions, border_margin, calibrate
+from deepcharuco.files import write_atomic
 from evaluate.calibration_sequences import read_truth
 
 GOOD_FOCAL_PCT, GOOD_CENTRE_PX, RMS_RATIO = 0.3, 1.0, 1.1
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         for row in rows:
             print(" | ".join(row))
     if args.out:
-        Path(args.out).write_text(json.dumps(results, indent=1, default=float) + "\n")
+        write_atomic(Path(args.out), json.dumps(results, indent=1, default=float) + "\n")
     return 0
 
 

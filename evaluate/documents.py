@@ -6,6 +6,7 @@ import base64
 import html
 from pathlib import Path
 
+from deepcharuco.files import write_atomic
 from evaluate.experiments import LABELS
 
 PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}
@@ -166,8 +167,8 @@ def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path
             lines += [f"![{name}](figures/{_file_name(name, figures.get(name, b''))})", ""]
     (path.parent / "figures").mkdir(exist_ok=True)
     for name, data in figures.items():
-        (path.parent / "figures" / _file_name(name, data)).write_bytes(data)
-    path.write_text("\n".join(lines))
+        write_atomic(path.parent / "figures" / _file_name(name, data), data)
+    write_atomic(path, "\n".join(lines))
     return path
 
 
@@ -204,5 +205,5 @@ def html_page(title: str, command: str, page_sections: list[tuple[str, str, list
 
 
 def write_html(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
-    path.write_text(html_page("Deep ChArUco evaluation report", results.get("command", ""), sections(results), figures))
+    write_atomic(path, html_page("Deep ChArUco evaluation report", results.get("command", ""), sections(results), figures))
     return path

@@ -30,6 +30,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.cli import describe_os_error, output_folder, pick_device
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import write_atomic
 from deepcharuco.opencv_detector import OpenCVDetector
 from evaluate import captures as real_captures
 from evaluate import calibration_eval, documents, experiments, false_positives, figures, unseen_boards
@@ -206,7 +207,7 @@ def run_report(args: argparse.Namespace) -> dict:
     results["seconds"] = round(time.perf_counter() - started, 1)
     notes.append(_summary(results))
     results["notes"] = notes
-    (out / "results.json").write_text(json.dumps(results, indent=1, default=_json_default) + "\n")
+    write_atomic(out / "results.json", json.dumps(results, indent=1, default=_json_default) + "\n")
     documents.write_markdown(out / "report.md", results, pictures)
     documents.write_html(out / "report.html", results, pictures)
     return results

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import write_atomic
 from deepcharuco.opencv_detector import OpenCVDetector
 from evaluate import experiments
 from evaluate.data import frames_fingerprint, load_frames, select_well_lit
@@ -212,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     for what, value, goal, met in targets(result):
         print(f"{what}: {value:.3f} (goal {goal}) {'MET' if met else 'not met'}")
     if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1, default=float) + "\n")
+        write_atomic(Path(args.out), json.dumps(result, indent=1, default=float) + "\n")
     return 0
 
 

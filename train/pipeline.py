@@ -47,6 +47,7 @@ from datagen.shards import ShardReader, list_shards, read_patch_shard
 from deepcharuco.board import MARKER_FAMILIES, BoardSpec, marker_family
 from deepcharuco.cli import check_output_folder, output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import write_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "deepcharuco" / "weights" / "detector.pt"
@@ -1073,7 +1074,7 @@ def write_card(pipeline: Pipeline) -> Path:
               "- The evaluation boards and sequences (seed 1000 + run seed) were not looked at while training; "
               "nothing was tuned on them.", ""]
     path = run / "MODEL_CARD.md"
-    path.write_text("\n".join(lines))
+    write_atomic(path, "\n".join(lines))
     return path
 
 
@@ -1116,7 +1117,7 @@ def write_cluster_scripts(pipeline: Pipeline, kind: str, num_shards: int) -> lis
                 f"# Paths are those of the checkout that wrote this ({ROOT}): edit them for the cluster's mounts.\n")
     if kind == "slurm":
         render_path, train_path = folder / "render.slurm", folder / "train.slurm"
-        render_path.write_text(
+        write_atomic(render_path,
             "#!/bin/bash\n"
             f"# Render stage of {pipeline.run} as a SLURM array: job i renders the shards i, i+{num_shards}, ...\n"
             f"# Submit: sbatch {render_path}; then: sbatch --dependency=afterok:JOBID {train_path}\n"
@@ -1126,7 +1127,7 @@ def write_cluster_scripts(pipeline: Pipeline, kind: str, num_shards: int) -> lis
             f"cd {shlex.quote(str(ROOT))}\nsource .venv/bin/activate\n"
             f"{shlex.join(render_command)} --shard-index \"$SLURM_ARRAY_TASK_ID\" --num-shards {num_shards} "
             "--threads \"$SLURM_CPUS_PER_TASK\" --resume --quiet\n")
-        train_path.write_text(
+        write_atomic(train_path,
             "#!/bin/bash\n" + ddp_note +
             f"# The rest of the pipeline (patches, training, bundle, evaluation, card) on one node with {gpus} GPU(s).\n"
             f"#SBATCH --job-name=deepcharuco-train\n#SBATCH --nodes=1\n#SBATCH --gpus-per-node={gpus}\n"
@@ -1137,7 +1138,7 @@ def write_cluster_scripts(pipeline: Pipeline, kind: str, num_shards: int) -> lis
         return [render_path, train_path]
     render_path, train_path = folder / "render-job.yaml", folder / "train-job.yaml"
     image = "deepcharuco:latest  # an image with this repository at /work and its .venv"
-    render_path.write_text(
+    write_atomic(render_path,
         f"# Render stage of {pipeline.run} as a Kubernetes Indexed Job: pod i renders the shards i, i+{num_shards}, ...\n"
         f"# The run folder must be on a volume every pod mounts (here the PVC deepcharuco-runs at /work/{pipeline.run}).\n"
         f"# Apply: kubectl apply -f {render_path}; when it completes: kubectl apply -f {train_path}\n"
@@ -1150,7 +1151,7 @@ def write_cluster_scripts(pipeline: Pipeline, kind: str, num_shards: int) -> lis
         "        resources: {requests: {cpu: \"8\", memory: 8Gi}}\n"
         f"        volumeMounts: [{{name: runs, mountPath: /work/{pipeline.run}}}]\n"
         "      volumes: [{name: runs, persistentVolumeClaim: {claimName: deepcharuco-runs}}]\n")
-    train_path.write_text(
+    write_atomic(train_path,
         ddp_note +
         "apiVersion: batch/v1\nkind: Job\nmetadata:\n  name: deepcharuco-train\nspec:\n  backoffLimit: 3\n"
         "  template:\n    spec:\n      restartPolicy: OnFailure  # a rerun resumes where the pod stopped\n"
@@ -1172,9 +1173,7 @@ def _now() -> str:
 def _write_json(path: Path, data) -> None:
     """Write atomically: a kill leaves the previous file or the new one, never half of one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(json.dumps(data, indent=1, default=str) + "\n")
-    temporary.replace(path)
+    write_atomic(path, json.dumps(data, indent=1, default=str) + "\n")
 
 
 def _checkpoint_step(path: Path) -> int:

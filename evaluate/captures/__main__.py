@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from deepcharuco.cli import output_folder, run_command
+from deepcharuco.files import write_atomic
 from evaluate import documents
 from evaluate.captures.present import DEFAULT_GALLERY, DEFAULT_STEP, capture_sections, evaluate_captures, sample_folders
 
@@ -42,9 +43,9 @@ def _write_markdown(path: Path, command: str, page: list, pictures: dict[str, by
             lines += ["| " + " | ".join(r) + " |" for r in rows[1:]] + [""]
         for name in names:
             file_name = documents._file_name(name, pictures[name])
-            (path.parent / "figures" / file_name).write_bytes(pictures[name])
+            write_atomic(path.parent / "figures" / file_name, pictures[name])
             lines += [f"![{name}](figures/{file_name})", ""]
-    path.write_text("\n".join(lines))
+    write_atomic(path, "\n".join(lines))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,10 +59,10 @@ def main(argv: list[str] | None = None) -> int:
         results, pictures = evaluate_captures(args.folders or sample_folders(), args.weights, args.refine_weights,
                                               args.device, args.step, args.limit, args.gallery, args.quiet)
         results["command"] = "python -m evaluate.captures " + " ".join(shlex.quote(a) for a in argv)
-        (out / "captures.json").write_text(json.dumps(results, indent=1) + "\n")
+        write_atomic(out / "captures.json", json.dumps(results, indent=1) + "\n")
         page = capture_sections(results)
         _write_markdown(out / "captures.md", results["command"], page, pictures)
-        (out / "captures.html").write_text(documents.html_page("Real captures", results["command"], page, pictures))
+        write_atomic(out / "captures.html", documents.html_page("Real captures", results["command"], page, pictures))
         for title, _, rows, _ in page[:1]:
             print("\n".join(" | ".join(r) for r in rows))
         print(f"{results['seconds']:.0f} s; wrote {out / 'captures.html'}, captures.md, captures.json")
