@@ -127,45 +127,44 @@ class OutputLock:
         self.path = Path(path)
         self.lock_path = self.path.with_name(f".{self.path.name}.lock")
         self.command = command
-        self._handle = None
+        self._descriptor: int | None = None
 
     def __enter__(self) -> "OutputLock":
         self.lock_path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            handle = open(self.lock_path, "a+")
-            if not _try_lock(handle):
-                handle.seek(0)
-                holder = handle.read().strip()
-                handle.close()
+            descriptor = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)  # unbuffered: nothing left to flush
+            if not _try_lock(descriptor):
+                holder = os.read(descriptor, 32).decode(errors="replace").strip()
+                os.close(descriptor)
                 raise OutputError(f"{self.command} is writing {self.path} now{f' (process {holder})' if holder else ''}: "
                                   f"wait for it to finish or choose another --out")
             try:  # the file may have been removed by the holder releasing it before we locked: lock the new one
-                if os.fstat(handle.fileno()).st_ino == os.stat(self.lock_path).st_ino:
+                if os.fstat(descriptor).st_ino == os.stat(self.lock_path).st_ino:
                     break
             except FileNotFoundError:
                 pass
-            handle.close()
-        handle.seek(0)
-        handle.truncate()
-        handle.write(str(os.getpid()))
-        handle.flush()
-        self._handle = handle
+            os.close(descriptor)
+        self._descriptor = descriptor
+        try:  # the holder's process ID, for the refusal's message; a full disk just leaves it out
+            os.ftruncate(descriptor, 0)
+            os.write(descriptor, str(os.getpid()).encode())
+        except OSError:
+            pass
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._handle is not None:
+        if self._descriptor is not None:
             self.lock_path.unlink(missing_ok=True)
-            self._handle.close()  # closing releases the lock
-            self._handle = None
+            os.close(self._descriptor)  # closing releases the lock
+            self._descriptor = None
 
 
-def _try_lock(handle) -> bool:
+def _try_lock(descriptor: int) -> bool:
     try:
         if fcntl is not None:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         else:  # pragma: no cover
-            handle.seek(0)
-            msvcrt.locking(handle.fileno(), msvcrt.LK_NBLCK, 1)
+            msvcrt.locking(descriptor, msvcrt.LK_NBLCK, 1)
     except OSError:
         return False
     return True

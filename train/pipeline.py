@@ -1202,7 +1202,8 @@ def _unreadable(read, path: Path) -> str | None:
         if hasattr(result, "close"):
             result.close()
     except Exception as error:  # noqa: BLE001 - a damaged file can fail any way its reader does
-        return (str(error).splitlines() or [type(error).__name__])[0][:200]
+        first = (str(error).splitlines() or [type(error).__name__])[0]
+        return first.split(". ")[0][:160]  # its first sentence: torch's go on with advice for another situation
     return None
 
 
