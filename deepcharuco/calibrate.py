@@ -129,6 +129,9 @@ REPORT_START = b"<!doctype html><html><head><meta charset='utf-8'><title>Calibra
 def run(args: argparse.Namespace) -> CalibrationResult:
     out = Path(args.out)
     report = None if args.no_report else Path(args.report) if args.report else default_report_path(out)
+    if report is not None and report.resolve() == out.resolve():
+        raise DeepCharucoError(f"--report and --out both name {out}: give the report another name (default: "
+                               f"{default_report_path(out).name})")
     for path in [out] + ([report] if report else []):
         check_writable(path)
     refuse_foreign(out, is_camera_file, "camera file", args.force)

@@ -136,6 +136,12 @@ def test_calibrate_refuses_to_overwrite_a_file_that_is_not_a_camera_file(tmp_pat
     assert read_camera(notes).image_size == SIZE
 
 
+def test_calibrate_refuses_a_report_named_as_the_camera_file(tmp_path, wave_video, capsys):
+    out = tmp_path / "cam.yaml"
+    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--report", str(out), "--quiet"]) == 2
+    assert "--report and --out both name" in capsys.readouterr().err and not out.exists()
+
+
 def test_calibrate_may_overwrite_its_own_camera_file(calibrated, wave_video):
     _, out, report = calibrated
     assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 0
