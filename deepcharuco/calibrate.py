@@ -28,8 +28,8 @@ from deepcharuco.calibration import (
     calibrate, sharpness,
 )
 from deepcharuco.camera import camera_file_text, is_camera_file
-from deepcharuco.detect import make_detector, open_source
 from deepcharuco.cli import run_command
+from deepcharuco.detect import make_detector, open_source
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8

@@ -584,7 +584,8 @@ class Pipeline:
         return args
 
     def board_file(self) -> Path:
-        """The --board board, saved in the run folder (the run does not depend on the user's file staying put)."""
+        """The --board board, saved in the run folder (the run does not depend on the user's file staying put;
+        --plan-only: in its temporary folder)."""
         path = self.private / "board.yaml"
         if not path.is_file():
             path.parent.mkdir(parents=True, exist_ok=True)
