@@ -28,18 +28,23 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.board import BoardSpec
+from deepcharuco.board_hints import what_matches
 from deepcharuco.camera import Camera, read_camera
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.detection import Detection
 from deepcharuco.draw import draw_detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
+from deepcharuco.image import to_gray_u8
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.pose import Pose
 from deepcharuco.runtime import BACKENDS
 from deepcharuco.tracking import BoardTracker
 from deepcharuco.video import VideoFrames
 
+# Frames kept (spread over the source, every HINT_STRIDE-th of a camera's, until the board is found) to say what
+# they show when no frame has the board.
+HINT_FRAMES, HINT_STRIDE = 12, 5
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
               "rvec", "tvec", "reprojection_error", "num_inliers"]
@@ -209,6 +214,8 @@ def run(args: argparse.Namespace) -> dict:
     records: list[dict] = []
     overlays = _Overlays(out, source)
     interrupted = False
+    found, samples = False, []  # until the board is found: a few frames, to say what they show if it never is
+    hint_stride = max(1, (source.total or HINT_FRAMES * HINT_STRIDE) // HINT_FRAMES)  # spread over the source
     # The CSV is written as frames arrive, under a temporary name renamed into place at the end (also after
     # Ctrl-C): a full disk or a kill never leaves a cut-off <stem>.csv in place of a complete one.
     with atomic_file(csv_path, "w", newline="") as csv_file:
@@ -229,6 +236,10 @@ def run(args: argparse.Namespace) -> dict:
                 pose = estimate_frame_pose(detector, detection, frame_camera) if frame_camera else None
                 record = frame_record(index, name, detection, pose)
                 records.append(record)
+                if not found and len(detection):
+                    found, samples = True, []  # the board is there: no hint needed
+                elif not found and len(samples) < HINT_FRAMES and index % hint_stride == 0:
+                    samples.append(to_gray_u8(frame))
                 rows.writerow(_csv_row(record))
                 if not args.no_overlay:
                     overlays.add(name, draw_detection(
@@ -240,6 +251,10 @@ def run(args: argparse.Namespace) -> dict:
         finally:
             overlays.close(keep=bool(records))
     problems = source.problems()
+    if records and not found:
+        problems.append(f"no board corners in any of {len(records)} frames ({args.detector} detector, board "
+                        f"{board.squares_x}x{board.squares_y} {board.dictionary}{', inverted' if board.inverted else ''}"
+                        f"); {what_matches(samples, board, args.board)}")
     summary = {
         "board": board.to_dict(),
         "detector": repr(detector),

@@ -168,3 +168,27 @@ def test_a_fisheye_camera_gives_the_true_pose(camera):
     assert np.linalg.norm(pose.tvec.ravel() - tvec.ravel()) < 0.005 * np.linalg.norm(tvec)
     naive = detector.estimate_pose(detection, fisheye.K, fisheye.dist)  # k1..k4 read as k1 k2 p1 p2
     assert naive is None or np.linalg.norm(naive.tvec.ravel() - tvec.ravel()) > 2 * np.linalg.norm(pose.tvec.ravel() - tvec.ravel())
+
+
+def test_no_board_in_any_frame_says_what_the_frames_show(tmp_path, camera, capsys):
+    """A run that finds nothing names the board file's change that finds it, or the markers the frames show."""
+    board = BoardSpec()
+    image = make_view(board, camera, **VIEW_POSES[0])[0]
+    cv2.imwrite(str(tmp_path / "negative.png"), 255 - image)  # the board printed white on black
+    assert main([str(tmp_path / "negative.png"), "--out", str(tmp_path / "a"), "--no-overlay", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: no board corners in any of 1 frames (opencv detector, board 5x5 DICT_5X5_50)" in err
+    assert "with inverted: true OpenCV finds the board in 1 of 1 frame(s) looked at: set inverted: true in a board file" in err
+    other = BoardSpec(6, 4, 0.04, 0.03, "DICT_4X4_50")
+    cv2.imwrite(str(tmp_path / "other.png"), make_view(other, camera, **VIEW_POSES[0])[0])
+    assert main([str(tmp_path / "other.png"), "--out", str(tmp_path / "b"), "--no-overlay", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "no --board was given, so the 5x5 DICT_5X5_50 board was assumed; DICT_4X4 markers are in 1 of 1" in err
+    assert "(IDs 0..11)" in err and "dictionary: DICT_4X4_50 or larger" in err
+    result = json.loads((tmp_path / "b" / "other.json").read_text())
+    assert any("DICT_4X4 markers" in line for line in result["problems"])
+    cv2.imwrite(str(tmp_path / "blank.png"), np.full((240, 320), 100, np.uint8))
+    assert main([str(tmp_path / "blank.png"), "--out", str(tmp_path / "c"), "--no-overlay", "--quiet"]) == 0
+    assert "no markers of any dictionary OpenCV knows are in the 1 frame(s) looked at" in capsys.readouterr().err
+    assert main([str(EXAMPLES / "board_320x240.png"), "--out", str(tmp_path / "d"), "--no-overlay", "--quiet"]) == 0
+    assert "warning" not in capsys.readouterr().err  # found: nothing to say

@@ -16,10 +16,9 @@ in the stem optional: ``cam0_f00012.png`` is frame 12 of ``cam_0.mp4``).
 from __future__ import annotations
 
 import csv
-import itertools
 import re
 import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -27,6 +26,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec
+from deepcharuco.board_hints import matching_variant
 from deepcharuco.camera import Camera, read_camera
 from deepcharuco.detect import IMAGE_SUFFIXES
 from deepcharuco.errors import DeepCharucoError
@@ -162,37 +162,16 @@ def check_board_matches(captures: CaptureSet, step: int = 1, limit: int | None =
             frames.append(frame.image)
         if number + 1 >= BOARD_CHECK_FRAMES:
             break
-    found = [(name, hits) for name, variant in board_variants(captures.board)
-             if (hits := sum(len(OpenCVDetector(variant, refine="none").detect(f)) >= MIN_FOUND for f in frames))]
+    variant = matching_variant(frames, captures.board)
     where = f"{captures.folder / BOARD_FILE}"
     checked = f"none of the first {min(number + 1, BOARD_CHECK_FRAMES)} frames"
-    if found:
-        name, hits = max(found, key=lambda item: item[1])
+    if variant is not None:
+        name, hits = variant
         raise CaptureError(f"OpenCV finds the board of {where} in {checked}, but with {name} it finds it in {hits} of "
                            f"the first {len(frames)}: set {name} in {where}")
     raise CaptureError(f"OpenCV finds the board of {where} in {checked}, nor with inverted, legacy, squares_x/"
                        f"squares_y swapped or mirrored changed: check its dictionary, squares and marker_length, and "
                        f"that the frames show the board")
-
-
-def board_variants(board: BoardSpec) -> Iterator[tuple[str, BoardSpec]]:
-    """(the change, as board.yaml would spell it; the board) for the mistakes people make writing a board
-    file: the polarity, the legacy layout, squares_x and squares_y swapped, each alone and in pairs, and a
-    mirrored face."""
-    single = [(f"inverted: {_yaml(not board.inverted)}", {"inverted": not board.inverted}),
-              (f"legacy: {_yaml(not board.legacy)}", {"legacy": not board.legacy})]
-    if board.squares_x != board.squares_y:
-        single.append((f"squares_x: {board.squares_y}, squares_y: {board.squares_x}",
-                       {"squares_x": board.squares_y, "squares_y": board.squares_x}))
-    changes = single + [(f"{a} and {b}", {**change_a, **change_b})
-                        for (a, change_a), (b, change_b) in itertools.combinations(single, 2)]
-    changes.append((f"mirrored: {_yaml(not board.mirrored)}", {"mirrored": not board.mirrored}))
-    for name, change in changes:
-        yield name, replace(board, **change)
-
-
-def _yaml(flag: bool) -> str:
-    return "true" if flag else "false"
 
 
 def read_labels(path: Path, board: BoardSpec) -> dict[str, np.ndarray]:
