@@ -276,18 +276,20 @@ class BoardSpec:
     def save(self, path: str | Path) -> Path:
         """Write the spec as JSON (``.json``) or OpenCV-readable YAML (``.yaml``/``.yml``)."""
         path = Path(path)
-        suffix = path.suffix.lower()
+        return write_atomic(path, self.file_text(path.suffix, str(path)))
+
+    def file_text(self, suffix: str = ".yaml", name: str = "the board file") -> str:
+        """The text `save` writes for a file with ``suffix``: JSON (``.json``) or OpenCV-readable YAML."""
+        suffix = suffix.lower()
         if suffix == ".json":
-            write_atomic(path, json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
-        elif suffix in (".yaml", ".yml"):
+            return json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
+        if suffix in (".yaml", ".yml"):
             lines = ["%YAML:1.0", "---"]
             for key, value in self.to_dict().items():
                 text = ("true" if value else "false") if isinstance(value, bool) else value
                 lines.append(f"{key}: {text}")
-            write_atomic(path, "\n".join(lines) + "\n")
-        else:
-            raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
-        return path
+            return "\n".join(lines) + "\n"
+        raise BoardSpecError(f"cannot tell the format of {name}: name it .json, .yaml or .yml")
 
     @classmethod
     def load(cls, path: str | Path) -> "BoardSpec":

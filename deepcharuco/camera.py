@@ -132,7 +132,8 @@ def read_camera(path: str | Path) -> Camera:
     """
     path = Path(path)
     if not path.is_file():
-        raise CameraFileError(f"camera file {path} does not exist (write one with deepcharuco.write_camera)")
+        raise CameraFileError(f"camera file {path} does not exist: calibrate the camera first (python -m "
+                              f"deepcharuco.calibrate VIDEO --board board.yaml --out {path})")
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:

@@ -54,7 +54,7 @@ def test_scaling_follows_resized_images():
 
 
 def test_missing_and_malformed_files(tmp_path):
-    with pytest.raises(CameraFileError, match="does not exist"):
+    with pytest.raises(CameraFileError, match="does not exist: calibrate the camera first"):
         read_camera(tmp_path / "nope.yaml")
     (tmp_path / "plain.yaml").write_text("camera_matrix: [1, 2, 3]\n")
     with pytest.raises(CameraFileError, match="not an OpenCV FileStorage file"):

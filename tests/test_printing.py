@@ -1,0 +1,127 @@
+"""Printable boards (deepcharuco.printing, `deepcharuco board`) and the `deepcharuco` command."""
+
+import io
+import re
+from xml.etree import ElementTree
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from deepcharuco import BoardSpec, OpenCVDetector
+from deepcharuco.command import main as deepcharuco_main
+from deepcharuco.print_board import main as board_main
+from deepcharuco.printing import MM_PER_POINT, PrintError, board_sheet, paper_size, pdf_bytes, png_bytes, raster, svg_text
+
+BOARDS = [BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250"),
+          BoardSpec(4, 5, 0.03, 0.022, "DICT_4X4_1000", inverted=True),
+          BoardSpec(6, 8, 0.025, 0.018, "DICT_4X4_50", legacy=True, first_marker_id=10),
+          BoardSpec(5, 5, 0.03, 0.022, "DICT_5X5_50", mirrored=True),
+          BoardSpec()]
+
+
+@pytest.mark.parametrize("board", BOARDS, ids=lambda b: f"{b.squares_x}x{b.squares_y}-{b.dictionary}")
+def test_the_printed_sheet_is_the_board_at_true_size(board):
+    """Drawn at 8 px/mm and halved, OpenCV finds every corner where the sheet's geometry puts it (1 mm =
+    4 px exactly): the sheet is the board the detectors look for, at its size."""
+    sheet = board_sheet(board, "A4")
+    image = cv2.resize(raster(sheet, 25.4 * 8), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    found = OpenCVDetector(board).detect(image)
+    assert len(found) == board.num_corners
+    where = (np.array(sheet.board_box[:2]) + board.object_points()[found.ids, :2] * 1000.0) * 4.0 - 0.5
+    assert np.abs(found.corners - where).max() < 0.05
+    assert sheet.board_box[2:] == pytest.approx((board.size_m[0] * 1000, board.size_m[1] * 1000))
+
+
+def test_pdf_svg_and_png_carry_the_same_sheet():
+    board = BOARDS[0]
+    sheet = board_sheet(board, "A4")
+    assert sheet.size == (297.0, 210.0)  # 210 mm wide: landscape is what fits
+    pdf = pdf_bytes(sheet, compress=False)
+    box = [float(v) for v in re.search(rb"/MediaBox \[([^\]]*)\]", pdf)[1].split()]
+    assert box[2] * MM_PER_POINT == pytest.approx(297.0, abs=1e-3) and box[3] * MM_PER_POINT == pytest.approx(210.0, abs=1e-3)
+    assert pdf.count(b" re f") == len(sheet.rects) + len(sheet.holes)
+    assert pdf_bytes(sheet) == pdf_bytes(sheet) and pdf_bytes(sheet).startswith(b"%PDF-")  # same sheet, same bytes
+    svg = ElementTree.fromstring(svg_text(sheet))
+    assert svg.get("width") == "297mm" and svg.get("height") == "210mm"
+    rects = [e for e in svg if e.tag.endswith("rect")]
+    assert len(rects) == 1 + len(sheet.rects) + len(sheet.holes)
+    png = Image.open(io.BytesIO(png_bytes(sheet, 300)))
+    assert png.size == (round(297 / 25.4 * 300), round(210 / 25.4 * 300))
+    assert png.info["dpi"] == pytest.approx((300, 300), abs=0.01)
+
+
+def test_a_board_that_does_not_fit_names_a_paper_that_does():
+    with pytest.raises(PrintError, match=r"needs 240 x 202 mm .* use --paper letter"):
+        board_sheet(BoardSpec(8, 6, 0.03, 0.022, "DICT_6X6_250"), "A4")
+    with pytest.raises(PrintError, match=r"use --paper \d+x\d+mm"):
+        board_sheet(BoardSpec(30, 20, 0.03, 0.022, "DICT_6X6_1000"), "A3")
+    assert paper_size("500x700mm") == (500.0, 700.0) and paper_size("Letter") == (215.9, 279.4)
+    with pytest.raises(PrintError, match="unknown paper 'B7'"):
+        paper_size("B7")
+
+
+def test_board_command_writes_the_sheet_and_the_new_board_file(tmp_path, capsys):
+    out = tmp_path / "prints" / "my_board"
+    assert board_main(["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "2.2cm",
+                       "--out", str(out), "--format", "png", "--dpi", "100"]) == 0
+    assert "Print at 100 %" in capsys.readouterr().out
+    assert BoardSpec.load(out.with_suffix(".yaml")) == BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250")
+    assert out.with_suffix(".pdf").read_bytes().startswith(b"%PDF-")
+    png = cv2.imread(str(out.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
+    assert len(OpenCVDetector(BoardSpec.load(out.with_suffix(".yaml"))).detect(png)) == 24
+    # From a board file: the sheet only, in the format --out names.
+    assert board_main([str(out.with_suffix(".yaml")), "--out", str(tmp_path / "sheet.svg")]) == 0
+    assert (tmp_path / "sheet.svg").read_text().startswith("<?xml")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["prints", "sheet.svg"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--squares", "12x9", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm"], "needs 360 x 292 mm"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30", "--marker", "22mm"], "with its unit"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm"], "--marker missing"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "20mm", "--marker", "22mm"],
+     "--marker (0.022 m) must be smaller than --square"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--paper", "B7"],
+     "unknown paper 'B7'"),
+])
+def test_board_command_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, argv, message):
+    assert board_main([*argv, "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and message in err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_board_command_keeps_foreign_files_and_unwritable_outputs_are_errors(tmp_path, capsys, unwritable_dir):
+    board = BOARDS[0].save(tmp_path / "board.yaml")
+    notes = tmp_path / "notes.pdf"
+    notes.write_text("my notes")
+    assert board_main([str(board), "--out", str(notes)]) == 2
+    assert "exists and is not a PDF file" in capsys.readouterr().err and notes.read_text() == "my notes"
+    assert board_main([str(board), "--out", str(unwritable_dir / "b.pdf")]) == 2
+    assert "error: " in capsys.readouterr().err
+    assert board_main([str(board), "--squares", "7x5", "--out", str(tmp_path / "x")]) == 2
+    assert "not both" in capsys.readouterr().err
+
+
+def test_the_deepcharuco_command_dispatches_and_names_missing_extras(tmp_path, capsys, monkeypatch):
+    assert deepcharuco_main(["--help"]) == 0
+    listed = capsys.readouterr().out
+    assert all(name in listed for name in ("detect", "calibrate", "board", "report", "train"))
+    assert deepcharuco_main(["frobnicate"]) == 2 and "unknown subcommand 'frobnicate'" in capsys.readouterr().err
+    board = BOARDS[0].save(tmp_path / "board.yaml")
+    assert deepcharuco_main(["board", str(board), "--out", str(tmp_path / "b.pdf")]) == 0
+    assert (tmp_path / "b.pdf").is_file()
+    import importlib
+
+    real = importlib.import_module
+
+    def without_matplotlib(name, *args):
+        if name == "evaluate.report":
+            raise ModuleNotFoundError("No module named 'matplotlib'", name="matplotlib")
+        return real(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", without_matplotlib)
+    assert deepcharuco_main(["report"]) == 2
+    assert "deepcharuco report needs matplotlib" in capsys.readouterr().err
