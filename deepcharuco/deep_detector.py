@@ -27,7 +27,7 @@ from deepcharuco.board import BoardSpec, marker_family
 from deepcharuco.board_check import (
     GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, apply_homography, assign_ids, fit_board_homography, id_hypotheses,
 )
-from deepcharuco.detection import Detection, corner_spacing, no_corners
+from deepcharuco.detection import Detection, corner_spacing, detect_board_result, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.junction import locate_by_pattern, printed_pattern
@@ -282,6 +282,12 @@ class Detector:
     def __repr__(self) -> str:
         return (f"Detector(board={self.board!r}, refine={self.refine!r}, geometry={self.geometry!r}, "
                 f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
+
+    def detectBoard(self, image: np.ndarray):  # noqa: N802 - OpenCV's name, so that scripts switch in one line
+        """`detect` in the shapes ``cv2.aruco.CharucoDetector.detectBoard`` returns: (charuco corners (N, 1, 2)
+        float32, charuco ids (N, 1) int32; None for both when none are found; marker corners ``()``, marker ids
+        None: the corners do not come from OpenCV's marker detection, and in the dark there are none to give)."""
+        return detect_board_result(self.detect(image))
 
     @torch.inference_mode()
     def detect(self, image: np.ndarray, *, working_size: int | None = None) -> Detection:

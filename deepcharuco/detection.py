@@ -58,6 +58,21 @@ class Detection:
         }
 
 
+# What ``cv2.aruco.CharucoDetector.detectBoard`` returns: (charuco corners (N, 1, 2) float32 or None, charuco ids
+# (N, 1) int32 or None, marker corners: a tuple of (1, 4, 2) float32, marker ids (M, 1) int32 or None).
+OpenCVBoardResult = tuple
+
+
+def detect_board_result(detection: "Detection", marker_corners: tuple = (), marker_ids: np.ndarray | None = None
+                        ) -> OpenCVBoardResult:
+    """``detection`` in the shapes and types ``cv2.aruco.CharucoDetector.detectBoard`` returns (None for the
+    corners and ids when there are none, as OpenCV), so a script written for OpenCV's call takes it unchanged."""
+    if len(detection) == 0:
+        return None, None, tuple(marker_corners), marker_ids
+    return (detection.corners.reshape(-1, 1, 2).astype(np.float32), detection.ids.reshape(-1, 1).astype(np.int32),
+            tuple(marker_corners), marker_ids)
+
+
 def corner_spacing(corners: np.ndarray) -> float:
     """Median distance from each of (N, 2) corners to its nearest other corner (~ the square side), pixels;
     0 for fewer than 2."""

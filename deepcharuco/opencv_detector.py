@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.detection import Detection
+from deepcharuco.detection import Detection, detect_board_result
 from deepcharuco.image import to_gray_u8
 from deepcharuco.pose import Pose, estimate_pose, project_corners
 from deepcharuco.print_face import canonical_view, corners_from_canonical
@@ -68,15 +68,29 @@ class OpenCVDetector:
 
     def detect(self, image: np.ndarray) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image."""
+        return self._detect(image)[0]
+
+    def detectBoard(self, image: np.ndarray):  # noqa: N802 - OpenCV's name, so that scripts switch in one line
+        """What ``cv2.aruco.CharucoDetector.detectBoard`` returns: (charuco corners (N, 1, 2) float32, charuco ids
+        (N, 1) int32; None for both when none are found; marker corners, a tuple of (1, 4, 2) float32; marker ids
+        (M, 1) int32 or None), with this detector's refinement and without OpenCV 4.11's half-pixel bias."""
+        detection, marker_corners, marker_ids = self._detect(image)
+        return detect_board_result(detection, marker_corners, marker_ids)
+
+    def _detect(self, image: np.ndarray) -> tuple[Detection, tuple, np.ndarray | None]:
         gray = canonical_view(to_gray_u8(image), self.board)  # OpenCV finds only the canonical print
-        corners, ids, marker_corners, _ = self._detector.detectBoard(gray)
+        corners, ids, canonical_markers, marker_ids = self._detector.detectBoard(gray)
+        width = gray.shape[1]
+        marker_corners = tuple(corners_from_canonical(m.reshape(-1, 2), self.board, width).reshape(1, 4, 2)
+                               .astype(np.float32) for m in canonical_markers)
         if ids is None or len(ids) == 0:
-            return Detection.empty()
+            return Detection.empty(), marker_corners, marker_ids
         corners = corners.reshape(-1, 2).astype(np.float32) - charuco_detector_bias()
         if self.refine == "subpix":
-            corners = self._subpix(gray, corners, np.concatenate([m.reshape(-1, 2) for m in marker_corners]))
-        corners = corners_from_canonical(corners, self.board, gray.shape[1])
-        return Detection(ids=ids.ravel(), corners=corners, scores=np.ones(len(corners), np.float32))
+            corners = self._subpix(gray, corners, np.concatenate([m.reshape(-1, 2) for m in canonical_markers]))
+        corners = corners_from_canonical(corners, self.board, width)
+        detection = Detection(ids=ids.ravel(), corners=corners, scores=np.ones(len(corners), np.float32))
+        return detection, marker_corners, marker_ids
 
     def _subpix(self, gray: np.ndarray, corners: np.ndarray, marker_points: np.ndarray) -> np.ndarray:
         # A window that reaches a marker corner pulls the estimate towards it: keep 2 px clear.

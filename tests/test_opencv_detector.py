@@ -1,5 +1,6 @@
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -108,3 +109,38 @@ def test_shipped_weights_find_the_bundled_example():
     truth = dict(zip(reference.ids.tolist(), reference.corners))
     close = [i for i, c in zip(found.ids.tolist(), found.corners) if i in truth and np.linalg.norm(c - truth[i]) < 0.5]
     assert len(reference.ids) == 16 and len(close) >= 8, (found.ids, len(close))
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_detect_board_is_opencvs_call_in_shape_and_type(camera, mirrored):
+    """detectBoard returns what cv2.aruco.CharucoDetector.detectBoard does, so a script written for it switches in
+    one line; its corners are `detect`'s, and the markers lie on the board in the image (a mirrored board too)."""
+    from deepcharuco import Detector
+
+    board = BoardSpec(mirrored=mirrored)
+    image = make_view(BoardSpec(), camera, **VIEW_POSES[0])[0]
+    image = image[:, ::-1].copy() if mirrored else image
+    theirs = cv2.aruco.CharucoDetector(BoardSpec().cv_board()).detectBoard(image[:, ::-1] if mirrored else image)
+    for detector in (OpenCVDetector(board), Detector(board=board)):
+        corners, ids, marker_corners, marker_ids = detector.detectBoard(image)
+        found = detector.detect(image)
+        n = len(found)
+        assert n >= 12 and corners.shape == (n, 1, 2) and corners.dtype == np.float32
+        assert ids.shape == (n, 1) and ids.dtype == np.int32
+        assert np.array_equal(ids.ravel(), found.ids) and np.array_equal(corners.reshape(-1, 2), found.corners)
+        assert isinstance(marker_corners, tuple)
+        # Usable as OpenCV's output: matchImagePoints pairs them with the board's points.
+        objects, pixels = board.cv_board().matchImagePoints(corners, ids)
+        assert objects.shape == (n, 1, 3) and pixels.shape == (n, 1, 2)
+    corners, ids, marker_corners, marker_ids = OpenCVDetector(board).detectBoard(image)
+    assert len(marker_corners) == len(theirs[2]) == 12 and marker_ids.shape == (12, 1)
+    assert all(m.shape == (1, 4, 2) and m.dtype == np.float32 for m in marker_corners)
+    # The markers are OpenCV's, in this image's pixels: a mirrored board's mapped back from the flipped view.
+    expected = [m.reshape(4, 2).copy() for m in theirs[2]]
+    if mirrored:
+        for m in expected:
+            m[:, 0] = image.shape[1] - 1 - m[:, 0]
+    assert np.array_equal(marker_ids, theirs[3])
+    assert max(np.abs(m.reshape(4, 2) - e).max() for m, e in zip(marker_corners, expected)) < 1e-4
+    assert OpenCVDetector(board).detectBoard(np.full((240, 320), 128, np.uint8))[:2] == (None, None)
+    assert Detector(board=board).detectBoard(np.full((240, 320), 128, np.uint8)) == (None, None, (), None)
