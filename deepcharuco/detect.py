@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from deepcharuco.backends import BACKENDS
 from deepcharuco.board import BoardSpec
 from deepcharuco.board_hints import what_matches
 from deepcharuco.camera import Camera, read_camera
@@ -38,7 +39,6 @@ from deepcharuco.files import atomic_file, refuse_foreign, starts_with, temporar
 from deepcharuco.image import to_gray_u8
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.pose import Pose
-from deepcharuco.runtime import BACKENDS
 from deepcharuco.tracking import BoardTracker
 from deepcharuco.video import VideoFrames
 
@@ -149,7 +149,11 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
         if refine == "refinenet":
             raise DeepCharucoError("--refine refinenet needs --detector deep or hybrid; OpenCV takes subpix or none")
         return OpenCVDetector(board, refine=refine)
-    from deepcharuco.deep_detector import Detector
+    try:
+        from deepcharuco.deep_detector import Detector
+    except ImportError as error:  # torch: the networks' loader needs it in this version
+        raise DeepCharucoError(f"--detector {name} needs PyTorch ({error}): pip install torch (the CPU build is "
+                               f"enough), or use --detector opencv") from None
 
     return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights,
                     mode="hybrid" if name == "hybrid" else "deep", backend=backend)

@@ -39,11 +39,11 @@ import numpy as np
 import torch
 from threadpoolctl import ThreadpoolController
 
+from deepcharuco.backends import BACKENDS
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.models.charuconet import ChArUcoNet, PointHeadOnly
 from deepcharuco.models.refinenet import PATCH, RefineNet
 
-BACKENDS = ("auto", "torch", "onnx", "onnx-int8")
 INT8_KEY = "int8"  # in a ChArUcoNet checkpoint: {"onnx": bytes, "calibration": ..., "validation": ...}
 
 

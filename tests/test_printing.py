@@ -125,3 +125,27 @@ def test_the_deepcharuco_command_dispatches_and_names_missing_extras(tmp_path, c
     monkeypatch.setattr(importlib, "import_module", without_matplotlib)
     assert deepcharuco_main(["report"]) == 2
     assert "deepcharuco report needs matplotlib" in capsys.readouterr().err
+
+
+def test_opencv_commands_and_printing_run_without_torch(tmp_path):
+    """The OpenCV detector's detect and calibrate, and the board sheets, import no PyTorch; the deep detector
+    without it is one line naming what to install."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    examples = Path(__file__).parents[1] / "deepcharuco" / "examples"
+    code = f"""
+import sys
+sys.modules["torch"] = None  # any import of torch fails
+from deepcharuco.command import main
+assert main(["detect", r"{examples / 'board_320x240.png'}", "--camera", r"{examples / 'webcam_320x240.yaml'}",
+             "--out", r"{tmp_path / 'out'}"]) == 0
+assert main(["board", "--squares", "5x5", "--dictionary", "DICT_5X5_50", "--square", "35mm", "--marker", "26mm",
+             "--out", r"{tmp_path / 'b'}"]) == 0
+assert main(["detect", r"{examples / 'board_320x240.png'}", "--detector", "deep", "--out", r"{tmp_path / 'x'}"]) == 2
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "--detector deep needs PyTorch" in done.stderr and "Traceback" not in done.stderr
+    assert (tmp_path / "b.pdf").is_file() and (tmp_path / "out" / "board_320x240.json").is_file()
