@@ -163,14 +163,16 @@ def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
 def run_shard_tasks(function, tasks: list[tuple], shards: list[int], out: Path, *, noun: str = "shard",
                     **options) -> None:
     """`run_tasks` for tasks that each write shard ``shards[i]`` into ``out``. Any way the run
-    ends early (Ctrl-C, a task that raises, a worker killed, a full disk) becomes one
-    `DeepCharucoError` saying why and how many complete shards were kept; the unfinished shards'
-    temporary files are removed (a killed worker cannot remove its own)."""
+    ends early (a task that raises, a worker killed, a full disk) becomes one `DeepCharucoError`
+    saying why and how many complete shards were kept, Ctrl-C a `KeyboardInterrupt` saying the
+    same; the unfinished shards' temporary files are removed (a killed worker cannot remove its own)."""
     try:
         run_tasks(function, tasks, **options)
         return
-    except KeyboardInterrupt:
-        reason = "interrupted"
+    except KeyboardInterrupt:  # a stop, not a failure: exit code 130 through run_command
+        remove_stale_temporaries(out, shards)
+        raise KeyboardInterrupt(f"{len(list_shards(out))} complete {noun}(s) kept in {out}; rerun the same command "
+                                f"with --resume to finish") from None
     except TaskError as failure:
         shard = shards[failure.task_index]
         if failure.error is None:

@@ -42,11 +42,18 @@ def describe_os_error(error: OSError) -> str:
     return f"cannot access{where}: {explain_os_error(error)}"
 
 
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a command stopped by Ctrl-C
+
+
 def run_command(body: Callable[[], int | None]) -> int:
     """``body()``'s exit code (None: 0); a `DeepCharucoError` or `OSError` becomes ``error: ...`` on
-    stderr and exit code 2."""
+    stderr and exit code 2; Ctrl-C (`KeyboardInterrupt`) becomes ``stopped: ...`` and exit code 130,
+    without a traceback (``KeyboardInterrupt("what was kept and how to go on")`` says more)."""
     try:
         code = body()
+    except KeyboardInterrupt as stop:
+        print(f"stopped: {stop.args[0] if stop.args else 'interrupted (Ctrl-C) before the end'}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except DeepCharucoError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT

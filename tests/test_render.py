@@ -144,6 +144,24 @@ def test_resume_after_a_kill_completes_without_duplicates(reference, tmp_path):
     assert mismatch.returncode == 2 and "seed" in mismatch.stderr
 
 
+def test_ctrl_c_stops_the_render_with_exit_130_and_says_how_to_go_on(reference, tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) is a stop, not a failure: exit code 130,
+    one line saying what was kept and how to finish, no traceback, no temporaries."""
+    out, seed = reference
+    args = ["--n", 6, "--shard-size", 2, "--seed", seed, "--out", tmp_path, *SMALL]
+    process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.time() + 120
+    while not list_shards(tmp_path) if tmp_path.exists() else True:
+        assert time.time() < deadline and process.poll() is None, "no shard appeared"
+        time.sleep(0.1)
+    os.killpg(process.pid, signal.SIGINT)
+    err = process.communicate()[1]
+    assert process.returncode == 130, err[-2000:]
+    assert "stopped: " in err and "complete shard(s) kept in" in err and "--resume to finish" in err
+    assert "Traceback" not in err and not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
 def worker_pids(parent: int) -> list[int]:
     """The render worker processes of ``parent`` (spawned children, not multiprocessing's resource tracker)."""
     children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
