@@ -298,9 +298,12 @@ class BoardSpec:
         if not path.is_file():
             raise BoardSpecError(f"board file {path} does not exist")
         suffix = path.suffix.lower()
-        if suffix not in (".json", ".yaml", ".yml"):
-            raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml")
+        if suffix not in (".json", ".yaml", ".yml", ".toml"):
+            raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml (or caliscope's "
+                                 f".toml)")
         text = _read_board_text(path)
+        if suffix == ".toml":
+            return cls.from_dict(_read_toml_board(text, path), source=str(path))
         if suffix == ".json":
             try:
                 data = json.loads(text)
@@ -311,6 +314,52 @@ class BoardSpec:
                                      f"fields ({', '.join(REQUIRED_FIELDS)}, ...)") from None
             return cls.from_dict(data, source=str(path))
         return cls.from_dict(_read_flat_yaml(text, path), source=str(path))
+
+
+# caliscope's charuco.toml (or the [charuco] table of its config.toml): its keys, and how they make a board.
+CALISCOPE_KEYS = {"columns", "rows", "board_height", "board_width", "dictionary", "units", "aruco_scale",
+                  "square_size_overide_cm", "square_size_override_cm", "inverted", "legacy_pattern"}
+CM_PER_INCH = 2.54
+
+
+def _read_toml_board(text: str, path: Path) -> dict:
+    """A TOML board file as `BoardSpec.from_dict` takes it: caliscope's (``columns``, ``rows``, ``aruco_scale``,
+    the square from ``square_size_overide_cm`` or, as caliscope computes it, the largest square that fits
+    ``board_width`` x ``board_height`` in ``units``), or this project's own fields in TOML."""
+    try:
+        import tomllib
+    except ImportError:  # Python < 3.11
+        try:
+            import tomli as tomllib
+        except ImportError:
+            raise BoardSpecError(f"reading {path} needs Python 3.11 or the tomli package (pip install tomli)") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise BoardSpecError(f"{path} is not valid TOML: {error}") from None
+    if isinstance(data.get("charuco"), dict):  # caliscope's config.toml keeps the board in a [charuco] table
+        data = data["charuco"]
+    if "columns" not in data and "rows" not in data:
+        return data  # this project's fields, written as TOML
+    unknown = sorted(set(data) - CALISCOPE_KEYS)
+    missing = [key for key in ("columns", "rows", "dictionary") if key not in data]
+    if unknown or missing:
+        raise BoardSpecError(f"{path}: {'unknown field(s) ' + str(unknown[:5]) if unknown else ''}"
+                             f"{'; ' if unknown and missing else ''}{'missing ' + str(missing) if missing else ''}: "
+                             f"a caliscope board has {sorted(CALISCOPE_KEYS)}")
+    override = data.get("square_size_overide_cm", data.get("square_size_override_cm"))
+    if override:
+        square = float(override) / 100.0
+    else:
+        if "board_height" not in data or "board_width" not in data:
+            raise BoardSpecError(f"{path}: give square_size_overide_cm or board_width and board_height")
+        to_metres = CM_PER_INCH / 100.0 if data.get("units", "inch") == "inch" else 0.01
+        square = min(float(data["board_height"]) * to_metres / data["rows"],
+                     float(data["board_width"]) * to_metres / data["columns"])
+    # Lengths to the nanometre: 5.4 cm / 100 is 0.054, not float's 0.054000000000000006.
+    return {"squares_x": data["columns"], "squares_y": data["rows"], "square_length": round(square, 9),
+            "marker_length": round(square * float(data.get("aruco_scale", 0.75)), 9), "dictionary": data["dictionary"],
+            "inverted": bool(data.get("inverted", False)), "legacy": bool(data.get("legacy_pattern", False))}
 
 
 def _read_board_text(path: Path) -> str:

@@ -242,3 +242,25 @@ def test_too_many_markers_suggests_a_dictionary_that_holds_them(dictionary, squa
 def test_first_marker_id_past_the_dictionary_suggests_a_larger_one():
     with pytest.raises(BoardSpecError, match="use the larger dictionary DICT_4X4_100 or a smaller first_marker_id"):
         BoardSpec(5, 5, 0.04, 0.03, "DICT_4X4_50", first_marker_id=40)
+
+
+def test_caliscope_charuco_toml_reads_as_its_board(tmp_path):
+    """caliscope's charuco.toml (fields as caliscope writes them; its square from the override, else the largest
+    that fits the sheet, as caliscope computes it) is a board file, alone or as config.toml's [charuco] table."""
+    fields = ('columns = 4\nrows = 5\nboard_height = 11.0\nboard_width = 8.5\ndictionary = "DICT_4X4_1000"\n'
+              'units = "inch"\naruco_scale = 0.75\n')
+    (tmp_path / "charuco.toml").write_text(fields + "square_size_overide_cm = 5.4\ninverted = true\n")
+    assert BoardSpec.load(tmp_path / "charuco.toml") == BoardSpec(4, 5, 0.054, 0.0405, "DICT_4X4_1000", inverted=True)
+    (tmp_path / "config.toml").write_text("[charuco]\n" + fields)
+    board = BoardSpec.load(tmp_path / "config.toml")
+    assert board.square_length == pytest.approx(8.5 * 0.0254 / 4) and not board.inverted  # 2.125 in fits 8.5 in / 4
+    assert board.marker_length == pytest.approx(0.75 * board.square_length)
+    (tmp_path / "ours.toml").write_text('squares_x = 7\nsquares_y = 5\nsquare_length = 0.03\nmarker_length = 0.022\n'
+                                        'dictionary = "DICT_6X6_250"\n')
+    assert BoardSpec.load(tmp_path / "ours.toml") == BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250")
+    (tmp_path / "bad.toml").write_text("columns = 4\nrows = 5\ndictionary = 'DICT_4X4_50'\n")
+    with pytest.raises(BoardSpecError, match="give square_size_overide_cm or board_width and board_height"):
+        BoardSpec.load(tmp_path / "bad.toml")
+    (tmp_path / "broken.toml").write_text("columns = \n")
+    with pytest.raises(BoardSpecError, match="is not valid TOML"):
+        BoardSpec.load(tmp_path / "broken.toml")
