@@ -121,7 +121,7 @@ def check_writable(path: Path) -> None:
         raise DeepCharucoError(f"cannot write {path}: {existing} is not a writable folder; choose another --out")
 
 
-# How every calibration report begins (evaluate.calibration_report, titled "Calibration of ..."): what --out's
+# How every calibration report begins (deepcharuco.calibration_report, titled "Calibration of ..."): what --out's
 # report may overwrite without --force.
 REPORT_START = b"<!doctype html><html><head><meta charset='utf-8'><title>Calibration"
 
@@ -160,11 +160,13 @@ def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) ->
     files = {out: calibration_text(result, board, args.detector, out.name)}
     if report is not None:
         try:
-            from evaluate.calibration_report import report_html
-        except ImportError as exc:  # matplotlib is an extra
+            import matplotlib  # noqa: F401 - the report's figures need it: the eval extra
+        except ImportError as exc:
             print(f"no report ({exc}): pip install 'deepcharuco[eval]' for it", file=sys.stderr)
             report = None
         else:
+            from deepcharuco.calibration_report import report_html
+
             report.parent.mkdir(parents=True, exist_ok=True)
             files[report] = report_html(result, board, title=f"Calibration of {source.stem} ({args.detector} detector)",
                                         command="python -m deepcharuco.calibrate " + " ".join(args.argv))

@@ -42,13 +42,9 @@ from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
 from deepcharuco.runtime import make_runner, single_threaded_blas
+from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 from deepcharuco.vectors import lengths
 
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
-# Family models (`train.pipeline --family F`): weights/families/DICT_4X4.pt ..., point head trained on random
-# boards of the family; `Detector()` loads the one of the board's family (`shipped_weights`).
-FAMILY_WEIGHTS_DIR = WEIGHTS_DIR / "families"
 REFINE_MODES = ("refinenet", "subpix", "none")
 DEFAULT_THRESHOLD = 0.3
 PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)

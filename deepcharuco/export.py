@@ -37,6 +37,7 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import write_atomic
 from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH
+from deepcharuco.shipped import DEFAULT_WEIGHTS
 
 FORMATS = ("torchscript", "onnx")
 OPSET = 17
@@ -226,7 +227,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--format", nargs="+", choices=FORMATS, default=list(FORMATS), help="formats to write")
     parser.add_argument("--tolerance", type=float, default=TOLERANCE, help="largest allowed |logit difference|")
     args = parser.parse_args(argv)
-    from deepcharuco.deep_detector import DEFAULT_WEIGHTS
 
     weights = args.weights or DEFAULT_WEIGHTS
 

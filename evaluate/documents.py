@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import base64
-import html
 from pathlib import Path
 
 from deepcharuco.files import write_atomic
+from deepcharuco.html_page import html_page, image_format
 from evaluate.experiments import LABELS
 
 PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}
@@ -145,13 +144,8 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
     return out
 
 
-def _format(data: bytes) -> str:
-    """"jpeg" for JPEG bytes (the real-captures gallery: photos stay small), else "png"."""
-    return "jpeg" if data[:3] == b"\xff\xd8\xff" else "png"
-
-
 def _file_name(name: str, data: bytes) -> str:
-    return f"{name}.{'jpg' if _format(data) == 'jpeg' else 'png'}"
+    return f"{name}.{'jpg' if image_format(data) == 'jpeg' else 'png'}"
 
 
 def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
@@ -170,38 +164,6 @@ def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path
         write_atomic(path.parent / "figures" / _file_name(name, data), data)
     write_atomic(path, "\n".join(lines))
     return path
-
-
-CSS = """body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;
-color:#222;line-height:1.45}h1{margin-bottom:.2em}h2{border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;margin:.8em 0;font-size:.9em}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
-th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}code{background:#f3f3f3;padding:.1em .3em}
-.figures{display:flex;flex-wrap:wrap;gap:1em}.figures img{max-width:100%;border:1px solid #eee}"""
-
-
-def _inline(text: str) -> str:
-    """Markdown's **bold** in table cells and text, escaped otherwise."""
-    parts = html.escape(text).split("**")
-    return "".join(f"<b>{p}</b>" if i % 2 else p for i, p in enumerate(parts))
-
-
-def html_page(title: str, command: str, page_sections: list[tuple[str, str, list[list[str]] | None, list[str]]],
-              figures: dict[str, bytes]) -> str:
-    """A self-contained HTML page (figures inlined as PNG): a title, the command that made it, then each
-    (title, text, table rows (first = header) or None, figure names) section."""
-    body = [f"<h1>{html.escape(title)}</h1><p><code>{html.escape(command)}</code></p>"]
-    for heading, text, rows, names in page_sections:
-        body.append(f"<h2>{html.escape(heading)}</h2><p>{_inline(text)}</p>")
-        if rows:
-            body.append("<table><tr>" + "".join(f"<th>{_inline(c)}</th>" for c in rows[0]) + "</tr>")
-            body += ["<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows[1:]]
-            body.append("</table>")
-        if names:
-            body.append('<div class="figures">' + "".join(
-                f'<img alt="{name}" src="data:image/{_format(figures[name])};base64,{base64.b64encode(figures[name]).decode()}">'
-                for name in names if name in figures) + "</div>")
-    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>")
 
 
 def write_html(path: Path, results: dict, figures: dict[str, bytes]) -> Path:

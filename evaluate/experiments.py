@@ -14,6 +14,8 @@ the gallery need under keys starting with "_" (dropped from results.json).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from tqdm import tqdm
 
@@ -130,8 +132,10 @@ def hardest_frames(experiment: dict, names: list[str], count: int) -> list[tuple
     return chosen
 
 
-def targets(results: dict) -> list[dict]:
-    """The project's targets (issue 6; docs/conventions.md "Targets") against this report's numbers."""
+def targets(results: dict, more: Iterable[tuple[str, float | None, str, bool]] = ()) -> list[dict]:
+    """The project's targets (issue 6; docs/conventions.md "Targets") against this report's numbers; ``more``:
+    other experiments' (what, value, goal, met) rows (the look-alike boards', the unseen boards'), listed
+    before the speed target."""
     rows = []
 
     def add(what: str, value, target: str, met) -> None:
@@ -169,13 +173,7 @@ def targets(results: dict) -> list[dict]:
                 family, own = synthetic[effect]["deep_markers"]["accuracy"][i], synthetic[effect]["deep"]["accuracy"][i]
                 add(f"paper's board, {effect} k={k}: by markers (any board) vs the board's own ID head", family,
                     f">= {own:.3f} (own ID head)", family >= own)
-    from evaluate.false_positives import targets as false_positive_targets
-    from evaluate.unseen_boards import targets as unseen_targets
-
-    for what, value, goal, met in false_positive_targets(results.get("false_positives", {})):
-        add(what, value, goal, met)
-
-    for what, value, goal, met in unseen_targets(results.get("unseen_boards", {})):
+    for what, value, goal, met in more:
         add(what, value, goal, met)
     fps = results.get("timing", {}).get("fps", {})
     if "deep" in fps:

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import io
 
 import cv2
 import numpy as np
 
 from deepcharuco.draw import draw_detection
+from deepcharuco.html_page import png, pyplot
 from evaluate.experiments import LABELS
 from evaluate.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
 
@@ -17,25 +17,11 @@ STYLE = {"deep": ("tab:blue", "-o"), "deep_subpix": ("tab:cyan", "--^"), "deep_n
 TRUTH_COLOUR = (60, 60, 255)  # BGR red
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only, no display
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _png(figure) -> bytes:
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
-    _pyplot().close(figure)
-    return buffer.getvalue()
 
 
 def synthetic_figure(synthetic: dict, effect: str) -> bytes:
     """Mean corner accuracy vs k for each detector: the paper's blur / darkness figures."""
-    plt = _pyplot()
+    plt = pyplot()
     figure, axis = plt.subplots(figsize=(5.2, 3.4))
     levels = synthetic["levels"]
     for name, curve in synthetic[effect].items():
@@ -50,12 +36,12 @@ def synthetic_figure(synthetic: dict, effect: str) -> bytes:
                    f"({len(synthetic['images'])} images)")
     axis.grid(alpha=0.3)
     axis.legend(loc="lower left", fontsize=8)
-    return _png(figure)
+    return png(figure)
 
 
 def threshold_figure(curves: dict, title: str) -> bytes:
     """Fraction of frames with eps_re below each threshold: the paper's pose-accuracy figure."""
-    plt = _pyplot()
+    plt = pyplot()
     figure, axis = plt.subplots(figsize=(5.2, 3.4))
     thresholds = curves["thresholds_px"]
     for name, values in curves.items():
@@ -71,7 +57,7 @@ def threshold_figure(curves: dict, title: str) -> bytes:
     axis.set_title(title)
     axis.grid(alpha=0.3)
     axis.legend(loc="lower right", fontsize=8)
-    return _png(figure)
+    return png(figure)
 
 
 def _panel(frame: TestFrame, score: PoseScore, label: str, scale: int) -> np.ndarray:

@@ -203,7 +203,8 @@ def run_report(args: argparse.Namespace) -> dict:
         results["false_positives"] = false_positives.false_positive_experiment(
             suspects, board, views=4 if quick else args.look_alike_views, seed=args.seed, quiet=args.quiet)
 
-    results["targets"] = experiments.targets(results)
+    results["targets"] = experiments.targets(results, [*false_positives.targets(results.get("false_positives", {})),
+                                                       *unseen_boards.targets(results.get("unseen_boards", {}))])
     results["seconds"] = round(time.perf_counter() - started, 1)
     notes.append(_summary(results))
     results["notes"] = notes

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.files import write_atomic
+from deepcharuco.html_page import html_page
 from evaluate import documents
 from evaluate.captures.present import DEFAULT_GALLERY, DEFAULT_STEP, capture_sections, evaluate_captures, sample_folders
 
@@ -62,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         write_atomic(out / "captures.json", json.dumps(results, indent=1) + "\n")
         page = capture_sections(results)
         _write_markdown(out / "captures.md", results["command"], page, pictures)
-        write_atomic(out / "captures.html", documents.html_page("Real captures", results["command"], page, pictures))
+        write_atomic(out / "captures.html", html_page("Real captures", results["command"], page, pictures))
         for title, _, rows, _ in page[:1]:
             print("\n".join(" | ".join(r) for r in rows))
         print(f"{results['seconds']:.0f} s; wrote {out / 'captures.html'}, captures.md, captures.json")

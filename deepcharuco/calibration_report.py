@@ -2,8 +2,8 @@
 
 RMS and per-view errors, the coverage of the image by the views' corners, their residual
 vectors, the distortion field of the solved model, every frame's fate (kept, or dropped and
-why) and the parameters with their standard deviations. Built with `evaluate.documents.html_page`
-and the figure helpers of `evaluate.figures`.
+why) and the parameters with their standard deviations. Built with `deepcharuco.html_page` (the page and
+its matplotlib figures: the ``eval`` extra).
 """
 
 from __future__ import annotations
@@ -17,8 +17,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibration import CalibrationResult
 from deepcharuco.files import write_atomic
-from evaluate.documents import html_page
-from evaluate.figures import _png, _pyplot
+from deepcharuco.html_page import html_page, png, pyplot
 
 MAX_LISTED = 200  # rows of the per-frame table; the counts by reason cover every frame
 
@@ -39,7 +38,7 @@ def ideal_pixels(result: CalibrationResult, pixels: np.ndarray) -> np.ndarray:
 
 def coverage_figure(result: CalibrationResult, bins: tuple[int, int] = (16, 12)) -> bytes:
     """Heat map of the kept views' corners over the image: where the calibration has evidence."""
-    plt = _pyplot()
+    plt = pyplot()
     width, height = result.image_size
     corners = np.concatenate([v.corners for v in result.views]) if result.views else np.zeros((0, 2))
     counts, _, _ = np.histogram2d(corners[:, 0], corners[:, 1], bins=bins, range=[[-0.5, width - 0.5], [-0.5, height - 0.5]])
@@ -50,12 +49,12 @@ def coverage_figure(result: CalibrationResult, bins: tuple[int, int] = (16, 12))
     axis.set_title(f"Coverage: {len(corners)} corners of {len(result.views)} views\n{empty} of {counts.size} cells empty")
     axis.set_xlabel("x (px)")
     axis.set_ylabel("y (px)")
-    return _png(figure)
+    return png(figure)
 
 
 def residual_figure(result: CalibrationResult) -> bytes:
     """Each used corner's residual (detected minus reprojected) as an arrow from the corner, magnified."""
-    plt = _pyplot()
+    plt = pyplot()
     width, height = result.image_size
     corners = np.concatenate([v.corners for v in result.views])
     residuals = np.concatenate(result.residuals)
@@ -70,13 +69,13 @@ def residual_figure(result: CalibrationResult) -> bytes:
     axis.set_title(f"Residuals x {gain:.0f} (RMS {result.rms:.3f} px, max {norms.max():.2f} px)")
     axis.set_xlabel("x (px)")
     axis.set_ylabel("y (px)")
-    return _png(figure)
+    return png(figure)
 
 
 def distortion_figure(result: CalibrationResult, step: int | None = None) -> bytes:
     """The solved distortion: how far it moves each pixel from where the undistorted camera would put it
     (contours of the magnitude in px, arrows for the direction)."""
-    plt = _pyplot()
+    plt = pyplot()
     width, height = result.image_size
     step = step or max(width, height) // 24
     xs, ys = np.meshgrid(np.arange(0, width, step, dtype=np.float64), np.arange(0, height, step, dtype=np.float64))
@@ -92,12 +91,12 @@ def distortion_figure(result: CalibrationResult, step: int | None = None) -> byt
     axis.set_ylim(ys.max(), 0)
     axis.set_aspect("equal")
     axis.set_title(f"Distortion field ({result.model}): up to {magnitude.max():.1f} px")
-    return _png(figure)
+    return png(figure)
 
 
 def view_error_figure(result: CalibrationResult) -> bytes:
     """RMS of each kept view against its frame number, and the frames dropped as outliers."""
-    plt = _pyplot()
+    plt = pyplot()
     figure, axis = plt.subplots(figsize=(6.4, 2.8))
     frames = [v.index for v in result.views]
     axis.bar(frames, result.per_view_rms, width=max(1.0, (max(frames) - min(frames) + 1) / 150), color="tab:blue",
@@ -111,7 +110,7 @@ def view_error_figure(result: CalibrationResult) -> bytes:
     axis.set_ylabel("view RMS (px)")
     axis.legend(fontsize=8)
     axis.grid(alpha=0.3)
-    return _png(figure)
+    return png(figure)
 
 
 def parameter_rows(result: CalibrationResult) -> list[list[str]]:
