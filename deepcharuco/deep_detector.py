@@ -21,8 +21,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 
+from deepcharuco.backends import BACKENDS
 from deepcharuco.board import BoardSpec, marker_family
 from deepcharuco.board_check import (
     GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, apply_homography, assign_ids, fit_board_homography, id_hypotheses,
@@ -32,16 +32,15 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
-from deepcharuco.models.cells import CellCandidates, best_per_id, cell_candidates
-from deepcharuco.models.charuconet import CELL
-from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
-from deepcharuco.models.refinenet import PATCH, decode_offsets
+from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates
+from deepcharuco.models.offsets import PATCH, soft_argmax_offsets
+from deepcharuco.onnx_bundle import OnnxBundle, bundle_path, is_bundle, read_bundle
+from deepcharuco.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers, drop_isolated,
                                    marker_view_verified, settle_corners)
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
-from deepcharuco.runtime import make_runner, single_threaded_blas
 from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 from deepcharuco.vectors import lengths
 
@@ -170,6 +169,52 @@ def shipped_weights(board: BoardSpec | None) -> Path:
     return DEFAULT_WEIGHTS
 
 
+def _torch_installed() -> bool:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle | None:
+    """The ONNX bundle the detector runs (`deepcharuco.onnx_bundle`): ``weights`` itself when it is one, else
+    the one beside the weights where PyTorch is not installed; None where PyTorch reads the weights."""
+    if is_bundle(weights):
+        if refine_weights is not None:
+            raise DeepCharucoError(f"{weights} is an ONNX bundle and holds its own RefineNet: leave refine_weights out")
+        return read_bundle(weights)
+    if _torch_installed():
+        return None
+    if is_bundle(bundle_path(weights)) and refine_weights is None:
+        return read_bundle(bundle_path(weights))
+    raise DeepCharucoError(
+        f"{weights} is a PyTorch checkpoint and PyTorch is not installed: pip install torch (the CPU build is enough), "
+        f"or where PyTorch is, write its ONNX bundle (python -m deepcharuco.export --bundle --weights {weights}) and "
+        f"pass weights={bundle_path(weights)}")
+
+
+def _bundle_runner(bundle: OnnxBundle, backend: str, refinenet: bool, points_only: bool) -> OnnxRunner:
+    """ONNX Runtime over a bundle's models; ``backend`` as `deepcharuco.runtime.resolve_backend` reads it on the CPU
+    ("auto": the int8 ChArUcoNet where the bundle has one, run whole)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "torch":
+        raise DeepCharucoError("backend='torch' needs PyTorch: pip install torch, or use backend='auto' or 'onnx'")
+    if not onnxruntime_available():
+        raise DeepCharucoError("the networks need ONNX Runtime (or PyTorch): pip install onnxruntime")
+    int8 = bundle.models.get("charuconet_int8.onnx")
+    if backend == "onnx-int8" and int8 is None:
+        raise DeepCharucoError(f"{bundle.path} carries no int8 model: use backend='onnx'")
+    refine_model = bundle.models.get("refinenet.onnx") if refinenet else None
+    if refinenet and refine_model is None:
+        raise DeepCharucoError(f"{bundle.path} holds no RefineNet: use refine='subpix' or 'none'")
+    if backend in ("auto", "onnx-int8") and int8 is not None:
+        return OnnxRunner(int8, refine_model, name="onnx-int8")
+    charuconet = bundle.models["charuconet_points.onnx" if points_only else "charuconet.onnx"]
+    return OnnxRunner(charuconet, refine_model)
+
+
 class Detector:
     """The deep ChArUco detector.
 
@@ -240,8 +285,19 @@ class Detector:
                     f"no shipped weights in this version ({weights} is missing): train them with python -m "
                     f"train.charuconet and python -m train.refinenet, then pass weights=..., refine_weights=...")
         self.weights = Path(weights)
-        self.device = torch.device(device)
-        self.charuconet, trained_for, self.checkpoint = load_charuconet(weights)
+        bundle = _onnx_bundle(self.weights, refine_weights)  # None: PyTorch reads the weights
+        if bundle is None:
+            import torch
+
+            from deepcharuco.models.checkpoint import load_charuconet
+
+            self.device = torch.device(device)
+            self.charuconet, trained_for, self.checkpoint = load_charuconet(weights)
+        else:
+            if device != "cpu":
+                raise DeepCharucoError(f"device={device!r} needs PyTorch: without it the networks run on the CPU "
+                                       f"(ONNX Runtime); pip install torch, or use device='cpu'")
+            self.device, self.charuconet, trained_for, self.checkpoint = "cpu", None, bundle.board, bundle.meta
         self.board = board or trained_for
         own_board = self.board.same_layout(trained_for)
         if geometry is None:
@@ -269,11 +325,17 @@ class Detector:
         if geometry == "markers":  # drawn now, not in the first frame that fills a corner in (~50 ms for 11x8 squares)
             printed_pattern(self.board)
         self.refinenet = None
-        if refine == "refinenet":
-            self.refinenet, _ = load_refinenet(refine_weights or weights)
         # Boards found by their markers never read the ID head: ChArUcoNet runs without it (~1 ms at 320x240).
-        self.runner = make_runner(backend, self.charuconet, self.refinenet, self.device, self.checkpoint,
-                                  points_only=geometry == "markers")
+        if bundle is None:
+            from deepcharuco.models.checkpoint import load_refinenet
+            from deepcharuco.runtime import make_runner
+
+            if refine == "refinenet":
+                self.refinenet, _ = load_refinenet(refine_weights or weights)
+            self.runner = make_runner(backend, self.charuconet, self.refinenet, self.device, self.checkpoint,
+                                      points_only=geometry == "markers")
+        else:
+            self.runner = _bundle_runner(bundle, backend, refine == "refinenet", points_only=geometry == "markers")
 
     def __repr__(self) -> str:
         return (f"Detector(board={self.board!r}, refine={self.refine!r}, geometry={self.geometry!r}, "
@@ -285,7 +347,6 @@ class Detector:
         None: the corners do not come from OpenCV's marker detection, and in the dark there are none to give)."""
         return detect_board_result(self.detect(image))
 
-    @torch.inference_mode()
     def detect(self, image: np.ndarray, *, working_size: int | None = None) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
@@ -454,7 +515,7 @@ class Detector:
                                     criteria).reshape(-1, 2)
         return pixels.astype(np.float32)
 
-    def decode(self, point_logits: torch.Tensor, id_logits: torch.Tensor, image_size: tuple[int, int],
+    def decode(self, point_logits: np.ndarray, id_logits: np.ndarray | None, image_size: tuple[int, int],
                gray: np.ndarray | None = None, read_gray: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One image's ChArUcoNet logits (65, Hc, Wc), (N+1, Hc, Wc) -> integer corner pixels before refinement:
@@ -507,9 +568,9 @@ class Detector:
             refined[todo] = self._corners(origins, self.runner.refinenet(patches))
         return _within(refined, pixels, max_move)
 
-    def _corners(self, origins: np.ndarray, logits: torch.Tensor) -> np.ndarray:
+    def _corners(self, origins: np.ndarray, logits: np.ndarray) -> np.ndarray:
         """Patch top-left pixels (N, 2), RefineNet's logits (N, 4096) -> (N, 2) float32 refined corners."""
-        return (origins + decode_offsets(logits, self.soft_radius).numpy()).astype(np.float32)
+        return (origins + soft_argmax_offsets(logits, self.soft_radius)).astype(np.float32)
 
     def estimate_pose(self, detection: Detection, K: np.ndarray, dist: np.ndarray | None = None, **kwargs) -> Pose | None:
         """`deepcharuco.estimate_pose` for this detector's board.

@@ -34,7 +34,7 @@ import torch
 
 from deepcharuco.cli import output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.files import write_atomic
+from deepcharuco.files import write_atomic, write_together
 from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH
 from deepcharuco.shipped import DEFAULT_WEIGHTS
@@ -217,6 +217,40 @@ def export(weights: str | Path, out: str | Path, refine_weights: str | Path | No
     return manifest
 
 
+def write_onnx_bundle(weights: str | Path, refine_weights: str | Path | None = None, out: str | Path | None = None
+                      ) -> Path:
+    """Write the ONNX bundle of ``weights`` (`deepcharuco.onnx_bundle`: the networks exported as the runtime
+    exports them in memory, and the board, threshold and fingerprint) to ``out``, by default beside the weights
+    (``NAME.pt`` -> ``NAME.onnx/``); its files are written whole, ``bundle.json`` last."""
+    from deepcharuco.onnx_bundle import FORMAT, META_FILE, MODELS, PointsOnlyBoard, bundle_path
+    from deepcharuco.runtime import float_onnx, int8_model, weights_fingerprint
+
+    charuconet, board, checkpoint = load_charuconet(weights)
+    points_only = isinstance(board, PointsOnlyBoard)
+    models = {"charuconet_points.onnx": float_onnx(charuconet, points_only=True)}
+    if not points_only:
+        models["charuconet.onnx"] = float_onnx(charuconet)
+    fingerprint = weights_fingerprint(charuconet)
+    int8 = int8_model(checkpoint, fingerprint)
+    if int8 is not None:
+        models["charuconet_int8.onnx"] = int8
+    try:
+        models["refinenet.onnx"] = float_onnx(load_refinenet(refine_weights or weights)[0])
+    except CheckpointError:
+        if refine_weights is not None:
+            raise
+    meta = {"format": FORMAT, "board": (board.plain() if points_only else board).to_dict(),
+            "heads": "points" if points_only else "all", "threshold": checkpoint.get("threshold"),
+            "weights": Path(weights).name, "weights_sha256": fingerprint}
+    out = Path(out) if out is not None else bundle_path(weights)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in (name for name in MODELS if name not in models):
+        (out / stale).unlink(missing_ok=True)
+    write_together({out / name: data for name, data in models.items()})
+    write_atomic(out / META_FILE, json.dumps(meta, indent=1) + "\n")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m deepcharuco.export", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -226,11 +260,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="exported", help="output folder")
     parser.add_argument("--format", nargs="+", choices=FORMATS, default=list(FORMATS), help="formats to write")
     parser.add_argument("--tolerance", type=float, default=TOLERANCE, help="largest allowed |logit difference|")
+    parser.add_argument("--bundle", action="store_true",
+                        help="write the ONNX bundle the runtime loads without PyTorch (NAME.pt -> NAME.onnx/ beside "
+                             "it, or --out when given) instead of the checked exports")
     args = parser.parse_args(argv)
 
     weights = args.weights or DEFAULT_WEIGHTS
 
     def body() -> None:
+        if args.bundle:
+            out = None if args.out == parser.get_default("out") else args.out
+            print(f"{write_onnx_bundle(weights, args.refine_weights, out)}: ONNX bundle of {weights}")
+            return
         manifest = export(weights, output_folder(args.out), args.refine_weights, tuple(args.format), args.tolerance)
         for name, network in manifest["networks"].items():
             for fmt, result in network["exports"].items():

@@ -14,10 +14,8 @@ The float32 ONNX models are exported from the loaded networks in memory when the
 (``charuconet["int8"]``) with what it was calibrated and checked on. Both runners take and return
 the same arrays, so the decoding never knows which one ran.
 
-Threads: ONNX Runtime runs each network on as many threads as PyTorch would (idle workers sleep);
-`OnnxRunner.refinenet_in_background` runs RefineNet on one thread of its own while the caller's numpy
-decoding holds the other core (`deep_detector.EarlyRefinement`), and the detector runs numpy's BLAS on
-one thread (`single_threaded_blas`): its spinning workers would take that core from the networks.
+The ONNX Runtime side (`OnnxRunner`, its threads, `single_threaded_blas`) is `deepcharuco.onnx_runner`, which
+needs no PyTorch: the `Detector` runs the shipped ONNX bundles with it where PyTorch is not installed.
 
 Measured on this project's 2-core CPU (``python benchmarks/detect.py``): PyTorch's default NCHW
 convolutions are the slowest path here, channels-last halves them, ONNX Runtime is faster still
@@ -27,61 +25,40 @@ and int8 (VNNI) faster again; the README's speed table has the numbers.
 from __future__ import annotations
 
 import hashlib
-import importlib.util
-import os
 import warnings
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import replace
-from functools import cache
-from typing import Callable, ContextManager, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
-from threadpoolctl import ThreadpoolController
 
 from deepcharuco.backends import BACKENDS
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.models.charuconet import ChArUcoNet, PointHeadOnly
 from deepcharuco.models.refinenet import PATCH, RefineNet
+from deepcharuco.onnx_runner import (  # noqa: F401 (re-exported: the runners' API in one place)
+    BackgroundThread, OnnxRunner, network_threads, onnxruntime_available, single_threaded_blas,
+)
 
 INT8_KEY = "int8"  # in a ChArUcoNet checkpoint: {"onnx": bytes, "calibration": ..., "validation": ...}
 
 
-@cache
-def _numpy_blas() -> ThreadpoolController:
-    return ThreadpoolController().select(user_api="blas")
-
-
-def single_threaded_blas() -> ContextManager:
-    """A context in which numpy's BLAS (OpenBLAS) runs on the calling thread alone, restored on exit.
-
-    Why: after a threaded BLAS call (the marker reader's correlation is one) OpenBLAS's idle workers spin
-    on the other core for milliseconds, and the next network run in ONNX Runtime's 2-thread pool waits for
-    that core: on the 11x8 board at 320x240 (AVX2 host, fresh processes) RefineNet took 11 ms a frame
-    instead of 6 and a frame 40-49 ms instead of 34-36. The decoding's matrices are small; one thread
-    costs them nothing measurable."""
-    return _numpy_blas().limit(limits=1)
-
-
 class Runner(Protocol):
-    """Runs the networks on CPU arrays; returns CPU tensors."""
+    """Runs the networks on CPU arrays; returns numpy arrays (`TorchRunner`, `onnx_runner.OnnxRunner`)."""
 
     name: str
 
-    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def charuconet(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(1, 1, H, W) float32 in [0, 1], H and W multiples of 8 -> point logits (65, H/8, W/8), ID logits
         (N+1, H/8, W/8); None for the ID logits where the runner was made ``points_only``."""
 
-    def refinenet(self, patches: np.ndarray) -> torch.Tensor:
+    def refinenet(self, patches: np.ndarray) -> np.ndarray:
         """(B, 1, 24, 24) float32 in [0, 1] -> (B, 4096) logits."""
 
     def refinenet_in_background(self, patches: np.ndarray) -> Future | None:
         """`refinenet` started on a background thread on one core, for the caller to do other work on the
         other: the future of its logits; None where the runner cannot (PyTorch, one thread in all)."""
-
-
-def onnxruntime_available() -> bool:
-    return importlib.util.find_spec("onnxruntime") is not None
 
 
 def weights_fingerprint(model: torch.nn.Module) -> str:
@@ -145,31 +122,18 @@ class TorchRunner:
         return torch.from_numpy(array).to(self.device).contiguous(memory_format=self.memory_format)
 
     @torch.inference_mode()
-    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def charuconet(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if self.points_only:
-            return self._charuconet.points(self._tensor(image))[0].float().cpu().contiguous(), None
+            return self._charuconet.points(self._tensor(image))[0].float().cpu().contiguous().numpy(), None
         points, ids = self._charuconet(self._tensor(image))
-        return points[0].float().cpu().contiguous(), ids[0].float().cpu().contiguous()
+        return points[0].float().cpu().contiguous().numpy(), ids[0].float().cpu().contiguous().numpy()
 
     @torch.inference_mode()
-    def refinenet(self, patches: np.ndarray) -> torch.Tensor:
-        return self._refinenet(self._tensor(patches)).float().cpu()
+    def refinenet(self, patches: np.ndarray) -> np.ndarray:
+        return self._refinenet(self._tensor(patches)).float().cpu().numpy()
 
     def refinenet_in_background(self, patches: np.ndarray) -> None:
         return None  # PyTorch's intra-op pool is the process's: a second caller would only queue on it
-
-
-def _session(model: bytes, threads: int):
-    import onnxruntime
-
-    options = onnxruntime.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
-    # Idle workers sleep instead of spinning: as fast on an idle CPU (8.7 vs 8.5 ms at 320x240, 2 threads) and
-    # far faster beside other work (18 vs 28 ms with one other busy process on 2 cores).
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
 
 
 _EXPORTS: dict[str, bytes] = {}  # weights fingerprint -> float32 ONNX: one export per process and weights
@@ -193,59 +157,6 @@ def float_onnx(model: ChArUcoNet | RefineNet, points_only: bool = False) -> byte
     return _EXPORTS[key]
 
 
-class OnnxRunner:
-    """ONNX Runtime on the CPU with as many threads as PyTorch uses (``torch.get_num_threads()``, which
-    follows OMP_NUM_THREADS); ChArUcoNet from ``charuconet_model`` (serialized ONNX, e.g. the bundle's int8
-    model) or exported from ``charuconet`` (without its ID head when ``points_only``)."""
-
-    def __init__(self, charuconet: ChArUcoNet, refinenet: RefineNet | None, charuconet_model: bytes | None = None,
-                 name: str = "onnx", points_only: bool = False):
-        self.name = name
-        threads = torch.get_num_threads()
-        self._charuconet = _session(charuconet_model or float_onnx(charuconet, points_only), threads)
-        self._charuconet_input = self._charuconet.get_inputs()[0].name
-        self._refinenet = self._refinenet_one_thread = None
-        if refinenet is not None:
-            self._refinenet = _session(float_onnx(refinenet), threads)
-            self._refinenet_input = self._refinenet.get_inputs()[0].name
-            if threads > 1:
-                self._refinenet_one_thread = _session(float_onnx(refinenet), 1)
-        self._background = BackgroundThread()
-
-    def charuconet(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
-        points, *ids = self._charuconet.run(None, {self._charuconet_input: image})
-        return torch.from_numpy(points[0]), torch.from_numpy(ids[0][0]) if ids else None
-
-    def refinenet(self, patches: np.ndarray) -> torch.Tensor:
-        (logits,) = self._refinenet.run(None, {self._refinenet_input: patches})
-        return torch.from_numpy(logits)
-
-    def refinenet_in_background(self, patches: np.ndarray) -> Future | None:
-        if self._refinenet_one_thread is None:
-            return None  # one thread in all: nothing runs beside the caller
-
-        def run() -> torch.Tensor:
-            (logits,) = self._refinenet_one_thread.run(None, {self._refinenet_input: patches})
-            return torch.from_numpy(logits)
-
-        return self._background.submit(run)
-
-
-class BackgroundThread:
-    """One worker thread, made on first use and again in a forked child (which has none of its parent's threads:
-    a `ThreadPoolExecutor` inherited across a fork would queue work that never runs)."""
-
-    def __init__(self):
-        self._pid: int | None = None
-        self._executor: ThreadPoolExecutor | None = None
-
-    def submit(self, function: Callable[[], torch.Tensor]) -> Future:
-        if self._pid != os.getpid():
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="deepcharuco-background")
-            self._pid = os.getpid()
-        return self._executor.submit(function)
-
-
 def make_runner(backend: str, charuconet: ChArUcoNet, refinenet: RefineNet | None, device: torch.device,
                 checkpoint: dict, points_only: bool = False) -> Runner:
     """The `Runner` for ``backend`` (resolved by `resolve_backend`) over the loaded networks; ``points_only``:
@@ -253,8 +164,9 @@ def make_runner(backend: str, charuconet: ChArUcoNet, refinenet: RefineNet | Non
     backend = resolve_backend(backend, device, checkpoint)
     if backend == "torch":
         return TorchRunner(charuconet, refinenet, device, points_only)
+    refinenet_model = None if refinenet is None else float_onnx(refinenet)
     if backend == "onnx-int8":
         model = int8_model(checkpoint, weights_fingerprint(charuconet))
         if model is not None:
-            return OnnxRunner(charuconet, refinenet, model, name="onnx-int8")
-    return OnnxRunner(charuconet, refinenet, points_only=points_only)
+            return OnnxRunner(model, refinenet_model, name="onnx-int8")
+    return OnnxRunner(float_onnx(charuconet, points_only), refinenet_model)

@@ -16,10 +16,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from deepcharuco.detection import no_corners
-from deepcharuco.models.charuconet import CELL
+
+CELL = 8  # pixels per ChArUcoNet output cell side: three 2x poolings
 
 
 def encode_cells(corners: np.ndarray, visible: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -62,8 +62,11 @@ class CellCandidates:
         return CellCandidates(self.pixels[keep], self.confidence[keep], self.id_prob[keep])
 
 
-def _array(logits: torch.Tensor | np.ndarray) -> np.ndarray:
-    return logits.detach().float().cpu().numpy() if isinstance(logits, torch.Tensor) else np.asarray(logits, np.float32)
+def as_array(logits) -> np.ndarray:
+    """Logits as a float32 numpy array: a numpy array as it is, a PyTorch tensor (any device) copied to the CPU."""
+    if hasattr(logits, "detach"):  # a torch.Tensor, without importing torch for the check
+        return logits.detach().float().cpu().numpy()
+    return np.asarray(logits, np.float32)
 
 
 def _softmax(logits: np.ndarray, axis: int) -> np.ndarray:
@@ -71,14 +74,14 @@ def _softmax(logits: np.ndarray, axis: int) -> np.ndarray:
     return shifted / shifted.sum(axis=axis, keepdims=True)
 
 
-def point_candidates(point_logits: torch.Tensor | np.ndarray, min_confidence: float
+def point_candidates(point_logits: np.ndarray, min_confidence: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One image's point logits (65, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``:
     (flat cell indices (M,) int64, pixels (M, 2) float32 x, y of each cell's likeliest pixel, confidence (M,) float32).
 
     In numpy: on these small arrays PyTorch's thread pool costs more than the arithmetic, and far more on a
     busy CPU. Only the dustbin's probability is needed (the likeliest pixel is the largest logit)."""
-    logits = _array(point_logits)
+    logits = as_array(point_logits)
     cols = logits.shape[2]
     flat = logits.reshape(len(logits), -1)
     top = flat.max(axis=0)
@@ -90,14 +93,14 @@ def point_candidates(point_logits: torch.Tensor | np.ndarray, min_confidence: fl
     return cells, pixels.astype(np.float32).reshape(-1, 2), confidence[cells]
 
 
-def cell_candidates(point_logits: torch.Tensor | np.ndarray, id_logits: torch.Tensor | np.ndarray | None,
+def cell_candidates(point_logits: np.ndarray, id_logits: np.ndarray | None,
                     min_confidence: float) -> CellCandidates:
     """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``.
     Without ``id_logits`` (a board the ID head does not know) ``id_prob`` is (M, 0)."""
     cells, pixels, confidence = point_candidates(point_logits, min_confidence)
     if id_logits is None:
         return CellCandidates(pixels=pixels, confidence=confidence, id_prob=np.zeros((len(cells), 0), np.float32))
-    logits = _array(id_logits)
+    logits = as_array(id_logits)
     num_corners = logits.shape[0] - 1
     id_prob = _softmax(logits.reshape(len(logits), -1)[:, cells].T, axis=1)  # only the candidate cells
     return CellCandidates(pixels=pixels, confidence=confidence,
@@ -119,7 +122,7 @@ def best_per_id(candidates: CellCandidates, threshold: float) -> tuple[np.ndarra
     return corner_id[keep].astype(np.int64), candidates.pixels[keep], score[keep].astype(np.float32)
 
 
-def decode_cells(point_logits: torch.Tensor, id_logits: torch.Tensor, threshold: float = 0.3
+def decode_cells(point_logits: np.ndarray, id_logits: np.ndarray, threshold: float = 0.3
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> (ids (M,), pixels (M, 2) float32 x,y, scores (M,)).
 

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-CELL = 8  # pixels per output cell side: three 2x poolings
+from deepcharuco.models.cells import CELL
 
 
 @dataclass(frozen=True)

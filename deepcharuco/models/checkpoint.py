@@ -20,7 +20,6 @@ Loading checks all of it and says what is wrong and what to do.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
@@ -29,30 +28,11 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
 from deepcharuco.models.refinenet import RefineNet, RefineNetConfig
+from deepcharuco.onnx_bundle import PointsOnlyBoard  # noqa: F401 (defined where the runtime reads it without torch)
 
 FORMAT = "deepcharuco-checkpoint"
 FORMAT_VERSION = 1
 HEADS = ("all", "points")  # which ChArUcoNet heads a run trains: both, or the point head alone
-
-
-@dataclass(frozen=True)
-class PointsOnlyBoard(BoardSpec):
-    """The board stored with a ChArUcoNet whose ID head was never trained (``heads: "points"``).
-
-    It is a real board (the default a `Detector` without ``board=`` looks for), but no board has its
-    layout, itself included: whoever compares layouts to decide whether the ID head applies
-    (`Detector`'s "repair" for its own board) is told it does not, and decodes by markers."""
-
-    @property
-    def layout(self) -> tuple:
-        return ("untrained ID head", *super().layout)
-
-    def same_layout(self, other: "BoardSpec") -> bool:
-        return False
-
-    def plain(self) -> BoardSpec:
-        """The same board as an ordinary `BoardSpec` (to render it, save it, compare it with shards')."""
-        return BoardSpec(**{f.name: getattr(self, f.name) for f in fields(BoardSpec)})
 
 
 class CheckpointError(DeepCharucoError, ValueError):

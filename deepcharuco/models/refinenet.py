@@ -19,15 +19,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 from torch import nn
 
 from deepcharuco.models.charuconet import VGGEncoder, conv
-
-PATCH = 24
-GRID = 64  # 8 pixels x 8 sub-pixel steps
-CENTRE_LOW = 7.5  # the central 8x8 region spans [7.5, 15.5) in patch pixel coordinates
+from deepcharuco.models.offsets import CENTRE_LOW, GRID, PATCH, soft_argmax_offsets  # noqa: F401 (PATCH: API)
 
 
 @dataclass(frozen=True)
@@ -86,22 +82,6 @@ def cell_to_offset(index: torch.Tensor) -> torch.Tensor:
 
 
 def decode_offsets(logits: torch.Tensor, soft_radius: int = 2) -> torch.Tensor:
-    """(B, 4096) logits -> (B, 2) offsets (a CPU tensor): the argmax cell, then (``soft_radius`` > 0) the
-    probability-weighted mean of the cell centres within that many cells of it (soft-argmax).
-
-    In numpy: for a detector's few patches PyTorch's thread pool costs more than the arithmetic (tens of
-    milliseconds on a busy CPU); the window's probabilities renormalised are a softmax over its logits alone."""
-    values = logits.detach().float().cpu().numpy()
-    argmax = values.argmax(axis=1)
-    if soft_radius <= 0:
-        return cell_to_offset(torch.from_numpy(argmax))
-    row, col = argmax // GRID, argmax % GRID
-    steps = np.arange(-soft_radius, soft_radius + 1)
-    rows = np.clip(row[:, None] + steps[None, :], 0, GRID - 1)  # (B, K)
-    cols = np.clip(col[:, None] + steps[None, :], 0, GRID - 1)
-    window = values.reshape(-1, GRID, GRID)[np.arange(len(values))[:, None, None], rows[:, :, None], cols[:, None, :]]
-    weights = np.exp(window - window.max(axis=(1, 2), keepdims=True))
-    weights /= weights.sum(axis=(1, 2), keepdims=True)  # (B, K, K)
-    x = (weights.sum(axis=1) * cols).sum(axis=1)
-    y = (weights.sum(axis=2) * rows).sum(axis=1)
-    return torch.from_numpy(((np.stack([x, y], axis=1) + 0.5) / 8 + CENTRE_LOW).astype(np.float32))
+    """(B, 4096) logits -> (B, 2) offsets as a CPU tensor: `offsets.soft_argmax_offsets` (numpy: for a detector's
+    few patches PyTorch's thread pool costs more than the arithmetic, tens of milliseconds on a busy CPU)."""
+    return torch.from_numpy(soft_argmax_offsets(logits, soft_radius))
