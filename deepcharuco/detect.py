@@ -149,11 +149,7 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
         if refine == "refinenet":
             raise DeepCharucoError("--refine refinenet needs --detector deep or hybrid; OpenCV takes subpix or none")
         return OpenCVDetector(board, refine=refine)
-    try:
-        from deepcharuco.deep_detector import Detector
-    except ImportError as error:  # torch: the networks' loader needs it in this version
-        raise DeepCharucoError(f"--detector {name} needs PyTorch ({error}): pip install torch (the CPU build is "
-                               f"enough), or use --detector opencv") from None
+    from deepcharuco.deep_detector import Detector
 
     return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights,
                     mode="hybrid" if name == "hybrid" else "deep", backend=backend)

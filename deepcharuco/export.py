@@ -13,7 +13,7 @@ or the checkpoint is a bundle):
     export.json        board, architectures, input/output names, and the measured differences
 
 The outputs are the raw logits: decoding (`deepcharuco.models.cells.decode_cells`,
-`deepcharuco.models.refinenet.decode_offsets`) stays outside, as in the Python `Detector`.
+`deepcharuco.models.offsets.soft_argmax_offsets`) stays outside, as in the Python `Detector`.
 Every file is run on random inputs at two sizes and compared with PyTorch; the export fails
 if any logit differs by more than ``tolerance``.
 ONNX files are run with onnxruntime when installed, otherwise with OpenCV's DNN module.
@@ -22,11 +22,9 @@ ONNX files are run with onnxruntime when installed, otherwise with OpenCV's DNN 
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,41 +35,11 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import write_atomic, write_together
 from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
 from deepcharuco.models.refinenet import PATCH
+from deepcharuco.onnx_export import OPSET, ExportError, NetworkSpec, network_specs, onnx_bytes  # noqa: F401 (API)
 from deepcharuco.shipped import DEFAULT_WEIGHTS
 
 FORMATS = ("torchscript", "onnx")
-OPSET = 17
 TOLERANCE = 1e-3  # on logits of magnitude ~10: float32 reassociation differences are ~1e-5
-
-
-class ExportError(DeepCharucoError):
-    """An export that could not be written or does not reproduce PyTorch's outputs."""
-
-
-@dataclass(frozen=True)
-class NetworkSpec:
-    """How to call one network: names and shapes of its inputs and outputs."""
-
-    name: str
-    input_name: str
-    output_names: tuple[str, ...]
-    dynamic_axes: dict
-    check_shapes: tuple[tuple[int, ...], ...]  # inputs the check runs on
-
-
-def network_specs(example_size: tuple[int, int]) -> dict[str, NetworkSpec]:
-    """The two networks' interfaces; ``example_size`` (W, H) is the ChArUcoNet training size."""
-    width, height = example_size
-    return {
-        "charuconet": NetworkSpec("charuconet", "image", ("point_logits", "id_logits"),
-                                  {"image": {0: "batch", 2: "height", 3: "width"},
-                                   "point_logits": {0: "batch", 2: "rows", 3: "cols"},
-                                   "id_logits": {0: "batch", 2: "rows", 3: "cols"}},
-                                  ((1, 1, height, width), (2, 1, 8 * (height // 16) + 8, width + 16))),
-        "refinenet": NetworkSpec("refinenet", "patches", ("logits",),
-                                 {"patches": {0: "batch"}, "logits": {0: "batch"}},
-                                 ((1, 1, PATCH, PATCH), (16, 1, PATCH, PATCH))),
-    }
 
 
 def export_torchscript(model: torch.nn.Module, example: torch.Tensor, path: Path) -> Path:
@@ -88,24 +56,6 @@ def export_onnx(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec
     """Write ``model`` as ONNX with dynamic batch (and image size for ChArUcoNet)."""
     write_atomic(path, onnx_bytes(model, example, spec))
     return path
-
-
-def onnx_bytes(model: torch.nn.Module, example: torch.Tensor, spec: NetworkSpec) -> bytes:
-    """``model`` as a serialized ONNX model (opset `OPSET`, the dynamic axes of ``spec``)."""
-    try:
-        import onnx  # noqa: F401  (torch's exporter needs it)
-    except ImportError:
-        raise ExportError("ONNX export needs the onnx package: pip install 'deepcharuco[export]' "
-                          "(or pass --format torchscript)") from None
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notice
-        # dynamo=False: the TorchScript-based exporter handles these plain conv nets with no extra
-        # packages (the torch.export-based one needs onnxscript, which wants numpy 2).
-        buffer = io.BytesIO()
-        torch.onnx.export(model, (example,), buffer, dynamo=False, opset_version=OPSET,
-                          input_names=[spec.input_name], output_names=list(spec.output_names),
-                          dynamic_axes=spec.dynamic_axes)
-    return buffer.getvalue()
 
 
 def run_torchscript(path: Path, inputs: np.ndarray) -> list[np.ndarray]:

@@ -37,6 +37,7 @@ from deepcharuco.backends import BACKENDS
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.models.charuconet import ChArUcoNet, PointHeadOnly
 from deepcharuco.models.refinenet import PATCH, RefineNet
+from deepcharuco.onnx_export import network_specs, onnx_bytes
 from deepcharuco.onnx_runner import (  # noqa: F401 (re-exported: the runners' API in one place)
     BackgroundThread, OnnxRunner, network_threads, onnxruntime_available, single_threaded_blas,
 )
@@ -142,7 +143,6 @@ _EXPORTS: dict[str, bytes] = {}  # weights fingerprint -> float32 ONNX: one expo
 def float_onnx(model: ChArUcoNet | RefineNet, points_only: bool = False) -> bytes:
     """A loaded ChArUcoNet or RefineNet as float32 ONNX (exported once per process and weights); with
     ``points_only`` a ChArUcoNet without its ID head (one output, "point_logits")."""
-    from deepcharuco.export import network_specs, onnx_bytes
 
     kind = "charuconet" if isinstance(model, ChArUcoNet) else "refinenet"
     points_only = points_only and kind == "charuconet"

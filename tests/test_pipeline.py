@@ -101,6 +101,8 @@ def test_pipeline_end_to_end_survives_kills(tmp_path):
 
     detector = Detector(board=SMALL_BOARD, weights=run / "detector.pt")
     assert detector.geometry == "repair" and detector.board.same_layout(SMALL_BOARD)
+    onnx = Detector(board=SMALL_BOARD, weights=run / "detector.onnx")  # its ONNX bundle, written beside it
+    assert onnx.charuconet is None and onnx.geometry == "repair" and onnx.threshold == detector.threshold
     bundle = read_checkpoint(run / "detector.pt", "charuconet")
     assert bundle["training"]["step"] <= 30 and "threshold" in bundle and "heads" not in bundle
     results = json.loads((run / "eval" / "results.json").read_text())["boards"]

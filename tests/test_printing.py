@@ -127,25 +127,34 @@ def test_the_deepcharuco_command_dispatches_and_names_missing_extras(tmp_path, c
     assert "deepcharuco report needs matplotlib" in capsys.readouterr().err
 
 
-def test_opencv_commands_and_printing_run_without_torch(tmp_path):
-    """The OpenCV detector's detect and calibrate, and the board sheets, import no PyTorch; the deep detector
-    without it is one line naming what to install."""
+def test_the_commands_and_both_detectors_run_without_torch(tmp_path):
+    """With PyTorch unimportable, detect (OpenCV's detector and the deep one, from the shipped ONNX bundles),
+    calibrate's imports and the board sheets work; weights with no bundle say what to do in one line."""
     import subprocess
     import sys
     from pathlib import Path
 
     examples = Path(__file__).parents[1] / "deepcharuco" / "examples"
+    image, camera = examples / "board_320x240.png", examples / "webcam_320x240.yaml"
+    (tmp_path / "lonely.pt").write_bytes(b"a PyTorch checkpoint without its ONNX bundle")
     code = f"""
-import sys
+import json, sys
 sys.modules["torch"] = None  # any import of torch fails
 from deepcharuco.command import main
-assert main(["detect", r"{examples / 'board_320x240.png'}", "--camera", r"{examples / 'webcam_320x240.yaml'}",
-             "--out", r"{tmp_path / 'out'}"]) == 0
+for detector in ("opencv", "deep"):
+    assert main(["detect", r"{image}", "--camera", r"{camera}", "--detector", detector,
+                 "--out", r"{tmp_path}" + "/" + detector]) == 0
+    frame = json.load(open(r"{tmp_path}" + "/" + detector + "/board_320x240.json"))["frames"][0]
+    assert frame["num_corners"] >= 15 and frame["pose"]["reprojection_error"] < 0.3, frame
 assert main(["board", "--squares", "5x5", "--dictionary", "DICT_5X5_50", "--square", "35mm", "--marker", "26mm",
              "--out", r"{tmp_path / 'b'}"]) == 0
-assert main(["detect", r"{examples / 'board_320x240.png'}", "--detector", "deep", "--out", r"{tmp_path / 'x'}"]) == 2
+assert main(["detect", r"{image}", "--detector", "deep", "--weights", r"{tmp_path / 'lonely.pt'}",
+             "--out", r"{tmp_path / 'x'}"]) == 2
+import deepcharuco.calibrate
+assert "torch" not in {{name.split(".")[0] for name, module in sys.modules.items() if module is not None}}
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert "--detector deep needs PyTorch" in done.stderr and "Traceback" not in done.stderr
-    assert (tmp_path / "b.pdf").is_file() and (tmp_path / "out" / "board_320x240.json").is_file()
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "lonely.pt is a PyTorch checkpoint and PyTorch is not installed" in done.stderr
+    assert "python -m deepcharuco.export --bundle" in done.stderr and "Traceback" not in done.stderr
+    assert (tmp_path / "b.pdf").is_file()

@@ -35,6 +35,7 @@ from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.metrics import match_corners
 from datagen.shards import ShardReader
+from deepcharuco.export import write_onnx_bundle
 from deepcharuco.models.checkpoint import id_head_trained, read_checkpoint, save_bundle
 from deepcharuco.placement import WEAK_CONFIDENCE
 from train.dataset import FrameDataset, split_shards
@@ -170,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
         path = save_bundle(out, args.charuconet, args.refinenet, note, threshold)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+        # The same networks as ONNX beside it: Detector(weights=...) loads them where PyTorch is not installed.
+        print(f"wrote {write_onnx_bundle(path)} (its ONNX bundle)")
 
     return run_command(body)
 

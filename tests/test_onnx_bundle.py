@@ -1,0 +1,88 @@
+"""The shipped networks as ONNX bundles: current with the .pt weights, and the Detector without PyTorch gives what it
+gives with it."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import VIEW_POSES, make_view
+from deepcharuco import BoardSpec, Detector, DeepCharucoError
+from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
+from deepcharuco.onnx_bundle import BundleError, bundle_path, read_bundle
+from deepcharuco.runtime import float_onnx, weights_fingerprint
+from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR
+
+SHIPPED = [DEFAULT_WEIGHTS, *sorted(FAMILY_WEIGHTS_DIR.glob("*.pt"))]
+
+
+@pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
+def test_each_shipped_bundle_is_its_weights_exported_as_the_runtime_exports_them(weights):
+    """A bundle out of date with its .pt fails here: python -m deepcharuco.export --bundle --weights W makes it anew."""
+    bundle = read_bundle(bundle_path(weights))
+    charuconet, board, checkpoint = load_charuconet(weights)
+    assert bundle.meta["weights_sha256"] == weights_fingerprint(charuconet)
+    assert bundle.meta["threshold"] == checkpoint.get("threshold") and bundle.board.to_dict() == board.to_dict()
+    assert bundle.models["charuconet_points.onnx"] == float_onnx(charuconet, points_only=True)
+    assert bundle.id_head == ("charuconet.onnx" in bundle.models)
+    if bundle.id_head:
+        assert bundle.models["charuconet.onnx"] == float_onnx(charuconet)
+    assert bundle.models["refinenet.onnx"] == float_onnx(load_refinenet(weights)[0])
+
+
+def test_detections_without_torch_are_those_with_it(tmp_path, camera):
+    """The paper's board (its own ID head), a 7x5 DICT_6X6 board (its family model, read by markers) and the
+    11x8 DICT_5X5 board (the paper's model by markers): ids, corners and scores equal, bit for bit."""
+    boards = [BoardSpec(), BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250"), BoardSpec(11, 8, 0.02, 0.015, "DICT_5X5_1000")]
+    images = np.stack([make_view(board, camera, **pose)[0] for board in boards for pose in VIEW_POSES[:3]])
+    np.save(tmp_path / "images.npy", images)
+    (tmp_path / "boards.json").write_text(json.dumps([b.to_dict() for b in boards]))
+    with_torch = _detect(images, boards)
+    code = f"""
+import json, sys
+import numpy as np
+sys.modules["torch"] = None
+from deepcharuco import BoardSpec, Detector
+boards = [BoardSpec(**b) for b in json.loads(open(r"{tmp_path / 'boards.json'}").read())]
+images = np.load(r"{tmp_path / 'images.npy'}")
+out = []
+for k, board in enumerate(boards):
+    detector = Detector(board=board)
+    assert detector.charuconet is None  # the bundle, not PyTorch
+    out += [(f.ids, f.corners, f.scores) for f in map(detector.detect, images[3 * k:3 * k + 3])]
+np.save(r"{tmp_path / 'without.npy'}", np.array(out, dtype=object), allow_pickle=True)
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    without = np.load(tmp_path / "without.npy", allow_pickle=True)
+    assert sum(len(ids) for ids, _, _ in with_torch) >= 100  # the views are found: the comparison compares
+    for (ids_a, corners_a, scores_a), (ids_b, corners_b, scores_b) in zip(with_torch, without, strict=True):
+        assert np.array_equal(ids_a, ids_b) and np.array_equal(corners_a, corners_b)
+        assert np.array_equal(scores_a, scores_b)
+
+
+def _detect(images: np.ndarray, boards: list[BoardSpec]) -> list[tuple]:
+    """Each image's detection, three images a board, by the board's default Detector (PyTorch loads the weights)."""
+    out = []
+    for k, board in enumerate(boards):
+        detector = Detector(board=board)
+        assert detector.charuconet is not None
+        out += [(f.ids, f.corners, f.scores) for f in map(detector.detect, images[3 * k:3 * k + 3])]
+    return out
+
+
+def test_a_damaged_bundle_or_one_given_with_a_refinenet_is_refused(tmp_path):
+    folder = tmp_path / "mine.onnx"
+    folder.mkdir()
+    (folder / "bundle.json").write_text('{"format": 1, "board": ')
+    with pytest.raises(BundleError, match=r"bundle.json is damaged .*python -m deepcharuco.export --bundle"):
+        Detector(weights=folder)
+    (folder / "bundle.json").write_text(json.dumps({"format": 1, "board": BoardSpec().to_dict(), "heads": "all"}))
+    with pytest.raises(BundleError, match="lacks its ChArUcoNet model"):
+        Detector(weights=folder)
+    with pytest.raises(DeepCharucoError, match="holds its own RefineNet"):
+        Detector(weights=bundle_path(DEFAULT_WEIGHTS), refine_weights=DEFAULT_WEIGHTS)
+    detector = Detector(weights=bundle_path(DEFAULT_WEIGHTS))
+    assert detector.runner.name == "onnx" and detector.charuconet is None and detector.threshold == 0.25
