@@ -364,8 +364,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refresh-every", type=int, default=30,
                         help="video/camera: search the whole frame at least every N frames, in between only around "
                              "the last board found (1: whole frames always)")
-    parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default="subpix",
-                        help="corner refinement")
+    parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
+                        help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid, as "
+                             "calibrate and the Detector API)")
     parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle "
                                                          "(default: the shipped weights for the board: the paper's "
                                                          "board's own, else its marker family's model where one "
@@ -388,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--refresh-every must be >= 1 (1: search whole frames always), got {args.refresh_every}")
     if args.max_frames is not None and args.max_frames < 1:
         parser.error(f"--max-frames must be >= 1 (leave it out for every frame), got {args.max_frames}")
+    args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")
 
     def body() -> int:
         summary = run(args)
