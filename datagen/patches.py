@@ -187,8 +187,10 @@ def main(argv: list[str] | None = None) -> int:
         output_folder(out.parent, "--out's folder")
         staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
         staging.mkdir()
-        # SIGTERM (a pipeline stopped, a job preempted) ends the run as Ctrl-C does, through the clean-up below.
-        signal.signal(signal.SIGTERM, _stop_by_sigterm)
+        # SIGTERM (a pipeline stopped, a job preempted): the staging folder removed and the process ended at once.
+        # Not by raising in the handler: an exception raised inside h5py's C callbacks can be swallowed there, and
+        # the run went on (seen: a SIGTERM'd run writing shards minutes later).
+        signal.signal(signal.SIGTERM, lambda signum, frame: _stop(staging, signum))
         try:
             total = write_patches(readers, staging, args)
             replace_shards(staging, out)
@@ -199,8 +201,12 @@ def main(argv: list[str] | None = None) -> int:
     return run_command(body)
 
 
-def _stop_by_sigterm(signum, frame) -> None:
-    raise SystemExit(128 + signum)
+def _stop(staging: Path, signum: int) -> None:
+    """End the run now for signal ``signum``: the unfinished patches removed, exit code 128 + signum."""
+    shutil.rmtree(staging, ignore_errors=True)
+    print(f"datagen.patches: stopped by signal {signum}; nothing written (rerun the command)", file=sys.stderr)
+    sys.stderr.flush()
+    os._exit(128 + signum)
 
 
 def write_patches(readers: list[ShardReader], out: Path, args: argparse.Namespace) -> int:
