@@ -250,13 +250,12 @@ def main(argv: list[str] | None = None) -> int:
     if problems:
         parser.error("; ".join(problems))
     def body() -> None:
-        run(args)
+        try:
+            run(args)
+        except KeyboardInterrupt:  # Ctrl-C while detecting or solving: the files are written last, whole or not at all
+            raise KeyboardInterrupt(f"nothing written ({args.out} is as it was); rerun to calibrate") from None
 
-    try:
-        return run_command(body)
-    except KeyboardInterrupt:  # Ctrl-C while detecting or solving: the files are written last, whole or not at all
-        print(f"interrupted: nothing written ({args.out} is as it was); rerun to calibrate", file=sys.stderr)
-        return 130
+    return run_command(body)  # Ctrl-C: one line "stopped: ...", exit code 130
 
 
 if __name__ == "__main__":

@@ -165,7 +165,7 @@ def test_calibrate_stopped_by_ctrl_c_says_so_without_a_traceback(calibrated, wav
     monkeypatch.setattr(calibrate_cli, "calibrate", interrupted)  # Ctrl-C during the solve
     assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 130
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("interrupted: nothing written") and len(err) == 1
+    assert err[-1].startswith("stopped: nothing written") and len(err) == 1
     assert out.read_bytes() == before and _leftovers(out.parent) == []
 
 

@@ -149,8 +149,11 @@ def test_ctrl_c_stops_the_render_with_exit_130_and_says_how_to_go_on(reference, 
     one line saying what was kept and how to finish, no traceback, no temporaries."""
     out, seed = reference
     args = ["--n", 6, "--shard-size", 2, "--seed", seed, "--out", tmp_path, *SMALL]
+    # SIGINT at its default: a test run started in the background (nohup, &) passes it on ignored, and Python then
+    # never raises KeyboardInterrupt.
     process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while not list_shards(tmp_path) if tmp_path.exists() else True:
         assert time.time() < deadline and process.poll() is None, "no shard appeared"
@@ -174,8 +177,11 @@ def test_a_killed_worker_ends_the_run_with_a_clear_error(tmp_path):
     """kill -9 of a worker (what the out-of-memory killer does): the parent does not wait forever, says
     what happened, keeps the complete shards, removes the dead worker's temporary file; --resume finishes."""
     args = ["--n", 8, "--shard-size", 1, "--seed", 3, "--out", tmp_path, *SMALL]
+    # SIGINT at its default: a test run started in the background (nohup, &) passes it on ignored, and Python then
+    # never raises KeyboardInterrupt.
     process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.time() + 120
         while not (tmp_path.exists() and list_shards(tmp_path)):
