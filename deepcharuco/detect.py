@@ -355,9 +355,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--board", help="board description (.json/.yaml); default: the paper's 5x5 DICT_5X5_50 board")
     parser.add_argument("--camera", help="OpenCV intrinsics YAML (camera_matrix, distortion_coefficients, "
                                          "image_width, image_height); without it no pose is estimated")
-    parser.add_argument("--detector", choices=["opencv", "deep", "hybrid"], default="opencv",
-                        help="which detector (hybrid: OpenCV, and the deep detector where OpenCV's corners do not "
-                             "fit one view of the board)")
+    parser.add_argument("--detector", choices=["opencv", "deep", "hybrid"], default="hybrid",
+                        help="which detector. hybrid (the default): OpenCV first, the networks only where OpenCV's "
+                             "corners do not fit one view of the board; chosen by measurement "
+                             "(benchmarks/detect.py, docs/detector.md): in good light OpenCV's corners at 0.85-1.02x "
+                             "its speed, in the dark (k = 7) the deep detector's 0.97-1.00 of the corners where "
+                             "OpenCV finds none. deep: the networks always; opencv: OpenCV + cornerSubPix alone")
     parser.add_argument("--backend", choices=list(BACKENDS), default="auto",
                         help="deep/hybrid: how the networks run (auto: ONNX Runtime when installed, int8 when the "
                              "weights carry an accepted int8 model; else PyTorch)")

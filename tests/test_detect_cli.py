@@ -71,7 +71,7 @@ def test_folder_of_images_without_camera(tmp_path, camera, default_views):
     "extra, message",
     [
         (["--detector", "deep", "--weights", "missing.pt"], "weights file missing.pt does not exist"),
-        (["--refine", "refinenet"], "needs --detector deep"),
+        (["--detector", "opencv", "--refine", "refinenet"], "needs --detector deep"),
         (["--camera", "missing.yaml"], "camera file missing.yaml does not exist"),
         (["--board", "missing.json"], "board file missing.json does not exist"),
     ],
@@ -93,7 +93,7 @@ def test_unreadable_sources(tmp_path, capsys):
 def test_help_shows_defaults():
     result = subprocess.run([sys.executable, "-m", "deepcharuco.detect", "--help"], capture_output=True, text=True)
     assert result.returncode == 0
-    assert "default: opencv" in result.stdout and "default: detect_out" in result.stdout
+    assert "hybrid (the default)" in result.stdout and "default: detect_out" in result.stdout
 
 
 def test_a_folder_with_an_unreadable_image_and_shared_stems(tmp_path, capsys, default_views):
@@ -177,7 +177,7 @@ def test_no_board_in_any_frame_says_what_the_frames_show(tmp_path, camera, capsy
     cv2.imwrite(str(tmp_path / "negative.png"), 255 - image)  # the board printed white on black
     assert main([str(tmp_path / "negative.png"), "--out", str(tmp_path / "a"), "--no-overlay", "--quiet"]) == 0
     err = capsys.readouterr().err
-    assert "warning: no board corners in any of 1 frames (opencv detector, board 5x5 DICT_5X5_50)" in err
+    assert "warning: no board corners in any of 1 frames (hybrid detector, board 5x5 DICT_5X5_50)" in err
     assert "with inverted: true OpenCV finds the board in 1 of 1 frame(s) looked at: set inverted: true in a board file" in err
     other = BoardSpec(6, 4, 0.04, 0.03, "DICT_4X4_50")
     cv2.imwrite(str(tmp_path / "other.png"), make_view(other, camera, **VIEW_POSES[0])[0])
