@@ -225,7 +225,9 @@ class Detector:
             mirrored keeps the weights' ID head.
         weights: a ChArUcoNet checkpoint or a bundle with both networks (default: the shipped weights for the
             board, `shipped_weights`: the paper's board-specific model for its board, the family model of the
-            board's marker family where one is shipped, else the paper's). ``self.weights`` says which.
+            board's marker family where one is shipped, else the paper's). ``self.weights`` says which. An ONNX
+            bundle (``NAME.onnx/``, `deepcharuco.onnx_bundle`) runs without PyTorch; where PyTorch is not
+            installed, the bundle beside ``NAME.pt`` is run (the shipped weights all have one).
         refine: "refinenet" (the paper's best), "subpix" (OpenCV cornerSubPix) or "none" (cell pixels).
         device: "cpu", "cuda", "mps" ...
         refine_weights: RefineNet checkpoint when ``weights`` holds only ChArUcoNet.

@@ -50,3 +50,12 @@ def test_relative_links_resolve(document):
         if "://" in target:
             continue
         assert (path.parent / target).exists(), f"{document} links to {target}, which does not exist"
+
+
+def test_the_readme_picture_shows_what_its_caption_says():
+    """docs/dark_frame.jpg (python -m evaluate.readme_figure): OpenCV finds nothing, the deep detector every corner."""
+    from evaluate.readme_figure import BOARD, figure
+
+    picture, found = figure()
+    assert found == {"OpenCV + cornerSubPix": 0, "Deep ChArUco": BOARD.num_corners}
+    assert picture.shape == (480, 1280, 3) and (ROOT / "docs" / "dark_frame.jpg").is_file()
