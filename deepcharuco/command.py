@@ -32,7 +32,7 @@ EXIT_BAD_INPUT = 2
 
 def usage() -> str:
     width = max(map(len, SUBCOMMANDS))
-    lines = [f"usage: deepcharuco SUBCOMMAND [options]   (deepcharuco SUBCOMMAND --help for its options)", "",
+    lines = ["usage: deepcharuco SUBCOMMAND [options]   (deepcharuco SUBCOMMAND --help for its options)", "",
              "ChArUco boards found where OpenCV fails: darkness, blur, shadows.", "", "subcommands:"]
     lines += [f"  {name:<{width}}  {what}" + (f" (needs: pip install 'deepcharuco[{extra}]')" if extra else "")
               for name, (_, what, extra) in SUBCOMMANDS.items()]

@@ -31,10 +31,8 @@ import numpy as np
 import torch
 
 from deepcharuco.cli import output_folder, run_command
-from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import write_atomic, write_together
 from deepcharuco.models.checkpoint import CheckpointError, load_charuconet, load_refinenet
-from deepcharuco.models.refinenet import PATCH
 from deepcharuco.onnx_export import OPSET, ExportError, NetworkSpec, network_specs, onnx_bytes  # noqa: F401 (API)
 from deepcharuco.shipped import DEFAULT_WEIGHTS
 
