@@ -591,10 +591,27 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
                   for v in active]
     camera = Camera(K=solution.K, dist=solution.dist, image_size=image_size,
                     model="fisheye" if model == "fisheye" else "pinhole")
+    fold = fold_share(camera)
+    fold_notes = []
+    if fold is not None:
+        where = (f"the solved distortion folds back {100 * fold:.0f} % of the way out to the image's farthest corner, "
+                 f"so the image beyond cannot be undistorted")
+        if fold >= MIN_FOLD_SHARE or model == "rational":  # rational: k3 alone is not what folds it, a note only
+            fold_notes.append(f"{where}" + (" (the corners' tips only)" if fold >= MIN_FOLD_SHARE else
+                                            ": do not undistort beyond it; capture the board near the image's edges "
+                                            "and corners too"))
+        elif not fix_k3:  # a free k3 is what bends the model where the views have no corners: solve without it
+            result = calibrate(frames, board, image_size, model, options, fix_k3=True)
+            result.notes.insert(0, f"with k3 free {where}: solved again with k3 fixed at 0")
+            return result
+        else:
+            raise CalibrationError(f"{where}: capture the board near the image's edges and corners too "
+                                   f"({100 * coverage(used_views, image_size):.0f} % of the image is covered)")
     return CalibrationResult(model=model, camera=camera, rms=rms, std=solution.std, views=used_views,
                              per_view_rms=view_rms, rvecs=solution.rvecs, tvecs=solution.tvecs, residuals=residuals,
                              decisions=decisions, frames=len(frames), rounds=rounds,
-                             notes=(["k3 fixed at 0"] if fix_k3 else []) + _coverage_notes(used_views, image_size),
+                             notes=(["k3 fixed at 0"] if fix_k3 else []) + _coverage_notes(used_views, image_size)
+                             + fold_notes,
                              terms=terms, held_out=held_out, view_weights=view_weights)
 
 
@@ -825,6 +842,37 @@ def coverage(views: list[FrameDetection], image_size: tuple[int, int], bins: tup
     corners = np.concatenate([v.corners for v in views]) if views else np.zeros((0, 2))
     counts, _, _ = np.histogram2d(corners[:, 0], corners[:, 1], bins=bins, range=[[-0.5, width - 0.5], [-0.5, height - 0.5]])
     return float((counts > 0).mean())
+
+
+# A model that folds back this far out or farther (as a share of the way to the image's farthest corner) is kept,
+# with a note: only the corners' tips are lost. Nearer in, k3 is fixed at 0 and the camera solved again, or the
+# calibration refused. Set by geometry, then checked on real cameras: caliscope's own four webcam calibrations and
+# OpenCV's tutorial camera do not fold; the deep detector's calibration of caliscope's cam_1 folds at 97 %, and
+# OpenCV's corners of a damaged copy of it gave k3 = -0.42, a fold at 81 % (the issue's k3 = -1.20: 65 %).
+MIN_FOLD_SHARE = 0.9
+
+
+def fold_share(camera: Camera, samples: int = 20000) -> float | None:
+    """Where a pinhole camera's radial distortion stops growing with the radius before it reaches the image's
+    farthest corner, as a share of that corner's (distorted, normalised) radius; None when the mapping increases
+    all the way there, as a lens's does (mrcal flags such models too). A fold means two radii image to one and the
+    pixels beyond cannot be undistorted: a k3 solved from views that leave the image's corners empty can do this
+    (seen on a real 1280x720 webcam: k3 = -1.20, a fold at normalised radius 0.57). Fisheye models: None."""
+    if camera.model == "fisheye":
+        return None
+    k1, k2, _, _, k3, k4, k5, k6 = np.pad(camera.dist, (0, max(0, 8 - camera.dist.size)))[:8]
+    (fx, _, cx), (_, fy, cy), _ = camera.K
+    width, height = camera.image_size
+    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [-0.5, height - 0.5], [width - 0.5, height - 0.5]])
+    reach = float(np.max(np.hypot((corners[:, 0] - cx) / fx, (corners[:, 1] - cy) / fy)))
+    r = np.linspace(0.0, 5.0 * reach, samples)  # undistorted radii; barrel distortion needs them beyond the reach
+    r2 = r * r
+    distorted = r * (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    falling = np.flatnonzero(np.diff(distorted) <= 0)
+    upto = distorted if len(falling) == 0 else distorted[:falling[0] + 1]
+    if np.any(upto >= reach):
+        return None
+    return float(upto.max() / reach)
 
 
 def _coverage_notes(views: list[FrameDetection], image_size: tuple[int, int]) -> list[str]:

@@ -380,3 +380,31 @@ def test_camera_files_name_their_model(tmp_path):
         read_camera(tmp_path / "other.yaml")
     with pytest.raises(CameraFileError, match="fisheye camera has 4 distortion coefficients"):
         Camera(K=K, dist=np.zeros(5), image_size=(320, 240), model="fisheye")
+
+
+def test_a_distortion_model_that_folds_inside_the_image_is_found():
+    """fold_share: a lens maps radius to radius one to one out to the corners; k3 = -1.20 (a real webcam's solve from
+    views that left the corners empty) folds two thirds of the way out; k2 < 0 alone folds near the corners."""
+    from deepcharuco.calibration import fold_share
+
+    K = np.array([[750.0, 0, 640], [0, 750, 360], [0, 0, 1]])
+    folds = {k: fold_share(Camera(K=K, dist=np.array(d, float), image_size=(1280, 720))) for k, d in {
+        "none": [0, 0, 0, 0, 0], "barrel": [-0.3, 0.09, 0, 0, 0], "caliscope": [0.099, -0.22, 0, -0.003, 0.081],
+        "k3": [0.042, 0.12, 0, 0, -1.20], "k2": [0.08, -0.2, 0, 0, 0.03]}.items()}
+    assert folds["none"] is None and folds["barrel"] is None and folds["caliscope"] is None
+    assert 0.6 < folds["k3"] < 0.7 and 0.95 < folds["k2"] < 1.0
+
+
+def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detections, monkeypatch):
+    import deepcharuco.calibration as calibration
+
+    shares = iter([0.6, None])
+    monkeypatch.setattr(calibration, "fold_share", lambda camera: next(shares))
+    result = calibrate(detections, BOARD, SIZE)
+    assert result.notes[0].startswith("with k3 free the solved distortion folds back 60 %")
+    assert "k3 fixed at 0" in result.notes and result.terms.split()[-1] != "k3"
+    monkeypatch.setattr(calibration, "fold_share", lambda camera: 0.6)
+    with pytest.raises(CalibrationError, match="folds back 60 % .* capture the board near the image's edges"):
+        calibrate(detections, BOARD, SIZE, fix_k3=True)
+    monkeypatch.setattr(calibration, "fold_share", lambda camera: 0.97)
+    assert any("folds back 97 %" in note for note in calibrate(detections, BOARD, SIZE).notes)
