@@ -56,18 +56,20 @@ def matching_variant(frames: list[np.ndarray], board: BoardSpec) -> tuple[str, i
 def markers_seen(frames: list[np.ndarray]) -> tuple[str, bool, int, list[int]] | None:
     """(dictionary, inverted print, frames with >= `MIN_FOUND` of its markers, the IDs seen) of the dictionary in
     `SEARCHED_DICTIONARIES` whose markers most frames show, or None when no frame shows a dictionary's markers."""
+    grays = [to_gray_u8(frame) for frame in frames]
+    views = {False: grays, True: [255 - gray for gray in grays]}  # as printed, and a white-on-black print's negative
     best = None
-    for name, inverted in itertools.product(SEARCHED_DICTIONARIES, (False, True)):
+    for name in SEARCHED_DICTIONARIES:
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)))
-        hits, ids_seen = 0, set()
-        for frame in frames:
-            gray = to_gray_u8(frame)
-            _, ids, _ = detector.detectMarkers(255 - gray if inverted else gray)
-            if ids is not None and len(ids) >= MIN_FOUND:
-                hits += 1
-                ids_seen.update(int(i) for i in ids.ravel())
-        if hits and (best is None or hits > best[2]):
-            best = (name, inverted, hits, sorted(ids_seen))
+        for inverted, images in views.items():
+            hits, ids_seen = 0, set()
+            for image in images:
+                _, ids, _ = detector.detectMarkers(image)
+                if ids is not None and len(ids) >= MIN_FOUND:
+                    hits += 1
+                    ids_seen.update(int(i) for i in ids.ravel())
+            if hits and (best is None or hits > best[2]):
+                best = (name, inverted, hits, sorted(ids_seen))
     return best
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -28,7 +27,7 @@ from deepcharuco.calibration import (
     calibrate, sharpness,
 )
 from deepcharuco.camera import camera_file_text, is_camera_file
-from deepcharuco.cli import run_command
+from deepcharuco.cli import check_output_folder, run_command
 from deepcharuco.detect import make_detector, open_source
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
@@ -116,9 +115,7 @@ def check_writable(path: Path) -> None:
     """Refuse, before any work, an output that names a folder or lies where nothing can be written."""
     if path.is_dir():
         raise DeepCharucoError(f"{path} is a folder: give the camera file's name, e.g. {path / 'camera.yaml'}")
-    existing = next(p for p in [path.parent, *path.parent.parents] if p.exists())
-    if not existing.is_dir() or not os.access(existing, os.W_OK):
-        raise DeepCharucoError(f"cannot write {path}: {existing} is not a writable folder; choose another --out")
+    check_output_folder(path.parent, f"{path}'s folder")
 
 
 # How every calibration report begins (deepcharuco.calibration_report, titled "Calibration of ..."): what --out's

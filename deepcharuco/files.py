@@ -61,32 +61,29 @@ def atomic_file(path: str | Path, mode: str = "w", what: str = "", **open_args) 
 
 
 def write_atomic(path: str | Path, data: str | bytes, what: str = "") -> Path:
-    """Write ``data`` (text as UTF-8) to ``path`` by `atomic_file`."""
-    path = Path(path)
-    with atomic_file(path, "wb", what) as handle:
-        handle.write(data.encode("utf-8") if isinstance(data, str) else data)
-    return path
+    """Write ``data`` (text as UTF-8) to ``path``, whole or not at all (`write_together` of one file)."""
+    return write_together({Path(path): data}, what)[0]
 
 
-def write_together(files: dict[Path, str | bytes]) -> list[Path]:
+def write_together(files: dict[Path, str | bytes], what: str = "") -> list[Path]:
     """Write several files that belong together (a camera file and its report) as one: every one is written
     to its temporary name first, and only when all are complete are they renamed into place; a failure
-    leaves every target as it was."""
+    (an `OutputError` naming the file, as ``what`` where given) leaves every target as it was."""
     written: list[tuple[Path, Path]] = []
+    path = None
     try:
         for path, data in files.items():
             path = Path(path)
             temporary = temporary_name(path)
             written.append((temporary, path))
-            try:
-                with open(temporary, "wb") as handle:
-                    handle.write(data.encode("utf-8") if isinstance(data, str) else data)
-                    handle.flush()
-                    os.fsync(handle.fileno())
-            except OSError as error:
-                raise _failed(path, error) from None
+            with open(temporary, "wb") as handle:
+                handle.write(data.encode("utf-8") if isinstance(data, str) else data)
+                handle.flush()
+                os.fsync(handle.fileno())
         for temporary, path in written:
             os.replace(temporary, path)
+    except OSError as error:
+        raise _failed(path, error, what) from None
     finally:
         for temporary, _ in written:
             temporary.unlink(missing_ok=True)

@@ -799,7 +799,7 @@ class Pipeline:
             if not path.is_dir() or not list_shards(path):
                 return f"{path} holds no shards"
             if stage.name == "render":
-                frames = sum(len(ShardReader(p)) for p in list_shards(path) if not _unreadable(ShardReader, p))
+                frames = sum(_frames_in(p) for p in list_shards(path))
                 if frames < self.sizes.frames:
                     return f"{path} holds {frames} of the plan's {self.sizes.frames} frames"
             return None
@@ -1206,6 +1206,14 @@ def _unreadable(read, path: Path) -> str | None:
         first = (str(error).splitlines() or [type(error).__name__])[0]
         return first.split(". ")[0][:160]  # its first sentence: torch's go on with advice for another situation
     return None
+
+
+def _frames_in(shard: Path) -> int:
+    """The frames a frame shard holds; 0 when it does not read (opened once)."""
+    try:
+        return len(ShardReader(shard))
+    except Exception:  # noqa: BLE001 - a damaged shard fails as its reader does: `damaged_files` says how
+        return 0
 
 
 def _read_json(path: Path):

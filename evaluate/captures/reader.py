@@ -258,17 +258,24 @@ def video_frames(path: Path, step: int, limit: int | None, problems: list[str] |
             problems.append(line)
 
 
-def frame_exists(captures: "CaptureSet", name: str) -> bool:
-    """Whether ``name`` (module docstring: a photo's file name or ``<video file name>#<index>``) is a frame of
-    the set; a video's index is checked against its frame count where the container gives one."""
+def absent_frames(captures: "CaptureSet", names) -> list[str]:
+    """The ``names`` (module docstring: a photo's file name or ``<video file name>#<index>``) that are no frame of
+    the set; a video's index is checked against its frame count where the container gives one (each video's
+    count read once)."""
     media = {m.path.name: m for m in captures.media}
-    if name in media:
-        return media[name].kind == "image"
-    video, _, index = name.rpartition("#")
-    medium = media.get(video)
-    if medium is None or medium.kind != "video" or not index.isdigit():
-        return False
-    capture = cv2.VideoCapture(str(medium.path))
-    count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-    capture.release()
-    return count <= 0 or int(index) < count
+    counts: dict[str, int] = {}
+
+    def exists(name: str) -> bool:
+        if name in media:
+            return media[name].kind == "image"
+        video, _, index = name.rpartition("#")
+        medium = media.get(video)
+        if medium is None or medium.kind != "video" or not index.isdigit():
+            return False
+        if video not in counts:
+            capture = cv2.VideoCapture(str(medium.path))
+            counts[video] = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+            capture.release()
+        return counts[video] <= 0 or int(index) < counts[video]
+
+    return [name for name in names if not exists(name)]

@@ -13,7 +13,7 @@ from deepcharuco.detection import Detection
 from deepcharuco.pose import estimate_pose
 from evaluate.autolabel import AVERAGE_FRAMES, AutolabelError, autolabel
 from evaluate.captures.reader import (
-    CaptureError, CaptureFrame, CaptureSet, Medium, frame_exists, read_labels, video_frames,
+    CaptureError, CaptureFrame, CaptureSet, Medium, absent_frames, read_labels, video_frames,
 )
 
 
@@ -67,7 +67,7 @@ def build_truth(captures: CaptureSet, average: int = AVERAGE_FRAMES) -> SetTruth
     that has a camera file into memory (30 frames of 1280x720: 28 MB)."""
     if captures.labels is not None:
         labels = read_labels(captures.labels, captures.board)
-        foreign = [name for name in labels if not frame_exists(captures, name)]
+        foreign = absent_frames(captures, labels)
         example = ", ".join(repr(name) for name in foreign[:3])
         if labels and len(foreign) == len(labels):
             raise CaptureError(f"{captures.labels} labels {len(labels)} frame(s), none of them in {captures.folder} "
