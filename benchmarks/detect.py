@@ -1,130 +1,46 @@
-"""Detection speed at real resolutions, every configuration next to OpenCV, in one interleaved run.
+"""Detection speed on the frames users point a camera at, every detector next to OpenCV in one interleaved run.
 
-    python benchmarks/detect.py [--frames data/sequences] [--count 10] [--sizes 320x240,640x480,1280x720,1920x1080]
+    python benchmarks/detect.py [--count 8] [--sizes 320x240,640x480,1280x720,1920x1080]
+                                [--realdata ../shared/realdata] [--seconds 3] [--skip-videos]
 
-Frames: ``--count`` well-lit frames of the report's rendered sequences (``--frames``, the frames its
-synthetic protocols start from; ``python -m evaluate.sequences --out data/sequences`` renders them), each
-scaled to fill the frame at every size (letterboxed: the board grows with the image, its
-camera matrix and truth scaled with it), and the same frames darkened (the paper's darkness
-k=7: ~3 % of the light). Without the test set, views of the board drawn by
-`deepcharuco.synthetic` are used instead (said in the output). One extra row puts the 320x240
-frames unscaled in the middle of a 1920x1080 frame: a small board far away.
+Frames (`evaluate.realistic`, seed ``--seed``): the paper's board drawn into cluttered backgrounds (procedural
+clutter, and real webcam frames without a board from ``--realdata`` where it exists) at 30-95 % of the width at
+320x240 and at 10-30 % and 50-95 % at the larger sizes; the same frames darkened (the paper's darkness k=7,
+~3 % of the light); frames with no board at all; a 3x3 board (4 corners, DICT_5X5_100) at 8-15 % of a
+2592x1944 (5 MP) frame; the report's boards the shipped weights never saw, on clutter; and every frame of
+each real video under ``--realdata`` (searched whole, and tracked with `BoardTracker` as ``deepcharuco
+detect`` does for videos), lit and darkened.
 
-Each configuration runs the full pipeline of the speed issue (detect + estimate_pose with the
-frame's K); `evaluate.protocols.time_pipelines` interleaves them (A B C A B C ...) so that load
-on the machine hits all alike, and the table gives fps, the ratio to OpenCV's fps measured in
-the same run, the fraction of true corners found within 3 px (the paper's accuracy: speed is never
-bought with missed boards) and their mean distance to the truth in px (the sub-pixel error at full
-resolution, next to OpenCV's).
-
-The report's boards the shipped weights never saw (`evaluate.unseen_boards.UNSEEN_BOARDS`: 7x5 DICT_6X6_250,
-11x8 DICT_5X5_1000, 4x5 DICT_4X4_1000 printed inverted; found by their markers, `geometry="markers"`, with the
-weights `Detector(board)` picks) are timed on ``--count`` drawn 320x240 views of each, lit and dark, next to
-OpenCV and hybrid.
-
-A last table times video: the first frame drifting 2 px a frame for 30 frames, searched whole
-every frame (OpenCV, the deep detector) or tracked (`deepcharuco.tracking.BoardTracker`: only
-around the last board, the whole frame every 30), in good light and dark.
+Each detector runs what a user runs (detect + estimate_pose with the frame's K);
+`evaluate.protocols.time_pipelines` interleaves them (A B C A B C ...) so that load on the machine hits all
+alike. Per row: fps, the ratio to OpenCV (+ cornerSubPix) in the same run, the share of true corners found
+within 3 px, the corners reported that are wrong (frames without a board: every corner is), and where the
+deep detector's time goes (ms a frame per stage, `deepcharuco.stage_times`).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
-from deepcharuco.pose import project_corners
-from deepcharuco.runtime import int8_model, onnxruntime_available
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.stage_times import StageTimes, stage
 from deepcharuco.tracking import BoardTracker
-from evaluate.data import TestSetError, load_frames, select_well_lit
 from evaluate.machine import cpu_description
 from evaluate.protocols import TestFrame, darken, score_corners, time_pipelines
+from evaluate.realistic import Placement, clutter, fit, real_backgrounds, video_frames, with_board, without_board
 from evaluate.unseen_boards import UNSEEN_BOARDS
 
 DARK_K = 7
-
-
-def letterboxed(frame: TestFrame, size: tuple[int, int], scale: float | None = None) -> TestFrame:
-    """``frame`` scaled by ``scale`` (default: as large as fits ``size``) and centred on a grey canvas of
-    ``size`` (W, H); truth and camera matrix follow (pixel centres: x' = (x + 0.5) s - 0.5 + offset)."""
-    width, height = size
-    h, w = frame.image.shape
-    scale = min(width / w, height / h) if scale is None else scale
-    new_w, new_h = round(w * scale), round(h * scale)
-    left, top = (width - new_w) // 2, (height - new_h) // 2
-    interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
-    image = np.full((height, width), int(np.median(frame.image)), np.uint8)
-    image[top:top + new_h, left:left + new_w] = cv2.resize(frame.image, (new_w, new_h), interpolation=interpolation)
-    sx, sy = new_w / w, new_h / h
-    to_new = np.array([[sx, 0, 0.5 * sx - 0.5 + left], [0, sy, 0.5 * sy - 0.5 + top], [0, 0, 1]])
-    corners = (frame.corners + 0.5) * np.array([sx, sy], np.float32) - 0.5 + np.array([left, top], np.float32)
-    return replace(frame, image=image, corners=corners.astype(np.float32), K=to_new @ frame.K)
-
-
-def darkened(frame: TestFrame, k: int = DARK_K) -> TestFrame:
-    return replace(frame, image=darken(frame.image, k))
-
-
-def drawn_frames(board: BoardSpec, count: int, seed: int = 0) -> list[TestFrame]:
-    """``count`` 320x240 views of ``board`` drawn with random tilts and distances (no Blender needed)."""
-    rng = np.random.default_rng(seed)
-    K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
-    frames = []
-    for i in range(count):
-        rvec, tvec = look_at_pose(board, rng.uniform(0.35, 0.6), rng.uniform(-35, 35), rng.uniform(-35, 35),
-                                  rng.uniform(-30, 30), tuple(rng.uniform(-0.03, 0.03, 2)))
-        image = render_board_view(board, K, rvec, tvec, background=int(rng.integers(40, 160)))
-        corners = project_corners(board, rvec, tvec, K).astype(np.float32)
-        frames.append(TestFrame(image, corners, np.ones(len(corners), bool), K, rvec, tvec, f"drawn#{i}"))
-    return frames
-
-
-def drifting_clip(frame: TestFrame, length: int = 30, step_px: float = 2.0) -> list[np.ndarray]:
-    """``length`` images of ``frame`` moving right by ``step_px`` a frame (a board waved slowly in a video)."""
-    height, width = frame.image.shape
-    border = int(np.median(frame.image))
-    return [cv2.warpAffine(frame.image, np.float32([[1, 0, i * step_px], [0, 1, 0]]), (width, height),
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=border) for i in range(length)]
-
-
-def clip_fps(detector, clip: list[np.ndarray], rounds: int = 3) -> tuple[float, float]:
-    """(fps, fraction of frames with >= 4 corners) of ``detector`` over ``clip`` in order, median of rounds."""
-    rates, found = [], 0
-    for _ in range(rounds):
-        if isinstance(detector, BoardTracker):
-            detector.reset()
-        started = time.perf_counter()
-        found = sum(len(detector.detect(image)) >= 4 for image in clip)
-        rates.append(len(clip) / (time.perf_counter() - started))
-    return float(np.median(rates)), found / len(clip)
-
-
-def accuracy(detector, frames: list[TestFrame]) -> tuple[float, float]:
-    """(fraction of visible true corners found within 3 px, mean distance of those to the truth in px)."""
-    right, visible, errors = 0, 0, []
-    for frame in frames:
-        score = score_corners(detector.detect(frame.image), frame)
-        right += score.num_correct
-        visible += int(frame.visible.sum())
-        errors.extend(score.subpixel_errors)
-    return right / max(visible, 1), float(np.mean(errors)) if errors else float("nan")
-
-
-def pipelines(board: BoardSpec, backends: list[str]) -> dict:
-    """Every configuration to time, by name: OpenCV (+cornerSubPix), the deep detector per backend, hybrid."""
-    configurations = {"opencv": OpenCVDetector(board, refine="subpix")}
-    for backend in backends:
-        configurations[f"deep {backend}"] = Detector(board, backend=backend)
-    configurations["hybrid"] = Detector(board, mode="hybrid")
-    return configurations
+SMALL, LARGE, FILLING = Placement(0.10, 0.30), Placement(0.50, 0.95), Placement(0.30, 0.95)
+FIVE_MP = (2592, 1944)
+TINY_BOARD = BoardSpec(squares_x=3, squares_y=3, square_length=0.04, marker_length=0.03, dictionary="DICT_5X5_100")
+STAGE_GROUPS = ("network", "candidates", "board check", "markers", "refine", "pose", "other")
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -132,78 +48,162 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", default="data/sequences",
-                        help="the report's rendered sequences (default: data/sequences)")
-    parser.add_argument("--count", type=int, default=10, help="well-lit frames used (default: 10)")
-    parser.add_argument("--sizes", default="320x240,640x480,1280x720,1920x1080", help="frame sizes WxH")
-    parser.add_argument("--seconds", type=float, default=3.0, help="timing per configuration and row (default: 3)")
-    parser.add_argument("--threads", type=int, default=None, help="torch/ONNX Runtime threads (default: torch's)")
-    args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
+def backgrounds_for(size: tuple[int, int], count: int, rng: np.random.Generator, real: list[np.ndarray]
+                    ) -> list[np.ndarray]:
+    """``count`` backgrounds of ``size``: procedural clutter, every other one a real frame where there are some."""
+    return [fit(real[(i // 2) % len(real)], size) if real and i % 2 else clutter(rng, size) for i in range(count)]
 
-    board = BoardSpec()
-    try:
-        base = select_well_lit(load_frames(args.frames, board), count=args.count)
-        source = f"{args.count} well-lit frames of {args.frames}"
-    except TestSetError as error:
-        base = drawn_frames(board, args.count)
-        source = f"{args.count} drawn views ({error})"
-    backends = ["torch"] + (["onnx"] if onnxruntime_available() else [])
-    configurations = pipelines(board, backends)
-    deep = Detector(board)
-    if onnxruntime_available() and int8_model(deep.checkpoint) is not None:
-        configurations["deep onnx-int8"] = Detector(board, backend="onnx-int8")
-    print(f"# {cpu_description()}, {torch.get_num_threads()} threads, torch "
-          f"{torch.__version__}, OpenCV {cv2.__version__}; default backend: {deep.runner.name}")
-    print(f"# frames: {source}; full pipeline: detect + estimate_pose")
 
+def board_rows(board: BoardSpec, sizes: list[tuple[int, int]], count: int, rng: np.random.Generator,
+               real: list[np.ndarray]) -> list[tuple[str, list[TestFrame]]]:
     rows = []
-    for text in args.sizes.split(","):
-        size = parse_size(text)
-        rows.append((f"{size[0]}x{size[1]}", [letterboxed(f, size) for f in base]))
-        rows.append((f"{size[0]}x{size[1]} dark k={DARK_K}", [darkened(letterboxed(f, size)) for f in base]))
-    rows.append(("1920x1080 small board", [letterboxed(f, (1920, 1080), scale=1.0) for f in base]))
+    for size in sizes:
+        label = f"{size[0]}x{size[1]}"
+        placements = [("30-95%", FILLING)] if size[0] <= 320 else [("10-30%", SMALL), ("50-95%", LARGE)]
+        for name, placement in placements:
+            frames = [with_board(board, background, rng, placement, f"{label} #{i}")
+                      for i, background in enumerate(backgrounds_for(size, count, rng, real))]
+            rows.append((f"{label} board {name}", frames))
+            rows.append((f"{label} board {name} dark", [darkened(f) for f in frames]))
+        if size[0] > 320:
+            rows.append((f"{label} no board", [without_board(b, f"{label} empty #{i}")
+                                               for i, b in enumerate(backgrounds_for(size, count, rng, real))]))
+    return rows
 
-    names = list(configurations)
-    print(f"{'frames':28s} " + " ".join(f"{n:>30s}" for n in names))
-    print(f"{'':28s} " + " ".join(f"{'fps (x OpenCV) acc err':>30s}" for _ in names))
+
+def darkened(frame: TestFrame, k: int = DARK_K) -> TestFrame:
+    return TestFrame(darken(frame.image, k), frame.corners, frame.visible, frame.K, frame.rvec, frame.tvec,
+                     frame.name + " dark")
+
+
+def scores(detector, frames: list[TestFrame]) -> tuple[float, int]:
+    """(share of the true corners found within 3 px, corners reported that are not), over ``frames``."""
+    right, visible, wrong = 0, 0, 0
+    for frame in frames:
+        score = score_corners(detector.detect(frame.image), frame)
+        right += score.num_correct
+        visible += int(frame.visible.sum())
+        wrong += score.num_detected - score.num_correct
+    return (right / visible if visible else float("nan")), wrong
+
+
+def stage_breakdown(detector: Detector, frames: list[TestFrame]) -> tuple[dict[str, float], float]:
+    """(ms a frame per `STAGE_GROUPS` group, search levels a frame) of ``detector`` over ``frames`` (one pass)."""
+    with StageTimes() as times:
+        started = time.perf_counter()
+        for frame in frames:
+            detection = detector.detect(frame.image)
+            with stage("pose"):
+                detector.estimate_pose(detection, frame.K)
+        total = time.perf_counter() - started
+    groups = dict.fromkeys(STAGE_GROUPS, 0.0)
+    for name, seconds in times.seconds.items():
+        group = "network" if name.startswith("network") else name
+        groups[group if group in groups else "other"] += seconds
+    groups["other"] += max(total - sum(groups.values()), 0.0)  # what no stage names: levels made, glue
+    return {k: 1000 * v / len(frames) for k, v in groups.items()}, times.counts["levels"] / len(frames)
+
+
+def print_row(label: str, cells: list[str], width: int) -> None:
+    print(f"{label:34s} " + " ".join(f"{c:>{width}s}" for c in cells), flush=True)
+
+
+def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds: float) -> None:
+    names = list(detectors)
+    print_row("frames", names, 27)
+    print_row("", ["fps (x OpenCV) acc wrong"] * len(names), 27)
+    breakdowns = []
     for label, frames in rows:
-        fps = time_pipelines(configurations, frames, rounds=3, min_seconds=args.seconds)
+        fps = time_pipelines(detectors, frames, rounds=3, min_seconds=seconds)
         cells = []
         for name in names:
-            right, error = accuracy(configurations[name], frames)
-            cells.append(f"{fps[name]:7.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:5.2f} {error:5.2f}")
-        print(f"{label:28s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
+            right, wrong = scores(detectors[name], frames)
+            cells.append(f"{fps[name]:6.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:4.2f} {wrong:4d}")
+        print_row(label, cells, 27)
+        breakdowns.append((label, *stage_breakdown(detectors["deep"], frames)))
+    print("\nwhere the deep detector's time goes, ms a frame (one pass; levels: search levels run a frame)")
+    print_row("frames", [*STAGE_GROUPS, "levels"], 11)
+    for label, groups, levels in breakdowns:
+        print_row(label, [f"{groups[g]:.1f}" for g in STAGE_GROUPS] + [f"{levels:.1f}"], 11)
 
-    # Boards the weights never saw, found by their markers (geometry="markers") with the weights `Detector(board)`
-    # picks (a family model where one ships): drawn 320x240 views.
-    for name, unseen in UNSEEN_BOARDS.items():
-        others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen),
-                  "hybrid": Detector(unseen, mode="hybrid")}
-        print(f"\nboard never seen in training ({name}), read by its markers with "
-              f"{Path(others['deep'].weights).name}: {args.count} drawn 320x240 views")
-        drawn = drawn_frames(unseen, args.count)
-        for label, frames in (("320x240", drawn), (f"320x240 dark k={DARK_K}", [darkened(f) for f in drawn])):
-            fps = time_pipelines(others, frames, rounds=3, min_seconds=args.seconds)
-            cells = [f"{fps[n]:7.1f} ({fps[n] / fps['opencv']:5.2f}x) " + "{:5.2f} {:5.2f}".format(*accuracy(d, frames))
-                     for n, d in others.items()]
-            print(f"{label:28s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
 
-    # Video: the first frame drifting 2 px a frame, searched whole each frame or tracked (BoardTracker).
-    print("\nvideo, 30 frames drifting 2 px/frame: fps (frames with >= 4 corners)")
-    video = {"opencv": configurations["opencv"], "deep": deep, "deep tracked": BoardTracker(deep),
-             "hybrid tracked": BoardTracker(configurations["hybrid"])}
-    print(f"{'frames':28s} " + " ".join(f"{n:>18s}" for n in video))
-    for text in args.sizes.split(","):
-        size = parse_size(text)
-        for label, frame in ((f"{text}", letterboxed(base[0], size)),
-                             (f"{text} dark k={DARK_K}", darkened(letterboxed(base[0], size)))):
-            clip = drifting_clip(frame)
-            cells = [clip_fps(detector, clip) for detector in video.values()]
-            print(f"{label:28s} " + " ".join(f"{f:9.1f} ({r:4.2f})".rjust(18) for f, r in cells), flush=True)
+def video_rows(realdata: Path, detectors: dict) -> None:
+    """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
+    frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, and tracked."""
+    videos = sorted(realdata.glob("*/*.mp4"))
+    if not videos:
+        print(f"\nno real videos under {realdata}: pass --realdata")
+        return
+    print(f"\nreal videos, every frame in order: fps (frames with >= 4 corners); {realdata}")
+    names = ["opencv", "deep", "deep tracked", "hybrid tracked"]
+    print_row("video", names, 20)
+    for path in videos:
+        board = BoardSpec.load(path.parent / "board.yaml")
+        deep, hybrid = Detector(board), Detector(board, mode="hybrid")
+        runs = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep, "deep tracked": BoardTracker(deep),
+                "hybrid tracked": BoardTracker(hybrid)}
+        frames = video_frames(path)
+        for label, clip in ((path.parent.name + "/" + path.name, frames),
+                            (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):
+            cells = []
+            for name in names:
+                detector = runs[name]
+                if isinstance(detector, BoardTracker):
+                    detector.reset()
+                started = time.perf_counter()
+                found = sum(len(detector.detect(image)) >= 4 for image in clip)
+                cells.append(f"{len(clip) / (time.perf_counter() - started):6.1f} ({found:3d}/{len(clip)})")
+            print_row(label, cells, 20)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--count", type=int, default=8, help="frames a row (default: 8)")
+    parser.add_argument("--sizes", default="320x240,640x480,1280x720,1920x1080", help="frame sizes WxH")
+    parser.add_argument("--realdata", type=Path, default=Path("../shared/realdata"),
+                        help="real captures: backgrounds without a board and the videos (default: ../shared/realdata)")
+    parser.add_argument("--seconds", type=float, default=3.0, help="timing per detector and row (default: 3)")
+    parser.add_argument("--seed", type=int, default=0, help="frames' seed (default: 0)")
+    parser.add_argument("--skip-videos", action="store_true", help="leave the real videos out")
+    parser.add_argument("--skip-boards", action="store_true", help="leave the drawn boards out (videos only)")
+    args = parser.parse_args()
+    if args.count < 1:
+        parser.error("--count must be >= 1")
+
+    rng = np.random.default_rng(args.seed)
+    real = real_backgrounds(args.realdata / "caliscope_calibration", limit=24)
+    board = BoardSpec()
+    deep = Detector(board)
+    print(f"# {cpu_description()}, OpenCV {cv2.__version__}; deep backend {deep.runner.name}")
+    print(f"# backgrounds: procedural clutter" + (f" and {len(real)} real frames without a board" if real else
+                                                 f" only ({args.realdata} has no caliscope review)"))
+    print("# each detector: detect + estimate_pose; 'deep' = Detector(board), 'hybrid' = Detector(board, mode='hybrid')"
+          " (deepcharuco detect's default)")
+    if not args.skip_boards:
+        sizes = [parse_size(s) for s in args.sizes.split(",")]
+        detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep,
+                     "hybrid": Detector(board, mode="hybrid")}
+        print(f"\nthe paper's board ({board.squares_x}x{board.squares_y} {board.dictionary}), {args.count} frames a row")
+        time_rows(board_rows(board, sizes, args.count, rng, real), detectors, args.seconds)
+
+        frames = [with_board(TINY_BOARD, b, rng, Placement(0.08, 0.15), f"5MP #{i}")
+                  for i, b in enumerate(backgrounds_for(FIVE_MP, max(2, args.count // 2), rng, real))]
+        tiny = {"opencv": OpenCVDetector(TINY_BOARD, refine="subpix"), "deep": Detector(TINY_BOARD),
+                "hybrid": Detector(TINY_BOARD, mode="hybrid")}
+        print(f"\na 3x3 board (4 corners, {TINY_BOARD.dictionary}) at 8-15 % of a {FIVE_MP[0]}x{FIVE_MP[1]} frame")
+        time_rows([("5 MP tiny board", frames), ("5 MP tiny board dark", [darkened(f) for f in frames])], tiny,
+                  args.seconds)
+
+        for name, unseen in UNSEEN_BOARDS.items():
+            others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen),
+                      "hybrid": Detector(unseen, mode="hybrid")}
+            print(f"\nboard never seen in training ({name}), read by its markers, on clutter")
+            frames = [with_board(unseen, b, rng, FILLING, f"{name} #{i}")
+                      for i, b in enumerate(backgrounds_for((640, 480), args.count, rng, real))]
+            time_rows([("640x480 board 30-95%", frames), ("640x480 board 30-95% dark", [darkened(f) for f in frames])],
+                      others, args.seconds)
+    if not args.skip_videos:
+        video_rows(args.realdata, {})
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
 from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
-from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates
+from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
 from deepcharuco.models.offsets import PATCH, soft_argmax_offsets
 from deepcharuco.onnx_bundle import OnnxBundle, bundle_path, is_bundle, read_bundle
 from deepcharuco.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
@@ -41,7 +41,11 @@ from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_
                                    marker_view_verified, settle_corners)
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
+from deepcharuco.stage_times import stage, tally
+from deepcharuco.search_regions import (EVIDENCE_CONFIDENCE, EVIDENCE_MIN_CELLS, Box, area_share, board_like_boxes,
+                                        to_full)
 from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
+from deepcharuco.tracking import search_region
 from deepcharuco.vectors import lengths
 
 REFINE_MODES = ("refinenet", "subpix", "none")
@@ -71,6 +75,13 @@ PREVIEW_MAX_NUDGE_PX = 1.5
 # at 2048 px its squares need to be >= ~50 px (12 px at this level) to be found, and every corner is still
 # refined at full resolution.
 MAX_SEARCH_SIZE = 2048
+# Search levels no longer than this are searched whole; finer ones only around what the level before found or saw
+# (`Detector._search`, `deepcharuco.search_regions`): a frame without a board is searched at 320 px alone, and a
+# small board costs the pixels around it. Chosen on validation frames (`benchmarks/detect.py`'s at seed 1, the
+# caliscope webcams): the same corners as searching every level whole, at 0.16-0.5x its time (docs/detector.md).
+WHOLE_SEARCH_SIZE = 320
+# Regions covering more of a level than this: the level is searched whole (one network pass beats many crops).
+MAX_REGION_SHARE = 0.5
 # RefineNet may move a corner this far from the point head's own pixel, no farther: in near darkness it drew
 # some good corners 3-6 px off, onto noise; beyond the protocols' own 3 px the point head's pixel is kept.
 # Chosen on validation renders (seed 2000): no protocol level lower (darkness k=9 0.378 -> 0.401), wrong
@@ -148,6 +159,39 @@ class EarlyRefinement:
         at = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
         done = (keys[order][at] == wanted) & (pixels == np.rint(pixels)).all(axis=1)
         return done, order[at[done]]
+
+
+def _on_cell_grid(box: Box, scale: float, image_size: tuple[int, int]) -> Box:
+    """``box`` (full pixels) widened onto the cell grid of the level ``scale`` times the full image (W, H)
+    ``image_size``: its region, reduced, is then the same pixels and the same cells the network sees in the whole
+    level (where 8 / ``scale`` is a whole number of pixels), so a region finds what the whole level would there."""
+    step = CELL / scale
+    width, height = image_size
+    x0, y0, x1, y1 = box
+    return (int(np.floor(x0 / step) * step), int(np.floor(y0 / step) * step),
+            min(int(np.ceil(np.ceil(x1 / step) * step)), width), min(int(np.ceil(np.ceil(y1 / step) * step)), height))
+
+
+@dataclass(frozen=True)
+class Found:
+    """What one search level found: ``box`` (x0, y0, x1, y1) the region of the canonical image it searched (full
+    pixels, exclusive ends), ``region`` that part of the image, ``gray`` the same at the level's scale (``region``
+    itself at full scale), (ids (N,), integer pixels (N, 2) in ``gray``, scores (N,)), whether it is the
+    half-size ``preview``, and its `EarlyRefinement` or None."""
+
+    box: Box
+    region: np.ndarray
+    gray: np.ndarray
+    ids: np.ndarray
+    pixels: np.ndarray
+    scores: np.ndarray
+    preview: bool
+    early: EarlyRefinement | None
+
+    def ratio(self) -> np.ndarray:
+        """(2,) float32 full-resolution pixels per ``gray`` pixel, in x and y."""
+        return np.array([self.region.shape[1] / self.gray.shape[1], self.region.shape[0] / self.gray.shape[0]],
+                        np.float32)
 
 
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
@@ -366,42 +410,58 @@ class Detector:
 
     def _detect(self, image: np.ndarray, working_size: int | None) -> Detection:
         if self._opencv is not None:
-            found = self._opencv.detect(image)
+            with stage("opencv"):
+                found = self._opencv.detect(image)
             if self._verified(found):
                 return found
-        gray_u8 = to_gray_u8(image)
-        full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
+        with stage("canonical view"):
+            gray_u8 = to_gray_u8(image)
+            full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
         working_size = working_size or self.working_size
-        found = self._search(full, working_size)
-        if found is None and self.geometry == "markers" and self.board.inverted:
+        found, board_like = self._search(full, working_size)
+        if found is None and board_like and self.geometry == "markers" and self.board.inverted:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
-            full = canonical_view_local_white(gray_u8, self.board)
-            found = self._search(full, working_size)
+            # Only where the first search saw board-like cells: a frame without a board was searched twice.
+            with stage("canonical view"):
+                full = canonical_view_local_white(gray_u8, self.board)
+            found, _ = self._search(full, working_size)
         if found is None:
             return Detection.empty()
-        height, width = full.shape
-        gray, ids, pixels, scores, preview, early = found
+        region = found.region
+        height, width = region.shape
+        gray, ids, pixels, scores = found.gray, found.ids, found.pixels, found.scores
         by_pattern = scores == PATTERN_SCORE if self.geometry == "markers" else np.zeros(len(ids), bool)
         # Refined where found, then again at full resolution: a single full-resolution pass from the reduced
         # level's cell pixel (up to ~1.5 px off) fitted a pose less well in good light (validation sequences,
         # seed 2001: corner error 0.082 vs 0.075 px). A preview's squares are >= 12 px wide: there
         # cornerSubPix centres the corners as well as RefineNet does, for a tenth of its cost.
-        ratio = np.array([width / gray.shape[1], height / gray.shape[0]], np.float32)
+        ratio = found.ratio()
         corners = (pixels.astype(np.float32) + 0.5) * ratio - 0.5  # pixel centres: OpenCV's convention at both sizes
         seen = ~by_pattern
+        with stage("refine"):
+            corners = self._refined(region, gray, pixels, corners, seen, ratio, found.preview, found.early)
+        if by_pattern.any():  # corners the point head missed (a shadow's edge): where the printed pattern fits
+            with stage("pattern fit"):
+                corners[by_pattern] = self._placed_by_pattern(region, ids, corners, by_pattern)
+        if self.geometry == "markers":  # corners refined away from where their neighbours put them go
+            with stage("settle"):
+                ids, corners, scores = settle_corners(self._board_xy, ids, corners, scores, self.threshold)
+                ids, corners, scores = drop_isolated(self._board_xy, ids, corners, scores)
+        corners = corners + np.array(found.box[:2], np.float32)
+        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores)
+
+    def _refined(self, full: np.ndarray, gray: np.ndarray, pixels: np.ndarray, corners: np.ndarray, seen: np.ndarray,
+                 ratio: np.ndarray, preview: bool, early: EarlyRefinement | None) -> np.ndarray:
+        """``corners`` (N, 2) with the rows ``seen`` refined from their integer ``pixels`` in the level ``gray``,
+        then again in ``full`` where the level was reduced by ``ratio``."""
         if seen.any():
             refined = _nudged(gray, pixels[seen]) if preview and self.refine == "refinenet" else \
                 self._refine(gray, pixels[seen], early=early)
             if gray is not full:
                 refined = self._refine(full, (refined + 0.5) * ratio - 0.5, window_scale=float(ratio.max()))
             corners[seen] = refined
-        if by_pattern.any():  # corners the point head missed (a shadow's edge): where the printed pattern fits
-            corners[by_pattern] = self._placed_by_pattern(full, ids, corners, by_pattern)
-        if self.geometry == "markers":  # corners refined away from where their neighbours put them go
-            ids, corners, scores = settle_corners(self._board_xy, ids, corners, scores, self.threshold)
-            ids, corners, scores = drop_isolated(self._board_xy, ids, corners, scores)
-        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, width), scores=scores)
+        return corners
 
     def _placed_by_pattern(self, full: np.ndarray, ids: np.ndarray, corners: np.ndarray, placing: np.ndarray
                            ) -> np.ndarray:
@@ -412,24 +472,57 @@ class Detector:
             return corners[placing]
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
-    def _search(self, full: np.ndarray, working_size: int | None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, EarlyRefinement | None] | None:
-        """The board searched level by level (`_search_levels`) in the canonical image ``full`` -> (the level's
-        image, ids, integer pixels there, scores, whether it is the preview, its `EarlyRefinement` or None), or
-        None where no level found it."""
-        found = None
-        for gray, preview in self._search_levels(full, working_size):
-            ids, pixels, scores, early = self._find(gray, full)
-            spacing = corner_spacing(pixels)
-            if preview:
-                if spacing >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
-                    return gray, ids, pixels, scores, preview, early
-                continue  # part of the board, or squares too small to trust: the full image decides alone
-            if len(ids):
-                found = (gray, ids, pixels, scores, preview, early)
-                if spacing >= MIN_SQUARE_PX:
+    def _search(self, full: np.ndarray, working_size: int | None) -> tuple[Found | None, bool]:
+        """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
+        that decided found, or None; whether any level saw board-like cells or a board).
+
+        The preview (``self.preview``, images no longer than ``working_size``) stands when it holds the whole
+        board in view. Levels no longer than `WHOLE_SEARCH_SIZE` are searched whole; a finer one only where the
+        level before found the board with squares under `MIN_SQUARE_PX` (around it), or saw board-like cells
+        (`search_regions.board_like_boxes`), and not at all where it saw neither: a frame without a board
+        stops at the coarse levels. Regions that would cover more than `MAX_REGION_SHARE` of a level make it
+        searched whole."""
+        height, width = full.shape
+        whole: Box = (0, 0, width, height)
+        if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
+            gray = _reduced(full, 0.5)
+            ids, pixels, scores, early, _ = self._find(gray, full, "preview")
+            if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
+                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early), True
+            # part of the board, or squares too small to trust: the full image decides alone
+        found, board_like, boxes = None, False, [whole]
+        for level, scale in enumerate(self._level_scales(max(height, width), working_size)):
+            if level > 0:
+                if found is not None:  # squares too small where found: look again, closer, around it alone
+                    corners = (found.pixels + 0.5) * found.ratio() - 0.5 + np.array(found.box[:2], np.float32)
+                    boxes = [search_region(corners, (width, height))]
+                elif scale * max(height, width) <= WHOLE_SEARCH_SIZE:
+                    boxes = [whole]
+                if not boxes:
+                    break  # the level before saw nothing board-like: no finer level will find a board
+                if area_share(boxes, (width, height)) > MAX_REGION_SHARE:
+                    boxes = [whole]
+            tally("levels")
+            level_found, next_boxes = None, []
+            for box in boxes:
+                box = _on_cell_grid(box, scale, (width, height))
+                x0, y0, x1, y1 = box
+                region = full[y0:y1, x0:x1]
+                gray = region if scale == 1.0 else _reduced(region, scale)
+                ids, pixels, scores, early, confidence = self._find(gray, region, level)
+                reached = gray.shape[1] / region.shape[1]
+                next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
+                               to_full(board_like_boxes(confidence), reached, (x1 - x0, y1 - y0))]
+                if len(ids) and (level_found is None or len(ids) > len(level_found.ids)):
+                    level_found = Found(box, region, gray, ids, pixels, scores, preview=False, early=early)
+                board_like = board_like or bool(board_like_boxes(confidence, EVIDENCE_CONFIDENCE, EVIDENCE_MIN_CELLS))
+            board_like = board_like or level_found is not None
+            boxes = next_boxes
+            if level_found is not None:
+                found = level_found
+                if corner_spacing(found.pixels) >= MIN_SQUARE_PX:
                     break  # squares large enough here: a finer level would cost more and find no more
-        return found
+        return found, board_like
 
     def _whole_view_found(self, ids: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether (ids, pixels) are every board corner that their view (a homography fitted to them) puts
@@ -458,38 +551,44 @@ class Detector:
         view = fit_board_homography(self.board.object_points()[detection.ids, :2], detection.corners, tolerance)
         return view is not None and view.inliers.sum() >= 0.9 * len(detection.ids)
 
-    def _search_levels(self, full: np.ndarray, working_size: int | None):
-        """(image, is_preview): the images the board is searched in, coarse first: ``working_size``, then twice
-        that, ... up to ``full`` itself (a board whose squares are too small for the coarse level is found at a
-        finer one). An image no longer than ``working_size`` is first previewed at half size (``self.preview``)."""
-        height, width = full.shape
-        longest = max(height, width)
-        if self.preview and working_size is not None and 4 * CELL <= longest <= working_size:
-            yield _reduced(full, 0.5), True
-        size = None if working_size is None else max(working_size, 2 * CELL)
-        while size is not None and size < longest and size < MAX_SEARCH_SIZE:
-            yield _reduced(full, size / longest), False
+    @staticmethod
+    def _level_scales(longest: int, working_size: int | None) -> list[float]:
+        """The scales (of the full image, whose longest side is ``longest``) the board is searched at, coarse first:
+        ``working_size``, then twice that, ... up to the full image itself (a board whose squares are too small for
+        the coarse level is found at a finer one), the finest never longer than `MAX_SEARCH_SIZE`."""
+        if working_size is None:
+            return [1.0]
+        scales, size = [], max(working_size, 2 * CELL)
+        while size < longest and size < MAX_SEARCH_SIZE:
+            scales.append(size / longest)
             size *= 2
-        if longest <= MAX_SEARCH_SIZE or working_size is None:
-            yield full, False
-        else:  # the network never sees more than MAX_SEARCH_SIZE: memory and time stay bounded
-            yield _reduced(full, MAX_SEARCH_SIZE / longest), False
+        # the network never sees more than MAX_SEARCH_SIZE: memory and time stay bounded
+        scales.append(1.0 if longest <= MAX_SEARCH_SIZE else MAX_SEARCH_SIZE / longest)
+        return scales
 
-    def _find(self, gray: np.ndarray, full: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None]:
-        """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``, and
-        the `EarlyRefinement` started for them (or None); markers are read in ``full``, the same image at full
-        resolution."""
+    def _find(self, gray: np.ndarray, full: np.ndarray, level: int | str = 0
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None, np.ndarray]:
+        """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``, the
+        `EarlyRefinement` started for them (or None), and the (Hc, Wc) cell confidences; markers are read in
+        ``full``, the same image at full resolution; ``level`` names the search level in stage times
+        (`deepcharuco.stage_times`)."""
         height, width = gray.shape
-        point_logits, id_logits = self.runner.charuconet(network_input(gray))
+        with stage(f"network {level}"):
+            point_logits, id_logits = self.runner.charuconet(network_input(gray))
+        with stage("candidates"):
+            confidence = cell_confidence(point_logits)
         if self.geometry == "markers":
             # Weaker cells too: they may only fill in corners of the view the confident ones found (`placement`).
-            candidates = _inside(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE)), (width, height))
+            with stage("candidates"):
+                candidates = _inside(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE),
+                                                     confidence), (width, height))
+            tally("candidate cells", int((candidates.confidence >= self.threshold).sum()))
             early = self._refine_early(gray, candidates.pixels[candidates.confidence >= self.threshold])
-            found = corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
-                                         threshold=self.threshold)[0]
-            return (*found, early)
-        return (*self.decode(point_logits, id_logits, (width, height), gray, full), None)
+            with stage("markers"):
+                found = corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
+                                             threshold=self.threshold)[0]
+            return (*found, early, confidence)
+        return (*self.decode(point_logits, id_logits, (width, height), gray, full, confidence), None, confidence)
 
     def _refine_early(self, gray: np.ndarray, pixels: np.ndarray) -> EarlyRefinement | None:
         """RefineNet started on ``pixels`` of ``gray`` on the runner's background thread, or None where the
@@ -518,37 +617,43 @@ class Detector:
         return pixels.astype(np.float32)
 
     def decode(self, point_logits: np.ndarray, id_logits: np.ndarray | None, image_size: tuple[int, int],
-               gray: np.ndarray | None = None, read_gray: np.ndarray | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               gray: np.ndarray | None = None, read_gray: np.ndarray | None = None,
+               confidence: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One image's ChArUcoNet logits (65, Hc, Wc), (N+1, Hc, Wc) -> integer corner pixels before refinement:
         (ids (M,), pixels (M, 2) float32, scores (M,)), decoded at ``self.threshold`` with ``self.geometry``.
         ``image_size``: (width, height) of the image before padding. With ``gray`` (the image in the board's
         canonical appearance) a "repair"/"filter" view must also pass the marker check
         (`placement.view_is_verified`): a look-alike board (other markers) gives no corners; ``read_gray``
-        is the same image at full resolution, to read the markers in."""
+        is the same image at full resolution, to read the markers in; ``confidence``: the logits'
+        `models.cells.cell_confidence` where the caller has it."""
         if self.geometry == "markers":
             raise DeepCharucoError("geometry='markers' reads the markers from the image: use detect(image)")
         width, height = image_size
         # A score is at most its cell's confidence: cells less confident than the threshold never count.
-        candidates = _inside(cell_candidates(point_logits, id_logits, self.threshold), image_size)
-        ids, pixels, scores = best_per_id(candidates, self.threshold)
+        with stage("candidates"):
+            candidates = _inside(cell_candidates(point_logits, id_logits, self.threshold, confidence), image_size)
+            ids, pixels, scores = best_per_id(candidates, self.threshold)
+        tally("candidate cells", len(candidates))
         view = None
-        if self.geometry == "filter":
-            view = fit_board_homography(self._board_xy[ids], pixels)
-            if view is not None:
-                ids, pixels, scores = ids[view.inliers], pixels[view.inliers], scores[view.inliers]
-        elif self.geometry == "repair":
-            proposed_ids, proposed_pixels = id_hypotheses(candidates, min_prob=SECOND_ID_MIN_PROB)
-            view = fit_board_homography(self._board_xy[proposed_ids], proposed_pixels)
-            if view is not None:
-                ids, pixels, scores = assign_ids(view, self._board_xy, candidates, (width, height))
+        with stage("board check"):
+            if self.geometry == "filter":
+                view = fit_board_homography(self._board_xy[ids], pixels)
+                if view is not None:
+                    ids, pixels, scores = ids[view.inliers], pixels[view.inliers], scores[view.inliers]
+            elif self.geometry == "repair":
+                proposed_ids, proposed_pixels = id_hypotheses(candidates, min_prob=SECOND_ID_MIN_PROB)
+                view = fit_board_homography(self._board_xy[proposed_ids], proposed_pixels)
+                if view is not None:
+                    ids, pixels, scores = assign_ids(view, self._board_xy, candidates, (width, height))
         if self.geometry == "none":
             return ids, pixels, scores
         if gray is not None:
-            if view is None:  # too few corners to check, or IDs that fit no view: the markers may still tell
-                return corners_from_markers(gray, self.board, candidates, read_gray=read_gray, reader=self.reader)[0]
-            if not marker_view_verified(gray, self.board, view.homography, read_gray, reader=self.reader):
-                return no_corners()  # the corners fit the board's grid, its markers are not there
+            with stage("markers"):
+                if view is None:  # too few corners to check, or IDs that fit no view: the markers may still tell
+                    return corners_from_markers(gray, self.board, candidates, read_gray=read_gray,
+                                                reader=self.reader)[0]
+                if not marker_view_verified(gray, self.board, view.homography, read_gray, reader=self.reader):
+                    return no_corners()  # the corners fit the board's grid, its markers are not there
         elif view is None and len(ids) >= MIN_CONSENSUS:
             return no_corners()  # enough corners to check, and they fit no view
         return ids, pixels, scores

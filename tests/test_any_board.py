@@ -296,12 +296,10 @@ def test_hybrid_keeps_verified_opencv_corners_and_falls_back_to_the_networks(cam
 def test_huge_images_are_never_searched_above_the_cap():
     from deepcharuco.deep_detector import MAX_SEARCH_SIZE
 
-    detector = Detector()
-    huge = np.zeros((6000, 8000), np.uint8)  # an 8000x6000 photo: the network at full size took 9.5 GB
-    levels = [level.shape for level, _ in detector._search_levels(huge, detector.working_size)]
-    assert levels[0] == (240, 320) and max(max(shape) for shape in levels) == MAX_SEARCH_SIZE
-    assert [max(shape) for shape in levels] == sorted(max(shape) for shape in levels)
-    assert [level.shape for level, _ in Detector(working_size=None)._search_levels(huge, None)] == [(6000, 8000)]
+    # an 8000x6000 photo: the network at full size took 9.5 GB
+    sides = [round(scale * 8000) for scale in Detector._level_scales(8000, 320)]
+    assert sides == [320, 640, 1280, MAX_SEARCH_SIZE]
+    assert Detector._level_scales(8000, None) == [1.0]
 
 
 def test_inverted_print_negated_about_its_local_white(camera):

@@ -94,12 +94,10 @@ def test_a_partial_or_small_preview_leaves_the_full_image_to_decide(camera):
 
 
 def test_no_preview_for_images_larger_than_the_working_size():
-    detector = Detector()
-    levels = [(level.shape, preview) for level, preview in detector._search_levels(np.zeros((480, 640), np.uint8), 320)]
-    assert levels == [((240, 320), False), ((480, 640), False)]
-    levels = [(level.shape, preview) for level, preview in detector._search_levels(np.zeros((240, 320), np.uint8), 320)]
-    assert levels == [((120, 160), True), ((240, 320), False)]
-    assert Detector(preview=False)._search_levels(np.zeros((240, 320), np.uint8), 320).__next__()[1] is False
+    blank = np.full((480, 640), 128, np.uint8)  # nothing board-like: the whole coarse level once, no finer level
+    assert network_widths(Detector(), blank)[1] == [320]
+    assert network_widths(Detector(), blank[:240, :320])[1] == [160, 320]
+    assert network_widths(Detector(preview=False), blank[:240, :320])[1] == [320]
 
 
 def test_a_board_read_by_its_markers_is_not_previewed(camera):

@@ -1,6 +1,7 @@
 """The shared training loop: loss falls, resume is exact, SIGTERM checkpoints, refusals."""
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -151,8 +152,9 @@ def test_bundle_never_writes_into_the_package_unless_forced(frames, patches, tmp
     forced = ROOT / "deepcharuco" / "weights" / f"test-force-{os.getpid()}.pt"
     try:
         assert bundle("--out", forced, "--force").returncode == 0 and forced.is_file()
-    finally:
+    finally:  # the bundle beside it too: nothing of the test may stay in the package (it would ship)
         forced.unlink(missing_ok=True)
+        shutil.rmtree(forced.with_suffix(".onnx"), ignore_errors=True)
 
 
 def test_resume_is_exact(patches, tmp_path):

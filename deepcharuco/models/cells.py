@@ -74,19 +74,28 @@ def _softmax(logits: np.ndarray, axis: int) -> np.ndarray:
     return shifted / shifted.sum(axis=axis, keepdims=True)
 
 
-def point_candidates(point_logits: np.ndarray, min_confidence: float
+def cell_confidence(point_logits: np.ndarray) -> np.ndarray:
+    """One image's point logits (65, Hc, Wc) -> (Hc, Wc) float32 probability that each cell holds a corner
+    (1 - the dustbin's softmax probability; only the dustbin's is needed)."""
+    logits = as_array(point_logits)
+    flat = logits.reshape(len(logits), -1)
+    top = flat.max(axis=0)
+    dustbin = np.exp(flat[-1] - top) / np.exp(flat - top).sum(axis=0)
+    return (1.0 - dustbin).astype(np.float32).reshape(logits.shape[1:])
+
+
+def point_candidates(point_logits: np.ndarray, min_confidence: float, confidence: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One image's point logits (65, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``:
     (flat cell indices (M,) int64, pixels (M, 2) float32 x, y of each cell's likeliest pixel, confidence (M,) float32).
+    ``confidence``: `cell_confidence` of these logits where the caller has it already.
 
     In numpy: on these small arrays PyTorch's thread pool costs more than the arithmetic, and far more on a
     busy CPU. Only the dustbin's probability is needed (the likeliest pixel is the largest logit)."""
     logits = as_array(point_logits)
     cols = logits.shape[2]
     flat = logits.reshape(len(logits), -1)
-    top = flat.max(axis=0)
-    dustbin = np.exp(flat[-1] - top) / np.exp(flat - top).sum(axis=0)  # P(dustbin) per cell
-    confidence = (1.0 - dustbin).astype(np.float32)
+    confidence = (cell_confidence(logits) if confidence is None else confidence).ravel()
     cells = np.flatnonzero(confidence >= min_confidence)
     position = flat[:-1, cells].argmax(axis=0)  # 0..63 inside each cell
     pixels = np.stack([(cells % cols) * CELL + position % CELL, (cells // cols) * CELL + position // CELL], axis=1)
@@ -94,10 +103,11 @@ def point_candidates(point_logits: np.ndarray, min_confidence: float
 
 
 def cell_candidates(point_logits: np.ndarray, id_logits: np.ndarray | None,
-                    min_confidence: float) -> CellCandidates:
+                    min_confidence: float, confidence: np.ndarray | None = None) -> CellCandidates:
     """One image's logits (65, Hc, Wc) and (N+1, Hc, Wc) -> the cells whose point confidence reaches ``min_confidence``.
-    Without ``id_logits`` (a board the ID head does not know) ``id_prob`` is (M, 0)."""
-    cells, pixels, confidence = point_candidates(point_logits, min_confidence)
+    Without ``id_logits`` (a board the ID head does not know) ``id_prob`` is (M, 0). ``confidence``: as for
+    `point_candidates`."""
+    cells, pixels, confidence = point_candidates(point_logits, min_confidence, confidence)
     if id_logits is None:
         return CellCandidates(pixels=pixels, confidence=confidence, id_prob=np.zeros((len(cells), 0), np.float32))
     logits = as_array(id_logits)

@@ -1,0 +1,76 @@
+"""Where a finer search level looks: the regions of a frame a coarser level saw a board, or board-like cells in.
+
+A board whose squares are a little too small for a level (4-12 px there) is still seen by its point head as a
+dense patch of corner-like cells: a 5x5-cell window over it holds 7-18 cells of confidence >= 0.1, where
+clutter, text and tiled grids hold at most 5 (the paper's board drawn into clutter and real webcam frames at
+1280x720, searched at 320 px, `benchmarks/detect.py`'s frames). The next level, with squares twice as wide,
+then searches those patches alone, not the whole frame: a frame without a board stops at the coarse levels,
+and a small board costs the pixels around it.
+
+Boxes are (x0, y0, x1, y1) with exclusive ends, in the pixels of the image they are given for.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from deepcharuco.models.cells import CELL
+
+# A finer level searches where the level before saw MIN_CELLS corner-like cells (point confidence >= CONFIDENCE) in a
+# WINDOW_CELLS-square window: permissive, a board too small to read must not be missed. Chosen on validation frames
+# (`benchmarks/detect.py`'s frames at seed 1, the caliscope videos): every frame found what the whole-level search
+# found, and the caliscope webcams 172 of 444 frames as before; 0.3 and 6 lost a sixth of the small boards at 640x480.
+CONFIDENCE = 0.1
+MIN_CELLS = 4
+# Board-like evidence (the inverted print's second, local-white search runs only where the first saw some): the same
+# at the decoding's own threshold. On the caliscope webcams' frames without a board: at most 8 such cells in a window
+# at 320 px (median 1-5); around the board 11-15 (median). The second search then ran on 0 of 272 boardless frames
+# where it had run on all, and the one frame it had rescued was still found (172 of 444).
+EVIDENCE_CONFIDENCE = 0.3
+EVIDENCE_MIN_CELLS = 6
+WINDOW_CELLS = 5  # the window corner-like cells are counted in
+MARGIN_CELLS = 3  # board-like cells widened by this many cells: the markers and corners beyond them
+MIN_SIDE_CELLS = 8  # a region narrower than this many cells is widened to it (the network needs context)
+
+Box = tuple[int, int, int, int]
+
+
+def board_like_boxes(confidence: np.ndarray, min_confidence: float = CONFIDENCE, min_cells: int = MIN_CELLS
+                     ) -> list[Box]:
+    """(Hc, Wc) cell confidences of one level -> boxes, in that level's cells, around each dense patch of
+    corner-like cells (``min_cells`` or more of confidence >= ``min_confidence`` in a `WINDOW_CELLS` square
+    window), widened by `MARGIN_CELLS`; [] where the level saw none."""
+    hot = (confidence >= min_confidence).astype(np.float32)
+    counts = cv2.boxFilter(hot, -1, (WINDOW_CELLS, WINDOW_CELLS), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    dense = ((counts >= min_cells) & (hot > 0)).astype(np.uint8)
+    if not dense.any():
+        return []
+    side = 2 * MARGIN_CELLS + 1
+    grown = cv2.dilate(dense, np.ones((side, side), np.uint8))
+    count, _, stats, _ = cv2.connectedComponentsWithStats(grown, connectivity=8)
+    return [(int(x), int(y), int(x + w), int(y + h)) for x, y, w, h, _ in stats[1:count]]
+
+
+def to_full(boxes: list[Box], scale: float, image_size: tuple[int, int], min_side: int = MIN_SIDE_CELLS * CELL
+            ) -> list[Box]:
+    """``boxes`` in a level's cells, that level ``scale`` times the full image -> boxes in the full image's
+    pixels (``image_size`` (W, H)), each at least ``min_side`` level pixels wide and high, inside the image."""
+    width, height = image_size
+    full = []
+    for x0, y0, x1, y1 in boxes:
+        low = np.array([x0, y0], np.float64) * CELL / scale
+        high = np.array([x1, y1], np.float64) * CELL / scale
+        grow = np.maximum(min_side / scale - (high - low), 0) / 2
+        low, high = np.floor(low - grow), np.ceil(high + grow)
+        low = np.clip(low, 0, None)
+        high = np.minimum(high, [width, height])
+        full.append((int(low[0]), int(low[1]), int(high[0]), int(high[1])))
+    return full
+
+
+def area_share(boxes: list[Box], image_size: tuple[int, int]) -> float:
+    """The share of a (W, H) image the ``boxes`` cover, overlaps counted twice (an upper bound, which is all the
+    choice between regions and the whole image needs)."""
+    width, height = image_size
+    return min(1.0, sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes) / (width * height))
