@@ -76,10 +76,11 @@ PREVIEW_MAX_NUDGE_PX = 1.5
 # refined at full resolution.
 MAX_SEARCH_SIZE = 2048
 # Search levels no longer than this are searched whole; finer ones only around what the level before found or saw
-# (`Detector._search`, `deepcharuco.search_regions`): a frame without a board is searched at 320 px alone, and a
-# small board costs the pixels around it. Chosen on validation frames (`benchmarks/detect.py`'s at seed 1, the
-# caliscope webcams): the same corners as searching every level whole, at 0.16-0.5x its time (docs/detector.md).
-WHOLE_SEARCH_SIZE = 320
+# (`Detector._search`, `deepcharuco.search_regions`): a frame without a board is not searched above 640 px, and a
+# small board in a large frame costs the pixels around it. 320 was faster still (a 1280x720 frame without a board
+# 12 ms) but lost boards whose squares are large enough yet unreadable at 320 px (calibtargets' defocused 22x22
+# board: 22 of 89 corners, one frame none), which only a whole finer level finds (docs/detector.md).
+WHOLE_SEARCH_SIZE = 640
 # Regions covering more of a level than this: the level is searched whole (one network pass beats many crops).
 MAX_REGION_SHARE = 0.5
 # RefineNet may move a corner this far from the point head's own pixel, no farther: in near darkness it drew

@@ -94,8 +94,8 @@ def test_a_partial_or_small_preview_leaves_the_full_image_to_decide(camera):
 
 
 def test_no_preview_for_images_larger_than_the_working_size():
-    blank = np.full((480, 640), 128, np.uint8)  # nothing board-like: the whole coarse level once, no finer level
-    assert network_widths(Detector(), blank)[1] == [320]
+    blank = np.full((480, 640), 128, np.uint8)  # each level up to 640 px searched whole once, nothing finer
+    assert network_widths(Detector(), blank)[1] == [320, 640]
     assert network_widths(Detector(), blank[:240, :320])[1] == [160, 320]
     assert network_widths(Detector(preview=False), blank[:240, :320])[1] == [320]
 

@@ -55,18 +55,18 @@ def test_a_small_board_in_a_large_frame_is_found_and_the_finest_level_sees_only_
     assert len(found.ids) >= 0.9 * board.num_corners
     error = np.linalg.norm(found.corners - frame.corners[found.ids], axis=1)
     assert np.median(error) < 0.3 and error.max() < 1.5
-    assert widths[0] == 320  # the whole coarse level
-    assert all(width < 640 for width in widths[1:])  # finer levels: regions only, never the whole frame
+    assert widths[:2] == [320, 640]  # the levels searched whole
+    assert all(width < 1280 for width in widths[2:])  # finer levels: regions only, never the whole frame
 
 
-def test_a_frame_with_nothing_board_like_is_not_searched_past_the_whole_coarse_level():
+def test_a_frame_with_nothing_board_like_is_not_searched_past_the_levels_searched_whole():
     rng = np.random.default_rng(3)
     plain = np.clip(120 + rng.normal(0, 3, (1080, 1920)), 0, 255).astype(np.uint8)  # a wall, sensor noise
     found, widths = widths_seen(Detector(), without_board(plain).image)
-    assert len(found) == 0 and widths == [320]
+    assert len(found) == 0 and widths == [320, 640]
     inverted = BoardSpec(squares_x=4, squares_y=5, dictionary="DICT_4X4_1000", inverted=True)
     found, widths = widths_seen(Detector(inverted), plain)
-    assert len(found) == 0 and widths == [320]  # and no second, local-white pass for an inverted print
+    assert len(found) == 0 and widths == [320, 640]  # and no second, local-white pass for an inverted print
 
 
 def test_stage_times_are_kept_only_while_active():
