@@ -2,10 +2,10 @@
 
 A board whose squares are a little too small for a level (4-12 px there) is still seen by its point head as a
 dense patch of corner-like cells: a 5x5-cell window over it holds 7-18 cells of confidence >= 0.1, where
-clutter, text and tiled grids hold at most 5 (the paper's board drawn into clutter and real webcam frames at
-1280x720, searched at 320 px, `benchmarks/detect.py`'s frames). The next level, with squares twice as wide,
-then searches those patches alone, not the whole frame: a frame without a board stops at the coarse levels,
-and a small board costs the pixels around it.
+procedural clutter, text and tiled grids hold at most 5-8 (the paper's board drawn at 1280x720, searched at 320
+px; real rooms hold more). The next level, with squares twice as wide, then searches those patches alone, not
+the whole frame: a frame without a board stops at the levels searched whole, and a small board costs the pixels
+around it.
 
 Boxes are (x0, y0, x1, y1) with exclusive ends, in the pixels of the image they are given for.
 """
@@ -19,14 +19,14 @@ from deepcharuco.models.cells import CELL
 
 # A finer level searches where the level before saw MIN_CELLS corner-like cells (point confidence >= CONFIDENCE) in a
 # WINDOW_CELLS-square window: permissive, a board too small to read must not be missed. Chosen on validation frames
-# (`benchmarks/detect.py`'s frames at seed 1, the caliscope videos): every frame found what the whole-level search
-# found, and the caliscope webcams 172 of 444 frames as before; 0.3 and 6 lost a sixth of the small boards at 640x480.
+# (`benchmarks/detect.py`'s frames at seed 1, the caliscope videos, calibtargets' photos): every frame found what
+# the whole-level search found; 0.3 and 6 lost a sixth of the small boards at 640x480 and 17 caliscope frames.
 CONFIDENCE = 0.1
 MIN_CELLS = 4
 # Board-like evidence (the inverted print's second, local-white search runs only where the first saw some): the same
-# at the decoding's own threshold. On the caliscope webcams' frames without a board: at most 8 such cells in a window
-# at 320 px (median 1-5); around the board 11-15 (median). The second search then ran on 0 of 272 boardless frames
-# where it had run on all, and the one frame it had rescued was still found (172 of 444).
+# at the decoding's own threshold. On the caliscope webcams' frames without a board it still holds on most (real
+# rooms show such texture at 640 px): the second search ran 263 times on 444 frames instead of 273, and the one frame
+# it rescues is still found. At 320 px alone it ran 6 times, but that frame was lost, so every level counts.
 EVIDENCE_CONFIDENCE = 0.3
 EVIDENCE_MIN_CELLS = 6
 WINDOW_CELLS = 5  # the window corner-like cells are counted in
