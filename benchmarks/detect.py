@@ -1,10 +1,14 @@
 """Detection speed on the frames users point a camera at, every detector next to OpenCV in one interleaved run.
 
     python benchmarks/detect.py [--count 8] [--sizes 320x240,640x480,1280x720,1920x1080]
-                                [--realdata ../shared/realdata] [--seconds 3] [--skip-videos]
+                                [--realdata realdata] [--seconds 3] [--skip-videos]
+
+``--realdata``: a folder of capture folders as docs/evaluation.md's "Real captures" lists them (caliscope's
+calibration session with its frames_review.csv, ...; each with its board.yaml). Without it, the backgrounds
+are procedural clutter only and no real video is timed.
 
 Frames (`evaluate.realistic`, seed ``--seed``): the paper's board drawn into cluttered backgrounds (procedural
-clutter, and real webcam frames without a board from ``--realdata`` where it exists) at 30-95 % of the width at
+clutter, and real webcam frames without a board from ``--realdata``) at 30-95 % of the width at
 320x240 and at 10-30 % and 50-95 % at the larger sizes; the same frames darkened (the paper's darkness k=7,
 ~3 % of the light); frames with no board at all; a 3x3 board (4 corners, DICT_5X5_100) at 8-15 % of a
 2592x1944 (5 MP) frame; the report's boards the shipped weights never saw, on clutter; and every frame of
@@ -127,7 +131,7 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
         print_row(label, [f"{groups[g]:.1f}" for g in STAGE_GROUPS] + [f"{levels:.1f}"], 11)
 
 
-def video_rows(realdata: Path, detectors: dict) -> None:
+def video_rows(realdata: Path) -> None:
     """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
     frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, and tracked."""
     videos = sorted(realdata.glob("*/*.mp4"))
@@ -160,8 +164,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--count", type=int, default=8, help="frames a row (default: 8)")
     parser.add_argument("--sizes", default="320x240,640x480,1280x720,1920x1080", help="frame sizes WxH")
-    parser.add_argument("--realdata", type=Path, default=Path("../shared/realdata"),
-                        help="real captures: backgrounds without a board and the videos (default: ../shared/realdata)")
+    parser.add_argument("--realdata", type=Path, default=None,
+                        help="folder of real capture folders: backgrounds without a board and the videos (default: none)")
     parser.add_argument("--seconds", type=float, default=3.0, help="timing per detector and row (default: 3)")
     parser.add_argument("--seed", type=int, default=0, help="frames' seed (default: 0)")
     parser.add_argument("--skip-videos", action="store_true", help="leave the real videos out")
@@ -171,12 +175,12 @@ def main() -> None:
         parser.error("--count must be >= 1")
 
     rng = np.random.default_rng(args.seed)
-    real = real_backgrounds(args.realdata / "caliscope_calibration", limit=24)
+    real = [] if args.realdata is None else real_backgrounds(args.realdata / "caliscope_calibration", limit=24)
     board = BoardSpec()
     deep = Detector(board)
     print(f"# {cpu_description()}, OpenCV {cv2.__version__}; deep backend {deep.runner.name}")
-    print(f"# backgrounds: procedural clutter" + (f" and {len(real)} real frames without a board" if real else
-                                                 f" only ({args.realdata} has no caliscope review)"))
+    print("# backgrounds: procedural clutter" + (f" and {len(real)} real frames without a board" if real else
+                                                " only (--realdata holds no caliscope_calibration review)"))
     print("# each detector: detect + estimate_pose; 'deep' = Detector(board), 'hybrid' = Detector(board, mode='hybrid')"
           " (deepcharuco detect's default)")
     if not args.skip_boards:
@@ -202,8 +206,12 @@ def main() -> None:
                       for i, b in enumerate(backgrounds_for((640, 480), args.count, rng, real))]
             time_rows([("640x480 board 30-95%", frames), ("640x480 board 30-95% dark", [darkened(f) for f in frames])],
                       others, args.seconds)
-    if not args.skip_videos:
-        video_rows(args.realdata, {})
+    if args.skip_videos:
+        return
+    if args.realdata is None:
+        print("\nno real videos timed: pass --realdata (docs/evaluation.md, Real captures)")
+        return
+    video_rows(args.realdata)
 
 
 if __name__ == "__main__":

@@ -42,8 +42,7 @@ from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
 from deepcharuco.stage_times import stage, tally
-from deepcharuco.search_regions import (EVIDENCE_CONFIDENCE, EVIDENCE_MIN_CELLS, Box, area_share, board_like_boxes,
-                                        to_full)
+from deepcharuco.search_regions import Box, area_share, board_like_boxes, to_full
 from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 from deepcharuco.tracking import search_region
 from deepcharuco.vectors import lengths
@@ -516,8 +515,7 @@ class Detector:
                                to_full(board_like_boxes(confidence), reached, (x1 - x0, y1 - y0))]
                 if len(ids) and (level_found is None or len(ids) > len(level_found.ids)):
                     level_found = Found(box, region, gray, ids, pixels, scores, preview=False, early=early)
-                board_like = board_like or bool(board_like_boxes(confidence, EVIDENCE_CONFIDENCE, EVIDENCE_MIN_CELLS))
-            board_like = board_like or level_found is not None
+            board_like = board_like or bool(next_boxes) or level_found is not None
             boxes = next_boxes
             if level_found is not None:
                 found = level_found
@@ -545,7 +543,12 @@ class Detector:
         """Hybrid mode: OpenCV's corners stand when at least `MIN_CONSENSUS` of them, and all but a tenth,
         fit one view of the board (`board_check.fit_board_homography`) to within 3 px or a quarter of the
         corner spacing, whichever is larger: a wide lens bends a large board's rows away from any one
-        homography by more than 3 px, and a wrong ID lands a whole square away."""
+        homography by more than 3 px, and a wrong ID lands a whole square away. A board of fewer corners
+        than that (a 3x3 board has 4) stands on OpenCV's marker reads when every corner is found: no
+        geometry can check so few, and the networks could not name them either (its markers cannot prove
+        the view, `placement.view_is_verified`)."""
+        if self.board.num_corners < MIN_CONSENSUS:
+            return len(detection.ids) == self.board.num_corners
         if len(detection.ids) < MIN_CONSENSUS:
             return False
         tolerance = max(TOLERANCE_PX, 0.25 * corner_spacing(detection.corners))

@@ -229,9 +229,11 @@ def run(args: argparse.Namespace) -> dict:
                 detection = finder.detect(frame)
                 elapsed = time.perf_counter() - started
                 total_seconds += elapsed
-                # Live detection speed (an exponential average: a camera's rate changes as the board moves).
+                # Live detection speed (an exponential average: a camera's rate changes as the board moves), beside
+                # the mean the JSON reports: alone, a slow stretch (no board in view) read as the run's speed.
                 detect_seconds = elapsed if detect_seconds is None else 0.9 * detect_seconds + 0.1 * elapsed
-                progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps", refresh=False)
+                progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps now, "
+                                         f"{(index + 1) / max(total_seconds, 1e-9):.1f} mean", refresh=False)
                 frame_camera = _camera_for(camera, frame.shape)
                 pose = estimate_frame_pose(detector, detection, frame_camera) if frame_camera else None
                 record = frame_record(index, name, detection, pose)

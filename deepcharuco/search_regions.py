@@ -17,18 +17,13 @@ import numpy as np
 
 from deepcharuco.models.cells import CELL
 
-# A finer level searches where the level before saw MIN_CELLS corner-like cells (point confidence >= CONFIDENCE) in a
-# WINDOW_CELLS-square window: permissive, a board too small to read must not be missed. Chosen on validation frames
-# (`benchmarks/detect.py`'s frames at seed 1, the caliscope videos, calibtargets' photos): every frame found what
-# the whole-level search found; 0.3 and 6 lost a sixth of the small boards at 640x480 and 17 caliscope frames.
-CONFIDENCE = 0.1
-MIN_CELLS = 4
-# Board-like evidence (the inverted print's second, local-white search runs only where the first saw some): the same
-# at the decoding's own threshold. On the caliscope webcams' frames without a board it still holds on most (real
-# rooms show such texture at 640 px): the second search ran 263 times on 444 frames instead of 273, and the one frame
-# it rescues is still found. At 320 px alone it ran 6 times, but that frame was lost, so every level counts.
-EVIDENCE_CONFIDENCE = 0.3
-EVIDENCE_MIN_CELLS = 6
+# A finer level searches where the level before saw MIN_CELLS corner-like cells (point confidence >= CONFIDENCE, the
+# decoding's own threshold) in a WINDOW_CELLS-square window; the inverted print's second, local-white search runs only
+# where the first saw such a patch. Chosen on validation frames (`benchmarks/detect.py`'s frames at seed 1, the
+# caliscope videos, calibtargets' photos): every frame found what searching every level whole found; 0.1 and 4 cells
+# found the same at 2.3x the time on the caliscope webcams, whose rooms show such texture everywhere.
+CONFIDENCE = 0.3
+MIN_CELLS = 6
 WINDOW_CELLS = 5  # the window corner-like cells are counted in
 MARGIN_CELLS = 3  # board-like cells widened by this many cells: the markers and corners beyond them
 MIN_SIDE_CELLS = 8  # a region narrower than this many cells is widened to it (the network needs context)
@@ -36,14 +31,13 @@ MIN_SIDE_CELLS = 8  # a region narrower than this many cells is widened to it (t
 Box = tuple[int, int, int, int]
 
 
-def board_like_boxes(confidence: np.ndarray, min_confidence: float = CONFIDENCE, min_cells: int = MIN_CELLS
-                     ) -> list[Box]:
+def board_like_boxes(confidence: np.ndarray) -> list[Box]:
     """(Hc, Wc) cell confidences of one level -> boxes, in that level's cells, around each dense patch of
-    corner-like cells (``min_cells`` or more of confidence >= ``min_confidence`` in a `WINDOW_CELLS` square
-    window), widened by `MARGIN_CELLS`; [] where the level saw none."""
-    hot = (confidence >= min_confidence).astype(np.float32)
+    corner-like cells (`MIN_CELLS` or more of confidence >= `CONFIDENCE` in a `WINDOW_CELLS` square window),
+    widened by `MARGIN_CELLS`; [] where the level saw none."""
+    hot = (confidence >= CONFIDENCE).astype(np.float32)
     counts = cv2.boxFilter(hot, -1, (WINDOW_CELLS, WINDOW_CELLS), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    dense = ((counts >= min_cells) & (hot > 0)).astype(np.uint8)
+    dense = ((counts >= MIN_CELLS) & (hot > 0)).astype(np.uint8)
     if not dense.any():
         return []
     side = 2 * MARGIN_CELLS + 1

@@ -381,3 +381,17 @@ def test_shipped_family_models_are_point_heads_named_for_their_family():
         assert Detector(board=board).weights == Path(deep_detector.FAMILY_WEIGHTS_DIR) / f"{family}.pt"
         assert (Path(deep_detector.FAMILY_WEIGHTS_DIR) / f"{family}.md").is_file()
     assert Detector(board=five).weights == deep_detector.DEFAULT_WEIGHTS
+
+
+def test_hybrid_keeps_opencvs_corners_of_a_board_too_small_for_the_geometry_check():
+    """A 3x3 board has 4 corners, fewer than any view check needs: hybrid returns OpenCV's when it finds all 4."""
+    board = BoardSpec(squares_x=3, squares_y=3, square_length=0.04, marker_length=0.03, dictionary="DICT_5X5_100")
+    camera = Camera.from_fov(640, 480, hfov_deg=60.0)
+    rvec, tvec = look_at_pose(board, 0.35, tilt_x_deg=20, tilt_y_deg=-10, roll_deg=15)
+    image = render_board_view(board, camera.K, rvec, tvec, camera.image_size)
+    reference = OpenCVDetector(board, refine="subpix").detect(image)
+    assert len(reference.ids) == board.num_corners == 4
+    found = Detector(board=board, mode="hybrid").detect(image)
+    assert np.array_equal(found.ids, reference.ids) and np.allclose(found.corners, reference.corners)
+    truth = project_corners(board, rvec, tvec, camera.K)
+    assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 0.5
