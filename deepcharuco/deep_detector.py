@@ -42,7 +42,7 @@ from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
 from deepcharuco.stage_times import stage, tally
-from deepcharuco.search_regions import Box, area_share, board_like_boxes, to_full
+from deepcharuco.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
 from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 from deepcharuco.tracking import search_region
 from deepcharuco.vectors import lengths
@@ -490,7 +490,7 @@ class Detector:
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
                 return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early), True
             # part of the board, or squares too small to trust: the full image decides alone
-        found, board_like, boxes = None, False, [whole]
+        found, board_like, boxes, dim = None, False, [whole], False
         for level, scale in enumerate(self._level_scales(max(height, width), working_size)):
             if level > 0:
                 if found is not None:  # squares too small where found: look again, closer, around it alone
@@ -509,10 +509,12 @@ class Detector:
                 x0, y0, x1, y1 = box
                 region = full[y0:y1, x0:x1]
                 gray = region if scale == 1.0 else _reduced(region, scale)
+                if level == 0:
+                    dim = is_dim(gray)  # the whole frame at the coarse level
                 ids, pixels, scores, early, confidence = self._find(gray, region, level)
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
-                               to_full(board_like_boxes(confidence), reached, (x1 - x0, y1 - y0))]
+                               to_full(board_like_boxes(confidence, dim), reached, (x1 - x0, y1 - y0))]
                 if len(ids) and (level_found is None or len(ids) > len(level_found.ids)):
                     level_found = Found(box, region, gray, ids, pixels, scores, preview=False, early=early)
             board_like = board_like or bool(next_boxes) or level_found is not None

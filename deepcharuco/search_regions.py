@@ -24,6 +24,13 @@ from deepcharuco.models.cells import CELL
 # found the same at 2.3x the time on the caliscope webcams, whose rooms show such texture everywhere.
 CONFIDENCE = 0.3
 MIN_CELLS = 6
+# In a dim frame (the coarse level's 99th percentile grey below DIM_WHITE: darkness k >= 3 of the paper's protocol;
+# lit webcam frames read 190-252) the point head is less sure everywhere, and a patch counts from DIM_MIN_CELLS cells
+# of confidence >= DIM_CONFIDENCE: on caliscope_extra's video at darkness k = 7 the stricter patch lost 3 of the 141
+# frames found by searching every level whole; this finds all 141.
+DIM_WHITE = 64
+DIM_CONFIDENCE = 0.1
+DIM_MIN_CELLS = 4
 WINDOW_CELLS = 5  # the window corner-like cells are counted in
 MARGIN_CELLS = 3  # board-like cells widened by this many cells: the markers and corners beyond them
 MIN_SIDE_CELLS = 8  # a region narrower than this many cells is widened to it (the network needs context)
@@ -31,13 +38,21 @@ MIN_SIDE_CELLS = 8  # a region narrower than this many cells is widened to it (t
 Box = tuple[int, int, int, int]
 
 
-def board_like_boxes(confidence: np.ndarray) -> list[Box]:
+def is_dim(gray: np.ndarray) -> bool:
+    """Whether a (H, W) uint8 image is dim: its 99th percentile grey below `DIM_WHITE`."""
+    values = gray.ravel()
+    return int(np.partition(values, int(0.99 * (len(values) - 1)))[int(0.99 * (len(values) - 1))]) < DIM_WHITE
+
+
+def board_like_boxes(confidence: np.ndarray, dim: bool = False) -> list[Box]:
     """(Hc, Wc) cell confidences of one level -> boxes, in that level's cells, around each dense patch of
-    corner-like cells (`MIN_CELLS` or more of confidence >= `CONFIDENCE` in a `WINDOW_CELLS` square window),
-    widened by `MARGIN_CELLS`; [] where the level saw none."""
-    hot = (confidence >= CONFIDENCE).astype(np.float32)
+    corner-like cells (`MIN_CELLS` or more of confidence >= `CONFIDENCE` in a `WINDOW_CELLS` square window;
+    in a ``dim`` frame `DIM_MIN_CELLS` of `DIM_CONFIDENCE`), widened by `MARGIN_CELLS`; [] where the level saw
+    none."""
+    min_confidence, min_cells = (DIM_CONFIDENCE, DIM_MIN_CELLS) if dim else (CONFIDENCE, MIN_CELLS)
+    hot = (confidence >= min_confidence).astype(np.float32)
     counts = cv2.boxFilter(hot, -1, (WINDOW_CELLS, WINDOW_CELLS), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    dense = ((counts >= MIN_CELLS) & (hot > 0)).astype(np.uint8)
+    dense = ((counts >= min_cells) & (hot > 0)).astype(np.uint8)
     if not dense.any():
         return []
     side = 2 * MARGIN_CELLS + 1

@@ -6,7 +6,8 @@ import pytest
 
 from deepcharuco import BoardSpec, Detector
 from deepcharuco.models.cells import CELL, cell_confidence
-from deepcharuco.search_regions import CONFIDENCE, MIN_CELLS, area_share, board_like_boxes, to_full
+from deepcharuco.search_regions import (CONFIDENCE, DIM_CONFIDENCE, DIM_MIN_CELLS, DIM_WHITE, MIN_CELLS, area_share,
+                                        board_like_boxes, is_dim, to_full)
 from deepcharuco.stage_times import StageTimes, stage, tally
 from evaluate.realistic import Placement, clutter, with_board, without_board
 
@@ -22,6 +23,17 @@ def test_a_dense_patch_of_corner_like_cells_is_board_like_scattered_ones_are_not
     few = np.zeros_like(confidence)
     few[5, 5:5 + MIN_CELLS - 1] = 1.0  # one short of the minimum
     assert board_like_boxes(few) == []
+
+
+def test_a_dim_frame_counts_fainter_and_fewer_cells():
+    faint = np.zeros((30, 40), np.float32)
+    faint[10, 10:10 + DIM_MIN_CELLS] = DIM_CONFIDENCE  # the point head's answer in the dark: faint, few
+    assert board_like_boxes(faint) == [] and len(board_like_boxes(faint, dim=True)) == 1
+    lit = np.full((180, 320), 200, np.uint8)
+    assert not is_dim(lit)
+    assert is_dim((lit * (DIM_WHITE - 1) / 200).astype(np.uint8))
+    lit[:, :2] = 255  # a lamp on 1 % of the frame does not make it lit
+    assert not is_dim(lit) and is_dim(np.where(lit == 255, 255, 20).astype(np.uint8))
 
 
 def test_boxes_map_to_full_pixels_inside_the_image_at_least_the_minimum_side():
