@@ -1,7 +1,8 @@
 """`Detector`: ChArUcoNet (+ RefineNet / cornerSubPix) behind the same interface as `OpenCVDetector`.
 
     image -> canonical view (an inverted print negated, a mirrored face flipped: `print_face`)
-          -> ChArUcoNet -> per-cell point and ID softmax, then one of two decodings:
+          -> ChArUcoNet, coarse to fine (320 px, 640 px whole; finer levels in regions: `search_regions`)
+          -> per-cell point and ID softmax, then one of two decodings:
              the weights' own board (its layout: the same board at any size, inverted or mirrored):
                 best cell per ID (score >= threshold) -> board-geometry check (`board_check`): the
                 confident cells' likeliest IDs must fit one homography of the board's plane; every
@@ -41,9 +42,9 @@ from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_
                                    marker_view_verified, settle_corners)
 from deepcharuco.pose import Pose, estimate_pose
 from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
-from deepcharuco.stage_times import stage, tally
 from deepcharuco.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
 from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
+from deepcharuco.stage_times import stage, tally
 from deepcharuco.tracking import search_region
 from deepcharuco.vectors import lengths
 
@@ -282,7 +283,8 @@ class Detector:
         working_size: longest image side the network searches at first (default 320); larger images are
             reduced to it, then to twice it ... up to full resolution (at most 2048 px, `MAX_SEARCH_SIZE`)
             until the board is found with squares of at least 16 px, and their corners refined again at
-            full resolution. None: native resolution only, whatever its size.
+            full resolution; levels above 640 px only in the regions a coarser level found the board or saw
+            board-like cells in (`deepcharuco.search_regions`). None: native resolution only, whatever its size.
         preview: an image no longer than ``working_size`` is searched at half size first (a quarter of the
             network's cost) and those corners kept when they are the whole board in view (every corner their
             view puts in the image, squares >= 12 px there), refined at full resolution; else the full image
@@ -400,7 +402,8 @@ class Detector:
         that, up to full resolution, until a verified board is found whose squares are at least
         `MIN_SQUARE_PX` wide there (else the finest level that found one); each corner is refined again in
         the full-resolution image. Large boards are found where the network sees them best, and a large
-        image costs little when the board is found at a coarse level. An image no longer than ``working_size``
+        image costs little when the board is found at a coarse level; levels longer than
+        `WHOLE_SEARCH_SIZE` are searched only around what a coarser level found or saw (`_search`). An image no longer than ``working_size``
         is previewed at half size first (``preview``). ``working_size`` overrides the first level's size for
         this call (`BoardTracker` searches a crop at the scale its whole frame was searched at).
 
@@ -429,7 +432,6 @@ class Detector:
         if found is None:
             return Detection.empty()
         region = found.region
-        height, width = region.shape
         gray, ids, pixels, scores = found.gray, found.ids, found.pixels, found.scores
         by_pattern = scores == PATTERN_SCORE if self.geometry == "markers" else np.zeros(len(ids), bool)
         # Refined where found, then again at full resolution: a single full-resolution pass from the reduced
