@@ -152,12 +152,13 @@ def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     (x0, x1, x2, x3), (y0, y1, y2, y3) = x.T, y.T
     dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
     dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    maps = np.empty((len(quads), 3, 3))
+    # A degenerate quad's g, h are infinite, and infinity times a corner at pixel 0 is NaN: both are its answer.
     with np.errstate(divide="ignore", invalid="ignore"):
         det = dx1 * dy2 - dx2 * dy1
         g = (dx3 * dy2 - dx2 * dy3) / det
         h = (dx1 * dy3 - dx3 * dy1) / det
-    maps = np.empty((len(quads), 3, 3))
-    maps[:, 0] = np.stack([x1 - x0 + g * x1, x3 - x0 + h * x3, x0], axis=1)
-    maps[:, 1] = np.stack([y1 - y0 + g * y1, y3 - y0 + h * y3, y0], axis=1)
+        maps[:, 0] = np.stack([x1 - x0 + g * x1, x3 - x0 + h * x3, x0], axis=1)
+        maps[:, 1] = np.stack([y1 - y0 + g * y1, y3 - y0 + h * y3, y0], axis=1)
     maps[:, 2] = np.stack([g, h, np.ones_like(g)], axis=1)
     return maps

@@ -395,3 +395,13 @@ def test_hybrid_keeps_opencvs_corners_of_a_board_too_small_for_the_geometry_chec
     assert np.array_equal(found.ids, reference.ids) and np.allclose(found.corners, reference.corners)
     truth = project_corners(board, rvec, tvec, camera.K)
     assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 0.5
+
+
+def test_a_degenerate_cell_maps_to_non_finite_values_without_a_warning():
+    import warnings
+
+    pixels = np.array([[10, 5], [0, 0], [0, 10], [0, 20]], np.float32)  # three corners on a line at pixel x = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's RuntimeWarning reached the user's terminal from a dark video
+        maps = cell_homographies(pixels, np.array([[0, 1, 2, 3]]))
+    assert not np.isfinite(maps).all()
