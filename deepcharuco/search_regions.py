@@ -1,8 +1,8 @@
 """Where a finer search level looks: the regions of a frame a coarser level saw a board, or board-like cells in.
 
-A board whose squares are a little too small for a level (4-12 px there) is still seen by its point head as a
-dense patch of corner-like cells: a 5x5-cell window over it holds 7-18 cells of confidence >= 0.1, where
-procedural clutter, text and tiled grids hold at most 5-8 (the paper's board drawn at 1280x720, searched at 320
+A board whose squares are a little too small for a level (7-12 px there) is still seen by its point head as a
+dense patch of corner-like cells: a 5x5-cell window over it holds 12-15 cells of confidence >= 0.3, where
+procedural clutter, text and tiled grids hold at most 1 (the paper's board drawn at 1280x720, searched at 320
 px; real rooms hold more). The next level, with squares twice as wide, then searches those patches alone, not
 the whole frame: a frame without a board stops at the levels searched whole, and a small board costs the pixels
 around it.
@@ -40,8 +40,8 @@ Box = tuple[int, int, int, int]
 
 def is_dim(gray: np.ndarray) -> bool:
     """Whether a (H, W) uint8 image is dim: its 99th percentile grey below `DIM_WHITE`."""
-    values = gray.ravel()
-    return int(np.partition(values, int(0.99 * (len(values) - 1)))[int(0.99 * (len(values) - 1))]) < DIM_WHITE
+    rank = int(0.99 * (gray.size - 1))
+    return int(np.partition(gray.ravel(), rank)[rank]) < DIM_WHITE
 
 
 def board_like_boxes(confidence: np.ndarray, dim: bool = False) -> list[Box]:

@@ -5,7 +5,7 @@
     times.seconds   # {"network 0": 0.004, "candidates": 0.0002, "board check": 0.001, ...}
 
 Stages are timed only while a `StageTimes` is active (a module-level check otherwise: no cost a user
-meets). Only the calling thread's stages are timed: RefineNet started on a background thread counts
+meets). Only stages on the detecting thread are wrapped: RefineNet started on a background thread counts
 where its result is waited for.
 """
 
