@@ -86,3 +86,13 @@ def test_a_damaged_bundle_or_one_given_with_a_refinenet_is_refused(tmp_path):
         Detector(weights=bundle_path(DEFAULT_WEIGHTS), refine_weights=DEFAULT_WEIGHTS)
     detector = Detector(weights=bundle_path(DEFAULT_WEIGHTS))
     assert detector.runner.name == "onnx" and detector.charuconet is None and detector.threshold == 0.25
+
+
+def test_the_package_ships_only_its_own_weights():
+    """Every weights file beside the shipped ones is in the wheel: a test's bundle (3.4 MB) once was."""
+    from deepcharuco.shipped import WEIGHTS_DIR
+
+    shipped = {"MODEL_CARD.md", "bit_reader.pt", "detector.pt", "detector.onnx", "families"}
+    assert {path.name for path in WEIGHTS_DIR.iterdir()} - {"__pycache__"} == shipped
+    families = {path.name for path in (WEIGHTS_DIR / "families").iterdir()}
+    assert families == {f"{family}{suffix}" for family in ("DICT_4X4", "DICT_6X6") for suffix in (".md", ".onnx", ".pt")}
