@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -76,8 +77,7 @@ def board_rows(board: BoardSpec, sizes: list[tuple[int, int]], count: int, rng: 
 
 
 def darkened(frame: TestFrame, k: int = DARK_K) -> TestFrame:
-    return TestFrame(darken(frame.image, k), frame.corners, frame.visible, frame.K, frame.rvec, frame.tvec,
-                     frame.name + " dark")
+    return replace(frame, image=darken(frame.image, k), name=frame.name + " dark")
 
 
 def scores(detector, frames: list[TestFrame]) -> tuple[float, int]:

@@ -11,7 +11,6 @@ a sensor would see it. Every random choice comes from the ``rng`` passed in.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +20,8 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.pose import project_corners
 from deepcharuco.synthetic import look_at_pose, render_board_view
+from evaluate.captures.reader import REVIEW_FILE, VIDEO_SUFFIXES, Medium, read_review
+from evaluate.captures.reader import video_frames as capture_video_frames
 from evaluate.protocols import TestFrame
 
 WORDS = ("ACME", "exit", "42", "calibration", "Tuesday", "#7", "warning", "lab B", "0.5 mm", "ok")
@@ -75,42 +76,31 @@ def _tiled_grid(image: np.ndarray, rng: np.random.Generator, centre: tuple[int, 
 
 
 def real_backgrounds(folder: Path, limit: int | None = None) -> list[np.ndarray]:
-    """Grey frames with no board in them from a caliscope-style capture folder: the frames its
-    ``frames_review.csv`` marks ``board_visible == "no"`` (named ``cam<C>_f<NNNNN>.png``), read from
-    ``cam_<C>.mp4``; at most ``limit`` of them, spread over the cameras. [] where the folder lacks the review."""
-    review = folder / "frames_review.csv"
+    """Grey frames with no board in them from a capture folder's videos: the frames its review
+    (``frames_review.csv``, read by `evaluate.captures.reader.read_review`) marks ``board_visible == "no"``;
+    at most ``limit`` of them, spread over the videos. [] where the folder lacks the review."""
+    review = folder / REVIEW_FILE
     if not review.is_file():
         return []
-    wanted: dict[int, list[int]] = {}
-    with review.open() as handle:
-        rows = csv.DictReader(line for line in handle if not line.startswith("#"))
-        for row in rows:
-            if row["board_visible"].strip() == "no":
-                camera, frame = row["frame"].removesuffix(".png").split("_f")
-                wanted.setdefault(int(camera.removeprefix("cam")), []).append(int(frame))
+    media = [Medium(path, "video") for path in sorted(folder.iterdir()) if path.suffix.lower() in VIDEO_SUFFIXES]
+    wanted: dict[str, list[int]] = {}
+    for name, verdict in read_review(review, media).items():
+        video, _, number = name.partition("#")
+        if verdict == "no" and number:
+            wanted.setdefault(video, []).append(int(number))
     frames = []
-    for camera, numbers in sorted(wanted.items()):
+    for video, numbers in sorted(wanted.items()):
         if limit is not None:
             numbers = numbers[:: max(1, len(numbers) * len(wanted) // limit)]
-        frames.extend(video_frames(folder / f"cam_{camera}.mp4", set(numbers)))
+        keep = set(numbers)
+        frames.extend(gray for index, gray in capture_video_frames(folder / video, 1, None) if index in keep)
     return frames[:limit] if limit is not None else frames
 
 
-def video_frames(path: Path, only: set[int] | None = None) -> list[np.ndarray]:
-    """Every frame of a video as (H, W) uint8 grey (or only the frame numbers in ``only``)."""
-    capture = cv2.VideoCapture(str(path))
-    frames, number = [], 0
-    try:
-        while True:
-            ok, frame = capture.read()
-            if not ok:
-                break
-            if only is None or number in only:
-                frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
-            number += 1
-    finally:
-        capture.release()
-    return frames
+def video_frames(path: Path) -> list[np.ndarray]:
+    """Every frame of a video as (H, W) uint8 grey (`evaluate.captures.reader.video_frames`: a damaged stretch is
+    skipped and said)."""
+    return [gray for _, gray in capture_video_frames(path, 1, None)]
 
 
 @dataclass(frozen=True)

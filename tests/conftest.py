@@ -34,6 +34,21 @@ def default_views(camera):
     return [make_view(board, camera, **pose) for pose in VIEW_POSES]
 
 
+def network_widths(detector, image: np.ndarray):
+    """``detector.detect(image)``, and the widths of the images ChArUcoNet saw for it, in order."""
+    widths, run = [], detector.runner.charuconet
+
+    def recording(batch):
+        widths.append(batch.shape[-1])
+        return run(batch)
+
+    detector.runner.charuconet = recording
+    try:
+        return detector.detect(image), widths
+    finally:
+        detector.runner.charuconet = run
+
+
 def rotation_error_deg(rvec_a: np.ndarray, rvec_b: np.ndarray) -> float:
     ra, _ = cv2.Rodrigues(np.asarray(rvec_a, np.float64))
     rb, _ = cv2.Rodrigues(np.asarray(rvec_b, np.float64))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import network_widths
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.synthetic import look_at_pose, render_board_view
 
@@ -22,21 +23,6 @@ def view(camera: Camera, distance: float, offset=(0.0, 0.0)):
     rvec, tvec = look_at_pose(BOARD, distance, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=8, offset=offset)
     image = render_board_view(BOARD, camera.K, rvec, tvec, camera.image_size)
     return image, project_corners(BOARD, rvec, tvec, camera.K)
-
-
-def network_widths(detector: Detector, image: np.ndarray):
-    """The detection, and the widths of the images ChArUcoNet saw for it."""
-    widths, run = [], detector.runner.charuconet
-
-    def recording(batch):
-        widths.append(batch.shape[-1])
-        return run(batch)
-
-    detector.runner.charuconet = recording
-    try:
-        return detector.detect(image), widths
-    finally:
-        detector.runner.charuconet = run
 
 
 def test_a_whole_board_is_found_in_the_preview_and_refined_at_full_resolution(camera):

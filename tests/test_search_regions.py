@@ -4,6 +4,7 @@ board-like cells; a frame with nothing board-like stops at the whole levels. And
 import numpy as np
 import pytest
 
+from conftest import network_widths
 from deepcharuco import BoardSpec, Detector
 from deepcharuco.models.cells import CELL, cell_confidence
 from deepcharuco.search_regions import (CONFIDENCE, DIM_CONFIDENCE, DIM_MIN_CELLS, DIM_WHITE, MIN_CELLS, area_share,
@@ -45,25 +46,11 @@ def test_boxes_map_to_full_pixels_inside_the_image_at_least_the_minimum_side():
     assert area_share([(0, 0, 640, 720)], (1280, 720)) == pytest.approx(0.5)
 
 
-def widths_seen(detector: Detector, image: np.ndarray) -> tuple[object, list[int]]:
-    widths, run = [], detector.runner.charuconet
-
-    def recording(batch):
-        widths.append(batch.shape[-1])
-        return run(batch)
-
-    detector.runner.charuconet = recording
-    try:
-        return detector.detect(image), widths
-    finally:
-        detector.runner.charuconet = run
-
-
 def test_a_small_board_in_a_large_frame_is_found_and_the_finest_level_sees_only_its_region():
     board = BoardSpec()
     rng = np.random.default_rng(7)
     frame = with_board(board, clutter(rng, (1920, 1080)), rng, Placement(0.12, 0.14, tilt_deg=15, roll_deg=10))
-    found, widths = widths_seen(Detector(board), frame.image)
+    found, widths = network_widths(Detector(board), frame.image)
     assert len(found.ids) >= 0.9 * board.num_corners
     error = np.linalg.norm(found.corners - frame.corners[found.ids], axis=1)
     assert np.median(error) < 0.3 and error.max() < 1.5
@@ -74,10 +61,10 @@ def test_a_small_board_in_a_large_frame_is_found_and_the_finest_level_sees_only_
 def test_a_frame_with_nothing_board_like_is_not_searched_past_the_levels_searched_whole():
     rng = np.random.default_rng(3)
     plain = np.clip(120 + rng.normal(0, 3, (1080, 1920)), 0, 255).astype(np.uint8)  # a wall, sensor noise
-    found, widths = widths_seen(Detector(), without_board(plain).image)
+    found, widths = network_widths(Detector(), without_board(plain).image)
     assert len(found) == 0 and widths == [320, 640]
     inverted = BoardSpec(squares_x=4, squares_y=5, dictionary="DICT_4X4_1000", inverted=True)
-    found, widths = widths_seen(Detector(inverted), plain)
+    found, widths = network_widths(Detector(inverted), plain)
     assert len(found) == 0 and widths == [320, 640]  # and no second, local-white pass for an inverted print
 
 
