@@ -1,10 +1,12 @@
-"""``python -m deepcharuco.calibrate``: camera intrinsics from a video (or images, or a camera) of a ChArUco board.
+"""``python -m deepcharuco.calibrate``: camera intrinsics from a video (or images, or a camera) of a ChArUco board,
+or a rig of cameras from synchronised videos of one.
 
     python -m deepcharuco.calibrate VIDEO|FOLDER|CAMERA_INDEX --board board.yaml --out camera.yaml
+    python -m deepcharuco.calibrate cam0.mp4 cam1.mp4 ... --board board.yaml --out rig/
 
 Frames are read one at a time (a video is never loaded whole) and the board is detected in each;
 only the corners are kept. Views are selected, calibrated with OpenCV, outliers rejected and the
-camera re-solved (`deepcharuco.calibration`). Writes an OpenCV FileStorage camera file that
+camera re-solved (`deepcharuco.calibration`). Several sources are a rig (`calibrate_rig_into`). Writes an OpenCV FileStorage camera file that
 `read_camera` and OpenCV read (`write_camera`'s nodes, then ``distortion_model``, the RMS, the
 parameters' standard deviations, the distortion terms solved, the views used and their weights), and an HTML report beside it. Exit code 0,
 or 2 with a one-line reason and nothing written.
@@ -143,12 +145,12 @@ def run(args: argparse.Namespace) -> CalibrationResult:
 def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
     board = BoardSpec.load(args.board) if args.board else BoardSpec()
     detector = make_calibration_detector(args.detector, board, args.refine, args.weights)
-    source = open_source(args.source, args.max_frames)
+    source = open_source(args.source[0], args.max_frames)
     frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet)
     for line in source.problems():  # damaged stretches of a video, unreadable images: said, then calibrated without
         print(f"warning: {line}", file=sys.stderr)
     if size is None:
-        raise CalibrationError(f"no frames could be read from {args.source}: give a video, a folder of images or a "
+        raise CalibrationError(f"no frames could be read from {args.source[0]}: give a video, a folder of images or a "
                                f"camera index that delivers frames")
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
                                border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin,
@@ -187,9 +189,23 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate a camera from a video, a folder of images or a live camera showing a ChArUco board: "
                     "detect the board in every frame, select views covering the image and a range of tilts, solve "
                     "with OpenCV, reject outliers, re-solve; write an OpenCV FileStorage camera file and an HTML report.")
-    parser.add_argument("source", help="video file, folder of images, or camera index (0, 1, ...)")
+    parser.add_argument("source", nargs="+",
+                        help="video file, folder of images, or camera index (0, 1, ...); several: the synchronised "
+                             "cameras of a rig (frame n of each shows one instant), calibrated together into --out/")
     parser.add_argument("--board", help="board description (.yaml/.json); default: the paper's 5x5 DICT_5X5_50 board")
-    parser.add_argument("--out", default="camera.yaml", help="camera file to write (OpenCV FileStorage YAML)")
+    parser.add_argument("--out", default=None,
+                        help="camera file to write (OpenCV FileStorage YAML; default camera.yaml), or with several "
+                             "sources the rig's folder (default rig/): <source name>.yaml per camera, rig.toml, "
+                             "rig_report.html")
+    parser.add_argument("--camera", action="append", default=None, metavar="FILE",
+                        help="a rig: one per source, in order, the camera file whose intrinsics are held fixed, or - "
+                             "to solve that camera's (default: every camera's intrinsics are solved)")
+    parser.add_argument("--sync-offsets", type=int, nargs="+", default=None, metavar="N",
+                        help="a rig: one per source, the frames by which each video starts late (frame n + N of "
+                             "source i shows the same instant as frame n + N' of source j); default: all 0")
+    parser.add_argument("--origin", choices=["camera", "board"], default="camera",
+                        help="a rig's frame: the first camera's (camera), or the board's at the instant the most "
+                             "cameras saw it (board)")
     parser.add_argument("--detector", choices=DETECTORS, default="deep",
                         help="corner detector. deep (the default), chosen by measurement (docs/calibration.md, "
                              "rendered calibration sequences of 5 cameras): fx/fy within 0.3 %% and cx/cy within "
@@ -241,8 +257,23 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.border_margin is not None and args.border_margin < 0:
         problems.append(f"--border-margin must be >= 0, got {args.border_margin:g}")
-    if args.source.isdigit() and not Path(args.source).exists() and args.max_frames is None:
+    if any(s.isdigit() and not Path(s).exists() for s in args.source) and args.max_frames is None:
         problems.append("a live camera needs --max-frames (how many frames to capture)")
+    rig = len(args.source) > 1
+    if not rig and (args.camera or args.sync_offsets):
+        problems.append(f"{'--camera' if args.camera else '--sync-offsets'} is for a rig (two sources or more); one "
+                        f"camera's intrinsics are what calibrate solves")
+    if rig and args.camera and len(args.camera) != len(args.source):
+        problems.append(f"--camera given {len(args.camera)} times for {len(args.source)} sources: give one per source "
+                        f"(- for a camera to solve)")
+    if rig and args.sync_offsets and len(args.sync_offsets) != len(args.source):
+        problems.append(f"--sync-offsets has {len(args.sync_offsets)} values for {len(args.source)} sources: give one "
+                        f"per source")
+    if args.sync_offsets and min(args.sync_offsets) < 0:
+        problems.append("--sync-offsets are frames each video starts late: >= 0 (make the earliest 0)")
+    if rig and args.model == "fisheye":
+        problems.append("a rig is calibrated with the pinhole or rational model; --model fisheye is single-camera only")
+    args.out = args.out or ("rig" if rig else "camera.yaml")
     if args.fix_k3 and args.model == "fisheye":
         problems.append("--fix-k3 is for the pinhole and rational models (fisheye has k1..k4)")
     if args.max_views < args.min_views:
@@ -251,7 +282,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("; ".join(problems))
     def body() -> None:
         try:
-            run(args)
+            if rig:
+                from deepcharuco.calibrate_rig import run_rig
+
+                board = BoardSpec.load(args.board) if args.board else BoardSpec()
+                run_rig(args, board, make_calibration_detector(args.detector, board, args.refine, args.weights))
+            else:
+                run(args)
         except KeyboardInterrupt:  # Ctrl-C while detecting or solving: the files are written last, whole or not at all
             raise KeyboardInterrupt(f"nothing written ({args.out} is as it was); rerun to calibrate") from None
 

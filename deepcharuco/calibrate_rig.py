@@ -1,0 +1,222 @@
+"""``python -m deepcharuco.calibrate cam0.mp4 cam1.mp4 ... --out rig/``: a rig of cameras from synchronised sources.
+
+Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant) and
+the board detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
+own single-camera calibration (`deepcharuco.calibration.calibrate`, as ``calibrate`` does for one camera) or
+are held at a given ``--camera`` file's; then `deepcharuco.rig.calibrate_rig` places the cameras and
+bundle-adjusts everything together. Writes into ``--out``: ``<source name>.yaml`` per camera, ``rig.toml`` and
+``rig_report.html`` (`deepcharuco.rig_files`, `deepcharuco.rig_report`), all together and last: bad input
+leaves nothing behind (one line, exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from deepcharuco.board import BoardSpec
+from deepcharuco.calibration import (
+    CalibrationError, FrameDetection, SelectionOptions, border_margin, calibrate, sharpness, within_border,
+)
+from deepcharuco.camera import Camera, is_camera_file, read_camera
+from deepcharuco.cli import check_output_folder
+from deepcharuco.detect import Source, open_source
+from deepcharuco.errors import CameraFileError, DeepCharucoError
+from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
+from deepcharuco.image import to_gray_u8
+from deepcharuco.rig import RigError, RigResult, RigView, calibrate_rig, rotations_from_vectors
+from deepcharuco.rig_files import is_rig_toml, rig_camera_text, rig_toml
+
+TOML_NAME, REPORT_NAME = "rig.toml", "rig_report.html"
+REPORT_START = b"<!doctype html><html><head><meta charset='utf-8'><title>Rig calibration"
+
+
+def source_names(sources: list[Source]) -> list[str]:
+    """The cameras' names (their sources' stems); two sources of one name are refused."""
+    names = [source.stem for source in sources]
+    for name in names:
+        if names.count(name) > 1:
+            raise DeepCharucoError(f"two sources are named {name}: each camera's file is rig/<name>.yaml, so give "
+                                   f"sources with different names (rename or link one)")
+    return names
+
+
+def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
+    """Videos of one rig recorded together have one length; without --sync-offsets other lengths are refused."""
+    totals = [(s.stem, s.total) for s in sources if s.kind == "video" and s.total]
+    if offsets is None and len({total for _, total in totals}) > 1:
+        listed = ", ".join(f"{name} {total}" for name, total in totals)
+        raise RigError(f"the videos have different lengths ({listed} frames), so frame n of each need not show one "
+                       f"instant: give --sync-offsets (the frames by which each starts late), or trim them to start "
+                       f"and end together")
+
+
+def detect_synchronised(sources: list[Source], detector, offsets: list[int], *, step: int = 1, quiet: bool = False
+                        ) -> tuple[list[list[FrameDetection]], list[tuple[int, int] | None]]:
+    """Per camera its `FrameDetection` of every ``step``-th instant (the instant as its index), and its frame size.
+    Frame ``n + offsets[c]`` of source c is instant n; reading stops when the first source ends."""
+    streams = []
+    for source, offset in zip(sources, offsets):
+        frames = iter(source.frames)
+        for _ in range(offset):
+            next(frames, None)
+        streams.append(frames)
+    totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
+    detections: list[list[FrameDetection]] = [[] for _ in sources]
+    sizes: list[tuple[int, int] | None] = [None] * len(sources)
+    bar = tqdm(zip(*streams), total=min(totals) if totals else None, unit="instant", desc="detecting", disable=quiet)
+    for instant, frames in enumerate(bar):
+        if instant % step:
+            continue
+        for c, (name, frame) in enumerate(frames):
+            gray = to_gray_u8(frame)
+            size = (gray.shape[1], gray.shape[0])
+            if sizes[c] is None:
+                sizes[c] = size
+            elif size != sizes[c]:
+                raise CalibrationError(f"{sources[c].stem}: frame {name} is {size[0]}x{size[1]} but the first was "
+                                       f"{sizes[c][0]}x{sizes[c][1]}: one camera, one resolution")
+            found = detector.detect(gray)
+            detections[c].append(FrameDetection(instant, str(name), found.ids, found.corners,
+                                                sharpness(gray, found.corners)))
+        bar.set_postfix(boards="/".join(str(sum(len(d.ids) > 0 for d in camera)) for camera in detections),
+                        refresh=False)
+    return detections, sizes
+
+
+def starting_cameras(detections: list[list[FrameDetection]], sizes: list[tuple[int, int]], names: list[str],
+                     given: list[str | None], board: BoardSpec, model: str, options: SelectionOptions, fix_k3: bool
+                     ) -> tuple[list[Camera], list[str | None], list[str]]:
+    """Each camera's starting intrinsics, the distortion terms the rig solves for it (None: held as given) and
+    what to tell the user."""
+    cameras, terms, notes = [], [], []
+    for c, name in enumerate(names):
+        if given[c] not in (None, "-"):
+            try:
+                camera = read_camera(given[c]).for_image_size(*sizes[c])
+            except CameraFileError as error:
+                raise CameraFileError(f"--camera {given[c]} ({name}): {error}") from None
+            if camera.model != "pinhole":
+                raise CameraFileError(f"--camera {given[c]} ({name}) is a {camera.model} camera: a rig uses the pinhole "
+                                      f"or rational model")
+            cameras.append(camera)
+            terms.append(None)
+            continue
+        try:
+            single = calibrate(detections[c], board, sizes[c], model, options, fix_k3=fix_k3)
+        except CalibrationError as error:
+            raise RigError(f"{name}: {error} (or give its intrinsics: --camera FILE for it)") from None
+        cameras.append(single.camera)
+        terms.append(single.terms)
+        notes += [f"{name}: {note}" for note in single.notes]
+    return cameras, terms, notes
+
+
+def solve_rig(detections: list[list[FrameDetection]], sizes: list[tuple[int, int]], names: list[str], board: BoardSpec,
+              options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
+              given: list[str | None] | None = None) -> RigResult:
+    """The rig from every camera's detections (one `FrameDetection` per instant, its index the instant):
+    starting intrinsics (`starting_cameras`), corners within ``options.border_px`` of the border left out, then
+    `calibrate_rig`."""
+    cameras, terms, notes = starting_cameras(detections, sizes, names, given or [None] * len(names), board, model,
+                                             options, fix_k3)
+    views = []
+    for c, frames in enumerate(detections):
+        for frame in frames:
+            kept = within_border(frame, sizes[c], options.border_px)
+            if len(kept.ids):
+                views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}"))
+    result = calibrate_rig(views, board, cameras, names, terms, min_corners=options.min_corners)
+    result.notes = notes + result.notes
+    return result
+
+
+def board_origin(result: RigResult) -> tuple[int, RigResult]:
+    """The rig in the board's frame at the instant the most cameras saw it (the most corners breaking ties)."""
+    seen: dict[int, list[int]] = {}
+    for view in result.views:
+        seen.setdefault(view.instant, []).append(len(view.ids))
+    instant = max(seen, key=lambda i: (len(seen[i]), sum(seen[i]), -i))
+    rvec, tvec = result.board_poses[instant]
+    return instant, result.reframed(rotations_from_vectors(rvec)[0], np.asarray(tvec, np.float64))
+
+
+def run_rig(args: argparse.Namespace, board: BoardSpec, detector) -> RigResult:
+    out = Path(args.out)
+    if out.suffix.lower() in (".yaml", ".yml", ".xml", ".json") and not out.is_dir():
+        raise DeepCharucoError(f"--out {out} names a file, but {len(args.source)} sources make a rig: give a folder, "
+                               f"e.g. --out {out.with_suffix('')}/")
+    check_output_folder(out)
+    sources = [open_source(source, args.max_frames) for source in args.source]
+    names = source_names(sources)
+    targets = [out / f"{name}.yaml" for name in names] + [out / TOML_NAME] + ([] if args.no_report else [out / REPORT_NAME])
+    for path in targets[:len(names)]:
+        refuse_foreign(path, is_camera_file, "camera file", args.force)
+    refuse_foreign(out / TOML_NAME, is_rig_toml, "rig file", args.force)
+    if not args.no_report:
+        refuse_foreign(out / REPORT_NAME, starts_with(REPORT_START), "rig report", args.force)
+    check_lengths(sources, args.sync_offsets)
+    out.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out / TOML_NAME, "another calibrate"):
+        return _rig_into(args, board, detector, out, sources, names, targets)
+
+
+def _rig_into(args, board: BoardSpec, detector, out: Path, sources: list[Source], names: list[str],
+              targets: list[Path]) -> RigResult:
+    offsets = args.sync_offsets or [0] * len(sources)
+    detections, sizes = detect_synchronised(sources, detector, offsets, step=args.step, quiet=args.quiet)
+    for source in sources:
+        for line in source.problems():
+            print(f"warning: {line}", file=sys.stderr)
+    for name, size, source in zip(names, sizes, args.source):
+        if size is None:
+            raise CalibrationError(f"no frames could be read from {source} ({name}): give videos, folders of images "
+                                   f"or camera indices that deliver frames")
+    unseen = [name for name, frames in zip(names, detections) if not any(len(f.ids) for f in frames)]
+    if unseen:
+        raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0])} instants: check "
+                       f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
+                       f"in focus")
+    margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
+    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
+                               border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
+    result = solve_rig(detections, sizes, names, board, options, model=args.model, fix_k3=args.fix_k3,
+                       given=args.camera)
+    frame = f"camera {names[0]}'s"
+    if args.origin == "board":
+        instant, result = board_origin(result)
+        frame = f"the board's at instant {instant}"
+    files = {path: rig_camera_text(result, c, board, args.detector, frame, path.name)
+             for c, path in enumerate(targets[:len(names)])}
+    files[out / TOML_NAME] = rig_toml(result, frame)
+    if not args.no_report:
+        try:
+            import matplotlib  # noqa: F401 - the report's figures need it: the eval extra
+        except ImportError as exc:
+            print(f"no report ({exc}): pip install 'deepcharuco[eval]' for it", file=sys.stderr)
+        else:
+            from deepcharuco.rig_report import report_html
+
+            files[out / REPORT_NAME] = report_html(
+                result, board, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
+                command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+    write_together(files)
+    print(f"{len(names)} cameras, {len(result.board_poses)} instants, {len(result.views)} views: RMS {result.rms:.3f} px"
+          f" -> {out}/")
+    for c, name in enumerate(names):
+        K, std, centre = result.cameras[c].K, result.std[c], result.centre(c)
+        deviation = (lambda key, scale=1.0: f" +- {scale * std[key]:.2f}" if key in std else "")  # noqa: E731
+        print(f"  {name}: {result.camera_views(c)} views, RMS {result.camera_rms(c):.3f} px, fx {K[0, 0]:.1f}"
+              f"{deviation('fx')} fy {K[1, 1]:.1f}{deviation('fy')} cx {K[0, 2]:.1f}{deviation('cx')} cy "
+              f"{K[1, 2]:.1f}{deviation('cy')}, centre ({centre[0]:+.3f}, {centre[1]:+.3f}, {centre[2]:+.3f}) m"
+              + (f" +- {1000 * max(std['tx'], std['ty'], std['tz']):.1f} mm, rotation +- {std['rotation_deg']:.2f} deg"
+                 if "tx" in std else ""))
+    pairs = ", ".join(f"{names[i]}-{names[j]} {n}" for (i, j), n in sorted(result.shared.items()))
+    print(f"  shared instants: {pairs}")
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    return result
