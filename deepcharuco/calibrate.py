@@ -143,7 +143,7 @@ def run(args: argparse.Namespace) -> CalibrationResult:
 
 
 def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
-    board = BoardSpec.load(args.board) if args.board else BoardSpec()
+    board = BoardSpec.load(args.board[0]) if args.board else BoardSpec()
     detector = make_calibration_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source[0], args.max_frames)
     frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet)
@@ -192,7 +192,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("source", nargs="+",
                         help="video file, folder of images, or camera index (0, 1, ...); several: the synchronised "
                              "cameras of a rig (frame n of each shows one instant), calibrated together into --out/")
-    parser.add_argument("--board", help="board description (.yaml/.json); default: the paper's 5x5 DICT_5X5_50 board")
+    parser.add_argument("--board", action="append", default=None,
+                        help="board description (.yaml/.json); default: the paper's 5x5 DICT_5X5_50 board. A rig may "
+                             "give several (--board a.yaml --board b.yaml: boards of other dictionaries or "
+                             "first_marker_id, each seen by some cameras at once)")
     parser.add_argument("--out", default=None,
                         help="camera file to write (OpenCV FileStorage YAML; default camera.yaml), or with several "
                              "sources the rig's folder (default rig/): <source name>.yaml per camera, rig.toml, "
@@ -271,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
                         f"per source")
     if args.sync_offsets and min(args.sync_offsets) < 0:
         problems.append("--sync-offsets are frames each video starts late: >= 0 (make the earliest 0)")
+    if not rig and args.board and len(args.board) > 1:
+        problems.append("several --board files are for a rig (two sources or more); one camera calibrates from one "
+                        "board")
     if rig and args.model == "fisheye":
         problems.append("a rig is calibrated with the pinhole or rational model; --model fisheye is single-camera only")
     args.out = args.out or ("rig" if rig else "camera.yaml")
@@ -285,8 +291,9 @@ def main(argv: list[str] | None = None) -> int:
             if rig:
                 from deepcharuco.calibrate_rig import run_rig
 
-                board = BoardSpec.load(args.board) if args.board else BoardSpec()
-                run_rig(args, board, make_calibration_detector(args.detector, board, args.refine, args.weights))
+                boards = [BoardSpec.load(path) for path in args.board] if args.board else [BoardSpec()]
+                run_rig(args, boards, [make_calibration_detector(args.detector, board, args.refine, args.weights)
+                                       for board in boards])
             else:
                 run(args)
         except KeyboardInterrupt:  # Ctrl-C while detecting or solving: the files are written last, whole or not at all

@@ -55,10 +55,11 @@ def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
                        f"and end together")
 
 
-def detect_synchronised(sources: list[Source], detector, offsets: list[int], *, step: int = 1, quiet: bool = False
-                        ) -> tuple[list[list[FrameDetection]], list[tuple[int, int] | None]]:
-    """Per camera its `FrameDetection` of every ``step``-th instant (the instant as its index), and its frame size.
-    Frame ``n + offsets[c]`` of source c is instant n; reading stops when the first source ends."""
+def detect_synchronised(sources: list[Source], detectors: list, offsets: list[int], *, step: int = 1,
+                        quiet: bool = False) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
+    """``detections[c][b]``: camera c's `FrameDetection` of board b (``detectors[b]``'s) at every ``step``-th
+    instant (the instant as its index), and each camera's frame size. Frame ``n + offsets[c]`` of source c is
+    instant n; reading stops when the first source ends."""
     streams = []
     for source, offset in zip(sources, offsets):
         frames = iter(source.frames)
@@ -66,7 +67,7 @@ def detect_synchronised(sources: list[Source], detector, offsets: list[int], *, 
             next(frames, None)
         streams.append(frames)
     totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
-    detections: list[list[FrameDetection]] = [[] for _ in sources]
+    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in sources]
     sizes: list[tuple[int, int] | None] = [None] * len(sources)
     bar = tqdm(zip(*streams), total=min(totals) if totals else None, unit="instant", desc="detecting", disable=quiet)
     for instant, frames in enumerate(bar):
@@ -80,20 +81,24 @@ def detect_synchronised(sources: list[Source], detector, offsets: list[int], *, 
             elif size != sizes[c]:
                 raise CalibrationError(f"{sources[c].stem}: frame {name} is {size[0]}x{size[1]} but the first was "
                                        f"{sizes[c][0]}x{sizes[c][1]}: one camera, one resolution")
-            found = detector.detect(gray)
-            detections[c].append(FrameDetection(instant, str(name), found.ids, found.corners,
-                                                sharpness(gray, found.corners)))
-        bar.set_postfix(boards="/".join(str(sum(len(d.ids) > 0 for d in camera)) for camera in detections),
+            for b, detector in enumerate(detectors):
+                found = detector.detect(gray)
+                detections[c][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
+                                                       sharpness(gray, found.corners)))
+        bar.set_postfix(boards="/".join(str(sum(any(len(per_board[n].ids) for per_board in camera)
+                                                for n in range(len(camera[0])))) for camera in detections),
                         refresh=False)
     return detections, sizes
 
 
-def starting_cameras(detections: list[list[FrameDetection]], sizes: list[tuple[int, int]], names: list[str],
-                     given: list[str | None], board: BoardSpec, model: str, options: SelectionOptions, fix_k3: bool
-                     ) -> tuple[list[Camera], list[str | None], list[str]]:
-    """Each camera's starting intrinsics, the distortion terms the rig solves for it (None: held as given) and
-    what to tell the user."""
-    cameras, terms, notes = [], [], []
+def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
+                     given: list[str | None], boards: list[BoardSpec], model: str, options: SelectionOptions,
+                     fix_k3: bool) -> tuple[list[Camera], list[str | None], list[str], list[dict[str, float] | None],
+                                            list[float | None]]:
+    """Each camera's starting intrinsics (its single-camera calibration from the board it saw in the most frames),
+    the distortion terms the rig solves for it (None: held as given), what to tell the user, and the starting
+    intrinsics' standard deviations (`deepcharuco.rig`'s prior) and corner noise (px per axis; None where given)."""
+    cameras, terms, notes, priors, noise = [], [], [], [], []
     for c, name in enumerate(names):
         if given[c] not in (None, "-"):
             try:
@@ -105,47 +110,57 @@ def starting_cameras(detections: list[list[FrameDetection]], sizes: list[tuple[i
                                       f"or rational model")
             cameras.append(camera)
             terms.append(None)
+            priors.append(None)
+            noise.append(None)
             continue
+        seen = [sum(len(f.ids) >= options.min_corners for f in frames) for frames in detections[c]]
+        b = int(np.argmax(seen))
         try:
-            single = calibrate(detections[c], board, sizes[c], model, options, fix_k3=fix_k3)
+            single = calibrate(detections[c][b], boards[b], sizes[c], model, options, fix_k3=fix_k3)
         except CalibrationError as error:
             raise RigError(f"{name}: {error} (or give its intrinsics: --camera FILE for it)") from None
         cameras.append(single.camera)
         terms.append(single.terms)
         notes += [f"{name}: {note}" for note in single.notes]
-    return cameras, terms, notes
+        priors.append(dict(single.std))
+        noise.append(single.corner_sigma)
+    return cameras, terms, notes, priors, noise
 
 
-def solve_rig(detections: list[list[FrameDetection]], sizes: list[tuple[int, int]], names: list[str], board: BoardSpec,
-              options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
+def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
+              boards: list[BoardSpec], options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
               given: list[str | None] | None = None) -> RigResult:
-    """The rig from every camera's detections (one `FrameDetection` per instant, its index the instant):
-    starting intrinsics (`starting_cameras`), corners within ``options.border_px`` of the border left out, then
-    `calibrate_rig`."""
-    cameras, terms, notes = starting_cameras(detections, sizes, names, given or [None] * len(names), board, model,
-                                             options, fix_k3)
+    """The rig from every camera's detections of every board (``detections[c][b]``: one `FrameDetection` per
+    instant, its index the instant): starting intrinsics (`starting_cameras`), corners within
+    ``options.border_px`` of the border left out, then `calibrate_rig`."""
+    cameras, terms, notes, priors, noise = starting_cameras(detections, sizes, names, given or [None] * len(names), boards,
+                                                     model, options, fix_k3)
     views = []
-    for c, frames in enumerate(detections):
-        for frame in frames:
-            kept = within_border(frame, sizes[c], options.border_px)
-            if len(kept.ids):
-                views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}"))
-    result = calibrate_rig(views, board, cameras, names, terms, min_corners=options.min_corners)
+    for c, per_board in enumerate(detections):
+        for b, frames in enumerate(per_board):
+            for frame in frames:
+                kept = within_border(frame, sizes[c], options.border_px)
+                if len(kept.ids):
+                    views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}", b))
+    result = calibrate_rig(views, boards, cameras, names, terms, min_corners=options.min_corners, priors=priors,
+                           own_noise=noise)
     result.notes = notes + result.notes
     return result
 
 
-def board_origin(result: RigResult) -> tuple[int, RigResult]:
-    """The rig in the board's frame at the instant the most cameras saw it (the most corners breaking ties)."""
-    seen: dict[int, list[int]] = {}
+def board_origin(result: RigResult) -> tuple[tuple[int, int], RigResult]:
+    """The rig in a board's frame at the instant the most cameras saw it (the most corners breaking ties; of several
+    boards, the first one's), and that (instant, board)."""
+    seen: dict[tuple[int, int], list[int]] = {}
     for view in result.views:
-        seen.setdefault(view.instant, []).append(len(view.ids))
-    instant = max(seen, key=lambda i: (len(seen[i]), sum(seen[i]), -i))
-    rvec, tvec = result.board_poses[instant]
-    return instant, result.reframed(rotations_from_vectors(rvec)[0], np.asarray(tvec, np.float64))
+        seen.setdefault(view.key, []).append(len(view.ids))
+    key = max(seen, key=lambda k: (-k[1], len(seen[k]), sum(seen[k]), -k[0]))
+    rvec, tvec = result.board_poses[key]
+    return key, result.reframed(rotations_from_vectors(rvec)[0], np.asarray(tvec, np.float64))
 
 
-def run_rig(args: argparse.Namespace, board: BoardSpec, detector) -> RigResult:
+def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) -> RigResult:
+    """The rig command (module docstring): ``boards`` and one detector each."""
     out = Path(args.out)
     if out.suffix.lower() in (".yaml", ".yml", ".xml", ".json") and not out.is_dir():
         raise DeepCharucoError(f"--out {out} names a file, but {len(args.source)} sources make a rig: give a folder, "
@@ -162,13 +177,13 @@ def run_rig(args: argparse.Namespace, board: BoardSpec, detector) -> RigResult:
     check_lengths(sources, args.sync_offsets)
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / TOML_NAME, "another calibrate"):
-        return _rig_into(args, board, detector, out, sources, names, targets)
+        return _rig_into(args, boards, detectors, out, sources, names, targets)
 
 
-def _rig_into(args, board: BoardSpec, detector, out: Path, sources: list[Source], names: list[str],
+def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
               targets: list[Path]) -> RigResult:
     offsets = args.sync_offsets or [0] * len(sources)
-    detections, sizes = detect_synchronised(sources, detector, offsets, step=args.step, quiet=args.quiet)
+    detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet)
     for source in sources:
         for line in source.problems():
             print(f"warning: {line}", file=sys.stderr)
@@ -176,21 +191,23 @@ def _rig_into(args, board: BoardSpec, detector, out: Path, sources: list[Source]
         if size is None:
             raise CalibrationError(f"no frames could be read from {source} ({name}): give videos, folders of images "
                                    f"or camera indices that deliver frames")
-    unseen = [name for name, frames in zip(names, detections) if not any(len(f.ids) for f in frames)]
+    unseen = [name for name, per_board in zip(names, detections)
+              if not any(len(f.ids) for frames in per_board for f in frames)]
     if unseen:
-        raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0])} instants: check "
+        raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0][0])} instants: check "
                        f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
                        f"in focus")
     margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
                                border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
-    result = solve_rig(detections, sizes, names, board, options, model=args.model, fix_k3=args.fix_k3,
+    result = solve_rig(detections, sizes, names, boards, options, model=args.model, fix_k3=args.fix_k3,
                        given=args.camera)
     frame = f"camera {names[0]}'s"
     if args.origin == "board":
-        instant, result = board_origin(result)
-        frame = f"the board's at instant {instant}"
-    files = {path: rig_camera_text(result, c, board, args.detector, frame, path.name)
+        (instant, board_index), result = board_origin(result)
+        frame = f"the board's at instant {instant}" if len(boards) == 1 else \
+            f"board {Path(args.board[board_index]).stem}'s at instant {instant}"
+    files = {path: rig_camera_text(result, c, boards, args.detector, frame, path.name)
              for c, path in enumerate(targets[:len(names)])}
     files[out / TOML_NAME] = rig_toml(result, frame)
     if not args.no_report:
@@ -202,10 +219,10 @@ def _rig_into(args, board: BoardSpec, detector, out: Path, sources: list[Source]
             from deepcharuco.rig_report import report_html
 
             files[out / REPORT_NAME] = report_html(
-                result, board, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
+                result, boards, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
                 command="python -m deepcharuco.calibrate " + " ".join(args.argv))
     write_together(files)
-    print(f"{len(names)} cameras, {len(result.board_poses)} instants, {len(result.views)} views: RMS {result.rms:.3f} px"
+    print(f"{len(names)} cameras, {len({i for i, _ in result.board_poses})} instants, {len(result.views)} views: RMS {result.rms:.3f} px"
           f" -> {out}/")
     for c, name in enumerate(names):
         K, std, centre = result.cameras[c].K, result.std[c], result.centre(c)

@@ -2,6 +2,7 @@
 
     deepcharuco detect IMAGE|FOLDER|VIDEO|CAMERA --board board.yaml [--camera cam.yaml]
     deepcharuco calibrate VIDEO --board board.yaml --out cam.yaml
+    deepcharuco calibrate VIDEO VIDEO ... --board board.yaml --out rig/
     deepcharuco board board.yaml --out board.pdf
 
 Each subcommand is the module's own command line (``deepcharuco detect`` = ``python -m
@@ -20,7 +21,8 @@ from deepcharuco import __version__
 # name: (module with main(argv), what it does, the extra its imports need or None)
 SUBCOMMANDS = {
     "detect": ("deepcharuco.detect", "find the board (and its pose) in images, a video or a camera", None),
-    "calibrate": ("deepcharuco.calibrate", "calibrate a camera from a video or images of the board", None),
+    "calibrate": ("deepcharuco.calibrate", "calibrate a camera, or a rig of cameras, from videos or images of the board",
+                  None),
     "board": ("deepcharuco.print_board", "write a board to print at true size (PDF, SVG, PNG)", None),
     "export": ("deepcharuco.export", "export trained networks to ONNX", "export"),
     "report": ("evaluate.report", "the evaluation report: deep vs OpenCV on the paper's protocols", "eval"),

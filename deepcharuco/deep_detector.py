@@ -312,12 +312,40 @@ class Detector:
             PyTorch), "torch", "onnx" or "onnx-int8".
         reader: how markers are read (`deepcharuco.marker_reader.READERS`): "sampled" (the default, 4 samples
             per bit correlated with the board's markers) or "learned" (a 9.5k-parameter CNN's bit logits).
+        boards: several boards to find in each image instead of ``board`` (boards of different dictionaries, or of
+            one dictionary with other ``first_marker_id``s: rigs cover a room with several). `detect_boards`
+            returns one `Detection` per board, in this order, each with that board's corner IDs; `detectors`
+            are the per-board detectors (for `BoardTracker` and poses); ``detect`` refuses (its one result could
+            not say which board a corner is of). Each board is searched on its own: N boards cost N searches.
     """
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
-                 mode: str = "deep", backend: str = "auto", reader: str | None = None, preview: bool = True):
+                 mode: str = "deep", backend: str = "auto", reader: str | None = None, preview: bool = True,
+                 boards: list[BoardSpec] | None = None):
+        self._each: list[Detector] = []
+        if boards is not None:
+            boards = list(boards)
+            if board is not None:
+                raise ValueError("give board or boards, not both")
+            if not boards:
+                raise ValueError("boards is empty: give one board or more")
+            for i, a in enumerate(boards):
+                for j in range(i):
+                    if a.same_layout(boards[j]) and a.first_marker_id == boards[j].first_marker_id:
+                        raise DeepCharucoError(f"boards {j} and {i} print the same markers in the same layout, so no "
+                                               f"detector can tell them apart: give boards of other dictionaries or "
+                                               f"other first_marker_id")
+            if len(boards) > 1:
+                self.boards = boards
+                self._each = [Detector(board=b, weights=weights, refine=refine, device=device,
+                                       refine_weights=refine_weights, threshold=threshold, soft_radius=soft_radius,
+                                       geometry=geometry, working_size=working_size, mode=mode, backend=backend,
+                                       reader=reader, preview=preview) for b in boards]
+                self.board = None
+                return
+            board = boards[0]
         if refine not in REFINE_MODES:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
         if mode not in MODES:
@@ -385,7 +413,19 @@ class Detector:
         else:
             self.runner = _bundle_runner(bundle, backend, refine == "refinenet", points_only=geometry == "markers")
 
+    @property
+    def detectors(self) -> list["Detector"]:
+        """One single-board detector per board (`boards`), or ``[self]``."""
+        return list(self._each) or [self]
+
+    def detect_boards(self, image: np.ndarray) -> list[Detection]:
+        """One `Detection` per board (``boards``, or this detector's one board), in order; empty where a board is
+        not found."""
+        return [detector.detect(image) for detector in self.detectors]
+
     def __repr__(self) -> str:
+        if self._each:
+            return f"Detector(boards={self.boards!r})"
         return (f"Detector(board={self.board!r}, refine={self.refine!r}, geometry={self.geometry!r}, "
                 f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
 
@@ -408,6 +448,9 @@ class Detector:
         this call (`BoardTracker` searches a crop at the scale its whole frame was searched at).
 
         numpy's BLAS runs single-threaded for the call (`runtime.single_threaded_blas`) and is restored after."""
+        if self._each:
+            raise DeepCharucoError(f"this Detector finds {len(self._each)} boards: detect_boards(image) returns one "
+                                   f"Detection per board")
         with single_threaded_blas():
             return self._detect(image, working_size)
 
@@ -516,7 +559,8 @@ class Detector:
                 ids, pixels, scores, early, confidence = self._find(gray, region, level)
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
-                               to_full(board_like_boxes(confidence, dim), reached, (x1 - x0, y1 - y0))]
+                               to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,
+                                       (x1 - x0, y1 - y0))]
                 if len(ids) and (level_found is None or len(ids) > len(level_found.ids)):
                     level_found = Found(box, region, gray, ids, pixels, scores, preview=False, early=early)
             board_like = board_like or bool(next_boxes) or level_found is not None
@@ -549,8 +593,8 @@ class Detector:
         corner spacing, whichever is larger: a wide lens bends a large board's rows away from any one
         homography by more than 3 px, and a wrong ID lands a whole square away. A board of fewer corners
         than that (a 3x3 board has 4) stands on OpenCV's marker reads when every corner is found: no
-        geometry can check so few, and the networks could not name them either (its markers cannot prove
-        the view, `placement.view_is_verified`)."""
+        geometry can check so few (the networks' own view of it is proved by its markers' codes,
+        `placement.code_errors`)."""
         if self.board.num_corners < MIN_CONSENSUS:
             return len(detection.ids) == self.board.num_corners
         if len(detection.ids) < MIN_CONSENSUS:
@@ -692,7 +736,11 @@ class Detector:
 
         With the board-geometry check on (``geometry`` "repair" or "filter") a pose needs a RANSAC
         consensus of at least 6 corners (``min_inliers``): 4 fit some view of the board whatever their
-        IDs, so a pose from a few corners may be confidently wrong; the corners are still reported."""
+        IDs, so a pose from a few corners may be confidently wrong; the corners are still reported. A board of
+        fewer corners (a 3x3 board has 4), found by its markers' codes, needs all of them."""
+        if self._each:
+            raise DeepCharucoError("this Detector finds several boards: take each board's pose from its own "
+                                   "detector, detectors[i].estimate_pose(detections[i], K, dist)")
         if self.geometry != "none":
-            kwargs.setdefault("min_inliers", MIN_CONSENSUS)
+            kwargs.setdefault("min_inliers", min(MIN_CONSENSUS, self.board.num_corners))
         return estimate_pose(detection, K, dist, board=self.board, **kwargs)

@@ -19,6 +19,7 @@ import os
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import ExitStack
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -191,72 +192,120 @@ def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
     return None if camera is None else camera.for_image_size(shape[1], shape[0])
 
 
+@dataclass
+class _BoardRun:
+    """One board's part of a run: its detector (and tracker), its output files and what it found."""
+
+    board_file: str | None
+    detector: object
+    finder: object
+    csv_path: Path
+    json_path: Path
+    records: list[dict] = field(default_factory=list)
+    found: bool = False
+    samples: list[np.ndarray] = field(default_factory=list)
+
+
+def board_names(paths: list[str]) -> list[str]:
+    """The suffix each board's output files get when several boards are given: their files' stems, refused when
+    two are alike."""
+    names = [Path(p).stem for p in paths]
+    for name in names:
+        if names.count(name) > 1:
+            raise DeepCharucoError(f"two --board files are named {name}: each board's results are <source>_{name}.csv, "
+                                   f"so give board files of different names")
+    return names
+
+
 def run(args: argparse.Namespace) -> dict:
-    """Detect in every frame of ``args.source`` and write the results into ``args.out``; returns the JSON summary,
-    whose ``complete`` is False when Ctrl-C stopped the run (what was done is written all the same)."""
-    board = BoardSpec.load(args.board) if args.board else None  # deep: default to the weights' board
+    """Detect in every frame of ``args.source`` and write the results into ``args.out``; returns the JSON summary
+    (of the first board, where several are given), whose ``complete`` is False when Ctrl-C stopped the run (what
+    was done is written all the same). Several ``--board`` files: each board is searched in every frame and gets
+    its own ``<source>_<board file stem>.csv`` / ``.json``; the overlay shows them all."""
+    board_files = args.board or [None]
+    suffixes = [""] if len(board_files) == 1 else [f"_{name}" for name in board_names(board_files)]
+    boards = [BoardSpec.load(path) if path else None for path in board_files]  # deep: default to the weights' board
     camera = read_camera(args.camera) if args.camera else None
-    detector = make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend)
-    board = detector.board
+    detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend)
+                 for board in boards]
     source = open_source(args.source, args.max_frames)
     # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames).
     tracking = source.kind in ("video", "camera") and args.refresh_every > 1
-    finder = BoardTracker(detector, args.refresh_every) if tracking else detector
     out = output_folder(args.out)
-    csv_path, json_path = out / f"{source.stem}.csv", out / f"{source.stem}.json"
-    refuse_foreign(csv_path, starts_with(",".join(CSV_FIELDS).encode()), "detection CSV", args.force)
-    refuse_foreign(json_path, starts_with(JSON_START), "detection JSON", args.force)
+    runs = [_BoardRun(path, detector, BoardTracker(detector, args.refresh_every) if tracking else detector,
+                      out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
+            for path, detector, suffix in zip(board_files, detectors, suffixes)]
+    for board_run in runs:
+        refuse_foreign(board_run.csv_path, starts_with(",".join(CSV_FIELDS).encode()), "detection CSV", args.force)
+        refuse_foreign(board_run.json_path, starts_with(JSON_START), "detection JSON", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
-    if getattr(detector, "weights", None) is not None:
-        print(f"weights: {detector.weights} (decoding: {detector.geometry})", file=sys.stderr)
+    if getattr(detectors[0], "weights", None) is not None:
+        print(f"weights: {detectors[0].weights} (decoding: {detectors[0].geometry})", file=sys.stderr)
 
-    records: list[dict] = []
     overlays = _Overlays(out, source)
     interrupted = False
-    found, samples = False, []  # until the board is found: a few frames, to say what they show if it never is
     hint_stride = max(1, (source.total or HINT_FRAMES * HINT_STRIDE) // HINT_FRAMES)  # spread over the source
-    # The CSV is written as frames arrive, under a temporary name renamed into place at the end (also after
+    frames_read = 0
+    # The CSVs are written as frames arrive, under temporary names renamed into place at the end (also after
     # Ctrl-C): a full disk or a kill never leaves a cut-off <stem>.csv in place of a complete one.
-    with atomic_file(csv_path, "w", newline="") as csv_file:
-        rows = csv.DictWriter(csv_file, fieldnames=CSV_FIELDS)
-        rows.writeheader()
+    with ExitStack() as files:
+        writers = []
+        for board_run in runs:
+            rows = csv.DictWriter(files.enter_context(atomic_file(board_run.csv_path, "w", newline="")),
+                                  fieldnames=CSV_FIELDS)
+            rows.writeheader()
+            writers.append(rows)
         detect_seconds, total_seconds = None, 0.0
         try:
             progress = tqdm(source.frames, total=source.total, unit="frame", disable=source.kind == "image" or args.quiet)
             for index, (name, frame) in enumerate(progress):
                 started = time.perf_counter()
-                detection = finder.detect(frame)
+                detections = [board_run.finder.detect(frame) for board_run in runs]
                 elapsed = time.perf_counter() - started
                 total_seconds += elapsed
+                frames_read += 1
                 # Live detection speed (an exponential average: a camera's rate changes as the board moves), beside
                 # the mean the JSON reports: alone, a slow stretch (no board in view) read as the run's speed.
                 detect_seconds = elapsed if detect_seconds is None else 0.9 * detect_seconds + 0.1 * elapsed
                 progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps now, "
                                          f"{(index + 1) / max(total_seconds, 1e-9):.1f} mean", refresh=False)
                 frame_camera = _camera_for(camera, frame.shape)
-                pose = estimate_frame_pose(detector, detection, frame_camera) if frame_camera else None
-                record = frame_record(index, name, detection, pose)
-                records.append(record)
-                if not found and len(detection):
-                    found, samples = True, []  # the board is there: no hint needed
-                elif not found and len(samples) < HINT_FRAMES and index % hint_stride == 0:
-                    samples.append(to_gray_u8(frame))
-                rows.writerow(_csv_row(record))
+                overlay = frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
+                for board_run, rows, detection in zip(runs, writers, detections):
+                    pose = estimate_frame_pose(board_run.detector, detection, frame_camera) if frame_camera else None
+                    record = frame_record(index, name, detection, pose)
+                    board_run.records.append(record)
+                    if not board_run.found and len(detection):
+                        board_run.found, board_run.samples = True, []  # the board is there: no hint needed
+                    elif not board_run.found and len(board_run.samples) < HINT_FRAMES and index % hint_stride == 0:
+                        board_run.samples.append(to_gray_u8(frame))
+                    rows.writerow(_csv_row(record))
+                    if not args.no_overlay:
+                        overlay = draw_detection(overlay, detection, pose,
+                                                 *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None),
+                                                 board_run.detector.board)
                 if not args.no_overlay:
-                    overlays.add(name, draw_detection(
-                        frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR),
-                        detection, pose, *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None), board))
+                    overlays.add(name, overlay)
         except KeyboardInterrupt:
             interrupted = True
-            print(f"interrupted after {len(records)} frames; writing what was done (marked incomplete)", file=sys.stderr)
+            print(f"interrupted after {frames_read} frames; writing what was done (marked incomplete)", file=sys.stderr)
         finally:
-            overlays.close(keep=bool(records))
+            overlays.close(keep=frames_read > 0)
+    summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1)
+                 for board_run in runs]
+    return summaries[0]
+
+
+def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, camera: Camera | None, interrupted: bool,
+            total_seconds: float, several: bool) -> dict:
+    """Write one board's JSON, say what it found, and return its summary."""
+    records, board, detector = board_run.records, board_run.detector.board, board_run.detector
     problems = source.problems()
-    if records and not found:
+    if records and not board_run.found:
         problems.append(f"no board corners in any of {len(records)} frames ({args.detector} detector, board "
                         f"{board.squares_x}x{board.squares_y} {board.dictionary}{', inverted' if board.inverted else ''}"
-                        f"); {what_matches(samples, board, args.board)}")
+                        f"); {what_matches(board_run.samples, board, board_run.board_file)}")
     summary = {
         "board": board.to_dict(),
         "detector": repr(detector),
@@ -269,7 +318,7 @@ def run(args: argparse.Namespace) -> dict:
         "problems": problems,
         "detect_fps": len(records) / total_seconds if total_seconds > 0 else None,
     }
-    write_atomic(json_path, json.dumps(summary))
+    write_atomic(board_run.json_path, json.dumps(summary))
     with_pose = sum(r["pose"] is not None for r in records)
     for line in problems:
         print(f"warning: {line}", file=sys.stderr)
@@ -277,8 +326,9 @@ def run(args: argparse.Namespace) -> dict:
     lost = [f"{len(source.skipped)} unreadable image(s) skipped"] if source.skipped else []
     if source.video is not None and source.video.skipped:
         lost.append(f"{source.video.skipped_frames} undecodable frame(s) skipped")
-    print(f"{len(records)} frames{' (incomplete: interrupted)' if interrupted else ''}, board corners in {found}, "
-          f"pose in {with_pose}{''.join(f', {line}' for line in lost)} -> {out}/")
+    which = f" board {Path(board_run.board_file).stem}:" if several else ""
+    print(f"{len(records)} frames{' (incomplete: interrupted)' if interrupted else ''},{which} board corners in {found}, "
+          f"pose in {with_pose}{''.join(f', {line}' for line in lost)} -> {board_run.json_path.parent}/")
     return summary
 
 
@@ -354,7 +404,10 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("source", help="image file, folder of images, video file, or camera index (0, 1, ...)")
-    parser.add_argument("--board", help="board description (.json/.yaml); default: the paper's 5x5 DICT_5X5_50 board")
+    parser.add_argument("--board", action="append", default=None,
+                        help="board description (.json/.yaml); default: the paper's 5x5 DICT_5X5_50 board. Given "
+                             "several times: every board is searched in each frame, each with its own "
+                             "<source>_<board file name>.csv/.json (boards of other dictionaries or first_marker_id)")
     parser.add_argument("--camera", help="OpenCV intrinsics YAML (camera_matrix, distortion_coefficients, "
                                          "image_width, image_height); without it no pose is estimated")
     parser.add_argument("--detector", choices=["opencv", "deep", "hybrid"], default="hybrid",

@@ -27,6 +27,7 @@ from deepcharuco.detection import corner_spacing, no_corners
 from deepcharuco.junction import pattern_evidence
 from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
 from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
+from deepcharuco.marker_reader import _reader as _reader_name
 from deepcharuco.models.cells import CellCandidates
 from deepcharuco.vectors import lengths, pairwise_distances
 
@@ -54,6 +55,19 @@ MAX_CHANCE = 1e-5
 # look-alikes of 6 boards (other dictionaries and IDs, mirrored, plain; 10 views each, at their true pose and at
 # the view the search found) at most 2.4.
 MIN_RANK_Z = 5.0
+# ... or, on a board of few markers, where the board cannot prove itself against its own markers (a 3x3 board has
+# 4: even 4 of 4 reading best as themselves happens by chance with 1.5e-5, above MAX_CHANCE), each marker's bits tell:
+# a square that shows none of the board's markers reads within e bits of the code expected there with chance
+# sum_{j <= e} C(n, j) / 2^n (n inner bits). MIN_MARKERS markers within `code_error_limit` bits each, at least
+# MIN_CODE_SHARE of the readable ones, whose chances multiply to MAX_CHANCE or less, verify the view (two 5x5 markers
+# two bits off each: 9e-11). The share keeps out look-alikes whose codes match by symmetry: a mirrored 12x9
+# DICT_4X4_1000 board reads 2 of its 54 markers exactly as the codes expected there. The limit is at most
+# the dictionary's own correction capacity (OpenCV's maxCorrectionBits: half its least distance between codes, so a
+# marker of another board of the dictionary reads within it only with more bit errors than that) and one bit per 12
+# (a 4x4 code: 1; 5x5: 2; 6x6: 3): a view fitted to a coarse level's four corners samples the bits up to half a
+# bit off, and on the 5 MP validation frames (`benchmarks/detect.py`, seed 1) right views read 0-2 bits off.
+BITS_PER_ERROR = 12
+MIN_CODE_SHARE = 0.5
 # Corners the verified view predicts where no candidate reaches the detector's threshold may take a weaker one
 # (point confidence >= WEAK_CONFIDENCE, within WEAK_REACH_PX of the prediction): the markers already name the
 # corner, the point head need only say that one is there.
@@ -262,7 +276,47 @@ def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
         return True
     markers = board_markers(board)
     unbiased = ~np.isin(markers.ids[readable], np.asarray([] if chosen_by is None else chosen_by))
-    return rank_z(ranks[unbiased]) >= MIN_RANK_Z
+    if rank_z(ranks[unbiased]) >= MIN_RANK_Z:
+        return True
+    return code_chance(code_errors(gray, board, homography, reader), markers.size ** 2,
+                       code_error_limit(board)) <= MAX_CHANCE
+
+
+def code_error_limit(board: BoardSpec) -> int:
+    """The bit errors a marker's read may have and still count as its code (`view_is_verified`)."""
+    dictionary = board.cv_dictionary()
+    return int(min(dictionary.maxCorrectionBits, dictionary.markerSize ** 2 // BITS_PER_ERROR))
+
+
+def code_errors(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None) -> np.ndarray:
+    """(R,) for each marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly and readably
+    in canonical ``gray``: how many of its inner bits, read and thresholded (sampled reads: halfway between the read's
+    darkest and brightest bit; learned: the logit's sign), differ from the code printed there."""
+    markers = board_markers(board)
+    scale = np.diag([board.square_length, board.square_length, 1.0])
+    squares = homography @ scale @ _translations(markers.squares)
+    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
+    readable = np.flatnonzero(contrast > 0)
+    if len(readable) == 0:
+        return np.zeros(0, np.int64)
+    flat = bits[readable].reshape(len(readable), -1)
+    if _reader_name(reader) == "learned":
+        white = flat > 0
+    else:
+        low, high = flat.min(axis=1, keepdims=True), flat.max(axis=1, keepdims=True)
+        white = flat > (low + high) / 2
+    expected = markers.bits[readable, 0].reshape(len(readable), -1)
+    return np.sum(white != expected, axis=1)
+
+
+def code_chance(errors: np.ndarray, bits: int, max_errors: int) -> float:
+    """Chance that squares showing no marker of the board read as close to the expected codes as the `code_errors`
+    ``errors`` within ``max_errors`` do (the product of each one's sum_{j <= e} C(bits, j) / 2^bits); 1.0 when fewer
+    than `MIN_MARKERS`, or than `MIN_CODE_SHARE` of them, are that close."""
+    close = np.asarray(errors)[np.asarray(errors) <= max_errors]
+    if len(close) < max(MIN_MARKERS, MIN_CODE_SHARE * len(errors)):
+        return 1.0
+    return float(np.prod([sum(math.comb(bits, j) for j in range(int(e) + 1)) / 2.0 ** bits for e in close]))
 
 
 def marker_view_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,

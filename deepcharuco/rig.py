@@ -50,10 +50,28 @@ MIN_SHARED_VIEWS = 3  # instants two cameras must both see the board at for thei
 # degree); unsynchronised videos of a moving board spread by tens of degrees.
 MAX_PAIR_SPREAD_DEG = 5.0
 HUBER_PX = 1.0  # residuals beyond this count linearly in the bundle adjustment
+# Each camera's own calibration (`calibration.calibrate`, its views selected, weighed and cross-validated) is a prior
+# on its intrinsics in the joint solve, with its standard deviations, so that the rig's corners move an intrinsic
+# only as far as they outweigh that camera's own evidence. The prior's residual (value - start) / deviation is in
+# standard deviations, the corners' in px: it is scaled by the rig's corner noise, measured by a first solve with
+# the intrinsics held (a rig whose cameras disagree, e.g. not synchronised to the frame, has a larger one than each
+# camera alone). Without the prior, on caliscope's four webcams (6 fps, not synchronised to the frame, a 12-corner
+# board over 10-25 % of each image) the joint solve moved fx by 2-8 % from every camera's own calibration (and from
+# caliscope's) to absorb the cameras' disagreement, at deviations of 1-3 % (`evaluate.rig_eval`). The same corners
+# enter both, so the prior counts them twice; where the rig's views pin an intrinsic down better (drawn rigs) they
+# still move it.
 CORNER_OUTLIER = 5.0
 VIEW_OUTLIER = 3.0
 MIN_VIEW_OUTLIER_PX = 1.0
 MAX_ROUNDS = 4
+# When the cameras' views of one instant disagree by more than this x each camera's own corner noise (its own
+# calibration's), the rig's model does not hold (cameras not synchronised to the frame, rolling shutters, a board
+# that flexes) and a joint solve would bend the intrinsics to absorb it: they are held at each camera's own
+# calibration. The validation drawn rig (seed 0) read 0.6-1.3 x (good light, dark, shake; OpenCV's and the deep
+# detector's corners); caliscope's four webcams (6 fps, free-running) 7.8 x, where freeing the intrinsics moved fx
+# 2-8 % from every camera's own calibration and from caliscope's (chosen after seeing that: caliscope does not
+# measure this rule independently).
+MAX_DISAGREEMENT = 2.5
 # least_squares' sparse trust-region steps come from LSMR; at its default tolerances (1e-6) a 3-camera problem took
 # 200+ steps and stopped short (fx 2 % off its start moved back only half way); at 1e-12 it converges in ~50.
 MAX_STEPS = 300
@@ -65,14 +83,20 @@ class RigError(CalibrationError):
 
 @dataclass
 class RigView:
-    """One camera's detection at one instant: ``ids`` (N,) int64, ``corners`` (N, 2) float64 pixels,
-    ``name`` the frame's name in its source."""
+    """One camera's detection of one board at one instant: ``ids`` (N,) int64, ``corners`` (N, 2) float64 pixels,
+    ``name`` the frame's name in its source, ``board`` the board's index (several boards: `calibrate_rig`)."""
 
     camera: int
     instant: int
     ids: np.ndarray
     corners: np.ndarray
     name: str = ""
+    board: int = 0
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """(instant, board): what one board pose is solved for."""
+        return self.instant, self.board
 
     def __post_init__(self) -> None:
         self.ids = np.asarray(self.ids, np.int64).reshape(-1)
@@ -89,10 +113,11 @@ class Dropped:
     corners: int
     stage: str
     reason: str
+    board: int = 0
 
     def to_dict(self) -> dict:
-        return {"camera": self.camera, "instant": self.instant, "name": self.name, "corners": self.corners,
-                "stage": self.stage, "reason": self.reason}
+        return {"camera": self.camera, "instant": self.instant, "board": self.board, "name": self.name,
+                "corners": self.corners, "stage": self.stage, "reason": self.reason}
 
 
 @dataclass
@@ -102,12 +127,12 @@ class RigResult:
     Attributes:
         cameras: each camera's intrinsics; names: their names (video stems).
         rotations: (C, 3, 3) and translations: (C, 3) metres: x_cam = R X + t, X in the rig's frame (camera 0's).
-        board_poses: {instant: (rvec (3,), tvec (3,))} the board -> rig frame at each instant used.
+        board_poses: {(instant, board): (rvec (3,), tvec (3,))} each board -> the rig's frame at each instant used.
         views: the views used (their corners after outlier rejection); residuals: per view (N_v, 2) detected
             minus reprojected pixels.
         std: per camera {name: standard deviation}: the free intrinsics (px, unitless distortion) and the pose's
             "rotation_deg" (the rotation vector's largest axis deviation, degrees) and "tx" "ty" "tz" (metres).
-        shared: {(i, j): instants both cameras i < j saw the board at, among the views used}.
+        shared: {(i, j): instants both cameras i < j saw one board at (counted once per board), among the views used}.
         dropped: the views left out and why; notes: what the user should know; terms: per camera the distortion
             terms solved ("" when its intrinsics were held fixed).
     """
@@ -116,7 +141,7 @@ class RigResult:
     names: list[str]
     rotations: np.ndarray
     translations: np.ndarray
-    board_poses: dict[int, tuple[np.ndarray, np.ndarray]]
+    board_poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]
     views: list[RigView]
     residuals: list[np.ndarray]
     std: list[dict[str, float]]
@@ -125,6 +150,8 @@ class RigResult:
     notes: list[str] = field(default_factory=list)
     terms: list[str] = field(default_factory=list)
     rounds: int = 1
+    # the cameras' disagreement: the rig's corner noise (intrinsics held) over the cameras' own (`MAX_DISAGREEMENT`)
+    disagreement: float = math.nan
 
     def camera_rms(self, camera: int) -> float:
         """RMS reprojection error (px, per corner) of ``camera``'s views used."""
@@ -152,11 +179,12 @@ class RigResult:
         translations = np.einsum("cij,j->ci", self.rotations, translation) + self.translations
         inverse_r, inverse_t = rotation.T, -rotation.T @ translation
         poses = {}
-        for instant, (rvec, tvec) in self.board_poses.items():
+        for key, (rvec, tvec) in self.board_poses.items():
             R = cv2.Rodrigues(rvec)[0]
-            poses[instant] = (cv2.Rodrigues(inverse_r @ R)[0].ravel(), inverse_r @ tvec + inverse_t)
+            poses[key] = (cv2.Rodrigues(inverse_r @ R)[0].ravel(), inverse_r @ tvec + inverse_t)
         return RigResult(self.cameras, self.names, rotations, translations, poses, self.views, self.residuals,
-                         self.std, self.shared, self.dropped, list(self.notes), list(self.terms), self.rounds)
+                         self.std, self.shared, self.dropped, list(self.notes), list(self.terms), self.rounds,
+                         self.disagreement)
 
     def summary(self) -> dict:
         """JSON-ready numbers: per camera its intrinsics, pose, RMS, views and deviations; pairs; drops."""
@@ -169,9 +197,11 @@ class RigResult:
                             "centre_m": self.centre(c).tolist(), "rms_px": self.camera_rms(c),
                             "views": self.camera_views(c), "std": self.std[c],
                             "terms": self.terms[c] if c < len(self.terms) else ""})
-        return {"cameras": cameras, "rms_px": self.rms, "instants": len(self.board_poses),
+        return {"cameras": cameras, "rms_px": self.rms, "instants": len({i for i, _ in self.board_poses}),
+                "board_poses": len(self.board_poses),
                 "shared_views": {f"{self.names[i]}-{self.names[j]}": n for (i, j), n in sorted(self.shared.items())},
-                "dropped": [d.to_dict() for d in self.dropped], "notes": self.notes, "rounds": self.rounds}
+                "dropped": [d.to_dict() for d in self.dropped], "notes": self.notes, "rounds": self.rounds,
+                "disagreement": self.disagreement}
 
 
 # ----------------------------------------------------------------------------------------- geometry
@@ -256,22 +286,24 @@ def view_pose(view: RigView, board: BoardSpec, camera: Camera) -> tuple[np.ndarr
     return cv2.Rodrigues(rvec)[0], tvec.ravel(), rms
 
 
-def view_poses(views: list[RigView], board: BoardSpec, cameras: list[Camera], min_corners: int
-               ) -> tuple[dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], list[RigView], list[Dropped]]:
-    """Each usable view's board pose {(camera, instant): (R, t)}, the usable views, and the others with why."""
+def view_poses(views: list[RigView], boards: list[BoardSpec], cameras: list[Camera], min_corners: int
+               ) -> tuple[dict[tuple[int, tuple[int, int]], tuple[np.ndarray, np.ndarray]], list[RigView], list[Dropped]]:
+    """Each usable view's board pose {(camera, (instant, board)): (R, t)}, the usable views, and the others with
+    why."""
     poses, kept, dropped = {}, [], []
     for view in views:
-        reason = usable(view, board, min_corners)
+        reason = usable(view, boards[view.board], min_corners)
         if reason is None:
-            R, t, rms = view_pose(view, board, cameras[view.camera])
+            R, t, rms = view_pose(view, boards[view.board], cameras[view.camera])
             if rms > MAX_VIEW_POSE_PX or t[2] <= 0:
                 dropped.append(Dropped(view.camera, view.instant, view.name, len(view.ids), "pose",
-                                       f"no pose of the board fits its corners (RMS {rms:.1f} px > {MAX_VIEW_POSE_PX:g})"))
+                                       f"no pose of the board fits its corners (RMS {rms:.1f} px > {MAX_VIEW_POSE_PX:g})",
+                                       view.board))
                 continue
-            poses[(view.camera, view.instant)] = (R, t)
+            poses[(view.camera, view.key)] = (R, t)
             kept.append(view)
         elif len(view.ids):
-            dropped.append(Dropped(view.camera, view.instant, view.name, len(view.ids), "detection", reason))
+            dropped.append(Dropped(view.camera, view.instant, view.name, len(view.ids), "detection", reason, view.board))
     return poses, kept, dropped
 
 
@@ -287,10 +319,11 @@ class PairEstimate:
     spread_m: float
 
 
-def relative_poses(poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], n_cameras: int
+def relative_poses(poses: dict[tuple[int, tuple[int, int]], tuple[np.ndarray, np.ndarray]], n_cameras: int
                    ) -> dict[tuple[int, int], PairEstimate]:
-    """{(i, j): PairEstimate} for every pair i < j of cameras that both saw the board at an instant."""
-    by_instant: dict[int, list[int]] = {}
+    """{(i, j): PairEstimate} for every pair i < j of cameras that both saw one board at an instant (`view_poses`'
+    poses, keyed (camera, (instant, board)))."""
+    by_instant: dict[tuple[int, int], list[int]] = {}
     for camera, instant in poses:
         by_instant.setdefault(instant, []).append(camera)
     candidates: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
@@ -372,11 +405,18 @@ class _Problem:
 
     start: np.ndarray  # (C, 12) intrinsics
     free: np.ndarray  # (C, 12) bool
-    instants: list[int]  # board pose k belongs to instants[k]
+    instants: list[tuple[int, int]]  # board pose k is of instants[k] = (instant, board)
     camera: np.ndarray  # (M,) per observed corner
     pose: np.ndarray  # (M,) index into instants
     points: np.ndarray  # (M, 3) board points
     observed: np.ndarray  # (M, 2)
+    # (C, 12) each starting intrinsic's prior standard deviation per px of corner noise (inf: no prior; `HUBER_PX`'s note)
+    prior: np.ndarray | None = None
+
+    @property
+    def prior_sigma(self) -> np.ndarray:
+        """(free parameters,) the prior's standard deviation of each free intrinsic per px of noise (inf: none)."""
+        return np.full(self.n_intrinsics, np.inf) if self.prior is None else self.prior[self.free]
 
     @property
     def n_cameras(self) -> int:
@@ -402,7 +442,12 @@ class _Problem:
         R_b, R_c = rotations_from_vectors(boards[:, :3]), rotations_from_vectors(cameras[:, :3])
         in_rig = np.einsum("mij,mj->mi", R_b[self.pose], self.points) + boards[self.pose, 3:]
         in_camera = np.einsum("mij,mj->mi", R_c[self.camera], in_rig) + cameras[self.camera, 3:]
-        return (project(in_camera, intrinsics[self.camera]) - self.observed).ravel()
+        pixels = (project(in_camera, intrinsics[self.camera]) - self.observed).ravel()
+        sigma = self.prior_sigma
+        held = np.isfinite(sigma)
+        if not held.any():
+            return pixels
+        return np.concatenate([pixels, (x[:self.n_intrinsics][held] - self.start[self.free][held]) / sigma[held]])
 
     def sparsity(self) -> coo_matrix:
         """Which parameters each residual depends on: its camera's free intrinsics and pose, its instant's board pose."""
@@ -415,7 +460,10 @@ class _Problem:
             mine += range(self.n_global + 6 * pose, self.n_global + 6 * pose + 6)
             rows += [2 * m] * len(mine) + [2 * m + 1] * len(mine)
             columns += mine * 2
-        shape = (2 * len(self.camera), self.n_global + 6 * len(self.instants))
+        held = np.flatnonzero(np.isfinite(self.prior_sigma))
+        rows += list(2 * len(self.camera) + np.arange(len(held)))
+        columns += list(held)
+        shape = (2 * len(self.camera) + len(held), self.n_global + 6 * len(self.instants))
         return coo_matrix((np.ones(len(rows), np.int8), (rows, columns)), shape=shape)
 
 
@@ -423,21 +471,23 @@ def _vectors(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.concatenate([cv2.Rodrigues(R)[0].ravel(), t])
 
 
-def bundle_adjust(views: list[RigView], board: BoardSpec, intrinsics: np.ndarray, free: np.ndarray,
+def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.ndarray, free: np.ndarray,
                   rotations: np.ndarray, translations: np.ndarray,
-                  board_poses: dict[int, tuple[np.ndarray, np.ndarray]]):
-    """One robust solve from the given start. Returns (intrinsics (C, 12), rotations (C, 3, 3), translations (C, 3),
-    board poses {instant: (rvec, tvec)}, per-view residuals, the global parameters' covariance (scaled) and
-    the layout)."""
+                  board_poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], prior: np.ndarray | None = None,
+                  prior_start: np.ndarray | None = None):
+    """One robust solve from the given start (board poses {(instant, board): (R (3, 3), t)}); ``prior`` (C, 12): the
+    intrinsics' prior deviations per px of noise about ``prior_start`` (default: ``intrinsics``). Returns (intrinsics
+    (C, 12), rotations (C, 3, 3), translations (C, 3), board poses {(instant, board): (rvec, tvec)}, per-view
+    residuals, the global parameters' covariance (scaled) and the layout)."""
     instants = sorted(board_poses)
-    index = {instant: k for k, instant in enumerate(instants)}
-    objects = board.object_points()
+    index = {key: k for k, key in enumerate(instants)}
+    objects = [board.object_points() for board in boards]
     problem = _Problem(
-        start=intrinsics.copy(), free=free.copy(), instants=instants,
+        start=(intrinsics if prior_start is None else prior_start).copy(), free=free.copy(), instants=instants,
         camera=np.concatenate([np.full(len(v.ids), v.camera) for v in views]),
-        pose=np.concatenate([np.full(len(v.ids), index[v.instant]) for v in views]),
-        points=np.concatenate([objects[v.ids] for v in views]),
-        observed=np.concatenate([v.corners for v in views]))
+        pose=np.concatenate([np.full(len(v.ids), index[v.key]) for v in views]),
+        points=np.concatenate([objects[v.board][v.ids] for v in views]),
+        observed=np.concatenate([v.corners for v in views]), prior=prior)
     x0 = np.concatenate([intrinsics[free],
                          np.concatenate([_vectors(rotations[c], translations[c]) for c in range(1, len(intrinsics))])
                          if len(intrinsics) > 1 else np.zeros(0),
@@ -446,14 +496,14 @@ def bundle_adjust(views: list[RigView], board: BoardSpec, intrinsics: np.ndarray
                              f_scale=HUBER_PX, x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS,
                              tr_options={"atol": 1e-12, "btol": 1e-12})
     solved, cameras, boards = problem.unpack(solution.x)
-    flat = problem.residuals(solution.x).reshape(-1, 2)
+    flat = problem.residuals(solution.x)[:2 * len(problem.camera)].reshape(-1, 2)
     residuals, start = [], 0
     for v in views:
         residuals.append(flat[start:start + len(v.ids)])
         start += len(v.ids)
     R_c = rotations_from_vectors(cameras[:, :3])
     covariance = _global_covariance(problem, solution, flat)
-    poses = {instant: (boards[k, :3].copy(), boards[k, 3:].copy()) for k, instant in enumerate(instants)}
+    poses = {key: (boards[k, :3].copy(), boards[k, 3:].copy()) for k, key in enumerate(instants)}
     return solved, R_c, cameras[:, 3:].copy(), poses, residuals, covariance, problem
 
 
@@ -471,6 +521,7 @@ def _global_covariance(problem: _Problem, solution, flat: np.ndarray) -> np.ndar
     J = solution.jac.tocsr() if hasattr(solution.jac, "tocsr") else np.asarray(solution.jac)
     residual = solution.fun  # as the loss weighs them, like the Jacobian (a residual beyond HUBER_PX counts less)
     g = problem.n_global
+    corners = 2 * len(problem.camera)  # the rows after these are the intrinsics' prior, one cluster of its own
     rows = np.repeat(problem.pose, 2)  # each corner's two residuals belong to its instant
     order = np.argsort(rows, kind="stable")
     bounds = np.searchsorted(rows[order], np.arange(len(problem.instants) + 1))
@@ -485,8 +536,13 @@ def _global_covariance(problem: _Problem, solution, flat: np.ndarray) -> np.ndar
         C_inverse = np.linalg.pinv(J_b.T @ J_b)
         A += J_g.T @ J_g - B @ C_inverse @ B.T
         pieces.append(J_g.T @ r - B @ (C_inverse @ (J_b.T @ r)))
+    if J.shape[0] > corners:
+        J_p = J[corners:, :g]
+        J_p = J_p.toarray() if hasattr(J_p, "toarray") else J_p
+        A += J_p.T @ J_p
+        pieces.append(J_p.T @ residual[corners:])
     S_inverse = np.linalg.pinv(A)
-    freedom = flat.size - J.shape[1]
+    freedom = J.shape[0] - J.shape[1]
     variance = float(np.sum(residual ** 2)) / freedom if freedom > 0 else math.nan
     model = S_inverse * variance
     count = len(pieces)
@@ -523,15 +579,20 @@ def free_mask(terms: str | None, n_dist: int) -> np.ndarray:
     return np.array([name in names and (i < 4 or i - 4 < n_dist) for i, name in enumerate(INTRINSICS)])
 
 
-def calibrate_rig(views: list[RigView], board: BoardSpec, cameras: list[Camera], names: list[str],
-                  terms: list[str | None], *, min_corners: int = 6) -> RigResult:
+def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], cameras: list[Camera], names: list[str],
+                  terms: list[str | None], *, min_corners: int = 6, priors: list[dict[str, float] | None] | None = None,
+                  own_noise: list[float | None] | None = None) -> RigResult:
     """Calibrate the rig from ``views`` (module docstring), starting from each camera's intrinsics ``cameras``
     (a single-camera calibration, or a given file). ``terms[c]``: the distortion terms camera c solves
-    ("k1 k2 p1 p2 k3", ...), or None to hold its intrinsics fixed."""
+    ("k1 k2 p1 p2 k3", ...), or None to hold its intrinsics fixed. ``priors[c]``: {intrinsic name: standard
+    deviation} of camera c's starting intrinsics (`HUBER_PX`'s note), or None: no prior. ``own_noise[c]``: camera
+    c's corner noise in its own calibration (px per axis): a rig whose cameras disagree by more than
+    `MAX_DISAGREEMENT` x that holds every camera's intrinsics."""
     n = len(cameras)
     if n < 2:
         raise ValueError("a rig has two cameras or more; calibrate one camera with deepcharuco.calibration")
-    poses, kept, dropped = view_poses(views, board, cameras, min_corners)
+    boards = [board] if isinstance(board, BoardSpec) else list(board)
+    poses, kept, dropped = view_poses(views, boards, cameras, min_corners)
     for c in range(n):
         if not any(v.camera == c for v in kept):
             raise RigError(f"camera {names[c]} has no usable view of the board ({min_corners}+ corners not along one "
@@ -540,27 +601,52 @@ def calibrate_rig(views: list[RigView], board: BoardSpec, cameras: list[Camera],
     check_synchronised(pairs, names)
     rotations, translations, _ = chain_cameras(pairs, names)
     board_poses = {}
-    for instant in sorted({v.instant for v in kept}):
-        seen = [v for v in kept if v.instant == instant]
+    for key in sorted({v.key for v in kept}):
+        seen = [v for v in kept if v.key == key]
         best = max(seen, key=lambda v: len(v.ids))
-        R, t = poses[(best.camera, instant)]
-        board_poses[instant] = compose(*invert(rotations[best.camera], translations[best.camera]), R, t)
+        R, t = poses[(best.camera, key)]
+        board_poses[key] = compose(*invert(rotations[best.camera], translations[best.camera]), R, t)
     sizes = [camera.image_size for camera in cameras]
     n_dist = [8 if camera.dist.size >= 8 else 5 for camera in cameras]
     free = np.stack([free_mask(t, d) for t, d in zip(terms, n_dist)])
     intrinsics = np.stack([intrinsic_vector(camera) for camera in cameras])
+    start = intrinsics.copy()
+    prior = np.full(intrinsics.shape, np.inf)
+    for c, deviations in enumerate(priors or []):
+        for p, name in enumerate(INTRINSICS):
+            if deviations and name in deviations and deviations[name] > 0:
+                prior[c, p] = deviations[name]
     notes: list[str] = []
+    disagreement = math.nan
+    own = [v for v in (own_noise or []) if v is not None and v > 0]
+    if (np.isfinite(prior).any() or own) and free.any():
+        # The rig's corner noise, the intrinsics held: the unit the prior's deviations are scaled into, and what the
+        # cameras' own noise is compared with.
+        _, rotations, translations, held, residuals, _, _ = bundle_adjust(
+            kept, boards, intrinsics, np.zeros_like(free), rotations, translations, board_poses)
+        board_poses.update({key: (cv2.Rodrigues(r)[0], t) for key, (r, t) in held.items()})
+        stacked = np.concatenate(residuals)
+        noise = math.sqrt(float(np.median(np.sum(stacked ** 2, axis=1))) / (2 * math.log(2)))  # robust, per axis
+        prior = prior / max(noise, 1e-6)
+        disagreement = noise / float(np.median(own)) if own else math.nan
+        if own and disagreement > MAX_DISAGREEMENT:
+            free[:] = False
+            notes.append(f"the cameras' views of one instant disagree by {noise:.2f} px, {noise / np.median(own):.1f} x "
+                         f"the cameras' own corner noise ({np.median(own):.2f} px): the cameras are not synchronised to "
+                         f"the frame (or have rolling shutters), so each camera's intrinsics are held at its own "
+                         f"calibration and the deviations of the poses leave out theirs; record with synchronised "
+                         f"cameras, or give --sync-offsets")
     active = kept
     masks = [np.ones(len(v.ids), bool) for v in active]
-    outliers: set[tuple[int, int]] = set()
+    outliers: set[tuple[int, tuple[int, int]]] = set()
     rounds = 0
     while True:
         rounds += 1
-        used = [RigView(v.camera, v.instant, v.ids[m], v.corners[m], v.name)
-                for v, m in zip(active, masks) if (v.camera, v.instant) not in outliers]
-        poses_used = {i: board_poses[i] for i in sorted({v.instant for v in used})}
+        used = [RigView(v.camera, v.instant, v.ids[m], v.corners[m], v.name, v.board)
+                for v, m in zip(active, masks) if (v.camera, v.key) not in outliers]
+        poses_used = {key: board_poses[key] for key in sorted({v.key for v in used})}
         solved, rotations, translations, board_poses_new, residuals, covariance, problem = bundle_adjust(
-            used, board, intrinsics, free, rotations, translations, poses_used)
+            used, boards, intrinsics, free, rotations, translations, poses_used, prior, start)
         board_poses.update({i: (cv2.Rodrigues(r)[0], t) for i, (r, t) in board_poses_new.items()})
         intrinsics = solved
         if rounds >= MAX_ROUNDS or not _reject(active, masks, outliers, used, residuals, dropped, min_corners):
@@ -572,7 +658,8 @@ def calibrate_rig(views: list[RigView], board: BoardSpec, cameras: list[Camera],
             if terms[c] is not None and "k3" in terms[c].split():
                 fewer = list(terms)
                 fewer[c] = " ".join(t for t in terms[c].split() if t != "k3")
-                result = calibrate_rig(views, board, cameras, names, fewer, min_corners=min_corners)
+                result = calibrate_rig(views, boards, cameras, names, fewer, min_corners=min_corners, priors=priors,
+                                       own_noise=own_noise)
                 result.notes.insert(0, f"{names[c]}: with k3 free its distortion folds back {100 * fold:.0f} % of the "
                                        f"way to the image's corner: solved again with k3 fixed at 0")
                 return result
@@ -590,22 +677,22 @@ def calibrate_rig(views: list[RigView], board: BoardSpec, cameras: list[Camera],
                                f"{100 * MAX_RELATIVE_STD:.0f} %): capture the board tilted 20-40 degrees in several "
                                f"directions and near that camera's edges and corners")
     shared: dict[tuple[int, int], int] = {}
-    seen_at: dict[int, set[int]] = {}
+    seen_at: dict[tuple[int, int], set[int]] = {}
     for v in used:
-        seen_at.setdefault(v.instant, set()).add(v.camera)
+        seen_at.setdefault(v.key, set()).add(v.camera)
     for seen in seen_at.values():
         for i in seen:
             for j in seen:
                 if i < j:
                     shared[(i, j)] = shared.get((i, j), 0) + 1
-    terms_used = [t if t is not None else "" for t in terms]
+    terms_used = [terms[c] if terms[c] is not None and free[c].any() else "" for c in range(n)]
     final_poses = {i: (cv2.Rodrigues(board_poses[i][0])[0].ravel(), np.asarray(board_poses[i][1], np.float64))
                    for i in sorted(seen_at)}
     return RigResult(result_cameras, list(names), rotations, translations, final_poses, used, residuals, std,
-                     shared, dropped, notes, terms_used, rounds)
+                     shared, dropped, notes, terms_used, rounds, disagreement)
 
 
-def _reject(active: list[RigView], masks: list[np.ndarray], outliers: set[tuple[int, int]], used: list[RigView],
+def _reject(active: list[RigView], masks: list[np.ndarray], outliers: set, used: list[RigView],
             residuals: list[np.ndarray], dropped: list[Dropped], min_corners: int) -> bool:
     """Drop outlier corners, then outlier views (module docstring); True when anything changed."""
     norms = [np.linalg.norm(r, axis=1) for r in residuals]
@@ -613,15 +700,15 @@ def _reject(active: list[RigView], masks: list[np.ndarray], outliers: set[tuple[
     sigma = 1.4826 * float(np.median(everything)) / math.sqrt(2 * math.log(2))  # a 2-D residual's norm: Rayleigh
     corner_limit = max(CORNER_OUTLIER * sigma, 2.0)
     changed = False
-    position = {(v.camera, v.instant): k for k, v in enumerate(active)}
+    position = {(v.camera, v.key): k for k, v in enumerate(active)}
     view_rms = np.array([math.sqrt(float(np.mean(n ** 2))) for n in norms])
     view_limit = max(VIEW_OUTLIER * float(np.median(view_rms)), MIN_VIEW_OUTLIER_PX)
     for v, n, rms in zip(used, norms, view_rms):
-        k = position[(v.camera, v.instant)]
+        k = position[(v.camera, v.key)]
         if rms > view_limit:
-            outliers.add((v.camera, v.instant))
+            outliers.add((v.camera, v.key))
             dropped.append(Dropped(v.camera, v.instant, v.name, len(v.ids), "outlier",
-                                   f"RMS {rms:.2f} px > {view_limit:.2f} px ({VIEW_OUTLIER:g} x the median view)"))
+                                   f"RMS {rms:.2f} px > {view_limit:.2f} px ({VIEW_OUTLIER:g} x the median view)", v.board))
             changed = True
             continue
         bad = n > corner_limit

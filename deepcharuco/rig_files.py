@@ -22,9 +22,10 @@ from deepcharuco.rig import RigResult
 TOML_START = "# deepcharuco rig calibration"
 
 
-def rig_camera_text(result: RigResult, camera: int, board: BoardSpec, detector: str, frame: str,
+def rig_camera_text(result: RigResult, camera: int, boards: list[BoardSpec], detector: str, frame: str,
                     name: str = "camera.yaml") -> str:
-    """Camera ``camera``'s file. ``frame`` says what the rig's frame is (e.g. "camera cam_0")."""
+    """Camera ``camera``'s file. ``frame`` says what the rig's frame is (e.g. "camera cam_0"); ``boards``: the
+    board (a list of the boards, where several are)."""
     std = result.std[camera]
 
     def nodes(storage: cv2.FileStorage) -> None:
@@ -38,11 +39,11 @@ def rig_camera_text(result: RigResult, camera: int, board: BoardSpec, detector: 
         if std:
             storage.write("std_names", " ".join(std))
             storage.write("std_values", np.array(list(std.values()), np.float64).reshape(-1, 1))
-        storage.write("distortion_terms", result.terms[camera] or "held as given")
+        storage.write("distortion_terms", result.terms[camera] or "held (the camera's own calibration, or --camera)")
         storage.write("view_frames", np.array([v.instant for v in result.views if v.camera == camera],
                                               np.int32).reshape(-1, 1))
         storage.write("detector", detector)
-        storage.write("board", json.dumps(board.to_dict()))
+        storage.write("board", json.dumps(boards[0].to_dict() if len(boards) == 1 else [b.to_dict() for b in boards]))
 
     return camera_file_text(result.cameras[camera], name, extra=nodes)
 

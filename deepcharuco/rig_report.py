@@ -18,18 +18,19 @@ from deepcharuco.rig import INTRINSICS, RigResult, rotations_from_vectors
 MAX_LISTED = 200
 
 
-def layout_figure(result: RigResult, board: BoardSpec) -> bytes:
-    """The cameras (centre and viewing direction) and the board's outline at every instant, in the rig's frame."""
+def layout_figure(result: RigResult, boards: list[BoardSpec]) -> bytes:
+    """The cameras (centre and viewing direction) and each board's outline at every instant, in the rig's frame."""
     plt = pyplot()
     figure = plt.figure(figsize=(6.4, 5.2))
     axis = figure.add_subplot(projection="3d")
-    width, height = board.size_m
-    outline = np.array([[0, 0, 0], [width, 0, 0], [width, height, 0], [0, height, 0], [0, 0, 0]], np.float64)
-    for rvec, tvec in result.board_poses.values():
+    for (_, b), (rvec, tvec) in result.board_poses.items():
+        width, height = boards[b].size_m
+        outline = np.array([[0, 0, 0], [width, 0, 0], [width, height, 0], [0, height, 0], [0, 0, 0]], np.float64)
         points = outline @ rotations_from_vectors(rvec)[0].T + tvec
-        axis.plot(points[:, 0], points[:, 2], -points[:, 1], color="tab:gray", lw=0.6, alpha=0.6)
+        axis.plot(points[:, 0], points[:, 2], -points[:, 1], color="tab:gray" if b == 0 else f"C{b + 4}", lw=0.6,
+                  alpha=0.6)
     reach = 0.25 * max(max(np.linalg.norm(result.centre(c) - result.centre(0)) for c in range(len(result.cameras))),
-                       max(width, height))
+                       max(max(board.size_m) for board in boards))
     for c, name in enumerate(result.names):
         centre, axis_z = result.centre(c), result.rotations[c][2]
         tip = centre + reach * axis_z
@@ -39,7 +40,7 @@ def layout_figure(result: RigResult, board: BoardSpec) -> bytes:
     axis.set_xlabel("x (m)")
     axis.set_ylabel("z (m)")
     axis.set_zlabel("-y (m)")
-    axis.set_title(f"{len(result.cameras)} cameras, the board at {len(result.board_poses)} instants")
+    axis.set_title(f"{len(result.cameras)} cameras, {len(result.board_poses)} board poses")
     try:
         axis.set_aspect("equal")
     except NotImplementedError:  # matplotlib < 3.6
@@ -86,16 +87,20 @@ def parameter_rows(result: RigResult) -> list[list[str]]:
     return rows
 
 
-def report_sections(result: RigResult, board: BoardSpec, frame: str) -> list:
+def report_sections(result: RigResult, boards: list[BoardSpec], frame: str) -> list:
     n = len(result.cameras)
     summary = (f"**{n} cameras, RMS {result.rms:.3f} px** over {sum(len(v.ids) for v in result.views)} corners of "
-               f"{len(result.views)} views at {len(result.board_poses)} instants; the rig's frame is {frame}. Bundle "
+               f"{len(result.views)} views at {len({i for i, _ in result.board_poses})} instants; the rig's frame is "
+               f"{frame}. Bundle "
                f"adjustment (scipy least_squares, Huber loss) of every camera's intrinsics and pose and every instant's "
-               f"board pose, solved {result.rounds} time(s) with outliers dropped in between. Board: {board.squares_x}x"
-               f"{board.squares_y} {board.dictionary}, {board.square_length * 1000:g} mm squares."
+               f"board pose, solved {result.rounds} time(s) with outliers dropped in between. "
+               + ("Board" if len(boards) == 1 else "Boards") + ": " + "; ".join(
+                   f"{b.squares_x}x{b.squares_y} {b.dictionary}" + (f" from marker {b.first_marker_id}" if b.first_marker_id
+                                                                    else "") + f", {b.square_length * 1000:g} mm squares"
+                   for b in boards) + "."
                + "".join(f" {note[0].upper()}{note[1:]}." for note in result.notes))
     cameras = [["camera", "views used", "RMS (px)", "distortion terms solved"]] + [
-        [result.names[c], str(result.camera_views(c)), f"{result.camera_rms(c):.3f}", result.terms[c] or "held as given"]
+        [result.names[c], str(result.camera_views(c)), f"{result.camera_rms(c):.3f}", result.terms[c] or "held (the camera's own calibration, or --camera)"]
         for c in range(n)]
     pairs = [["pair", "instants both saw the board"]] + [
         [f"{result.names[i]} - {result.names[j]}", str(result.shared.get((i, j), 0))]
@@ -115,6 +120,8 @@ def report_sections(result: RigResult, board: BoardSpec, frame: str) -> list:
             ("Dropped views, one by one", f"The first {MAX_LISTED} at most.", listed, [])]
 
 
-def report_html(result: RigResult, board: BoardSpec, frame: str, *, title: str = "Rig calibration", command: str = "") -> str:
-    figures = {"layout": layout_figure(result, board), "residuals": residual_figure(result)}
-    return html_page(title, command, report_sections(result, board, frame), figures)
+def report_html(result: RigResult, boards: list[BoardSpec], frame: str, *, title: str = "Rig calibration",
+                command: str = "") -> str:
+    """The page (figures inlined) of ``result``, calibrated with ``boards``."""
+    figures = {"layout": layout_figure(result, boards), "residuals": residual_figure(result)}
+    return html_page(title, command, report_sections(result, boards, frame), figures)

@@ -62,12 +62,12 @@ def detect_all(frames: list[list[np.ndarray]], detector, quiet: bool = True, lab
     return out
 
 
-def calibrate(detections: list[list[FrameDetection]], sizes, names, board: BoardSpec, refine: str
-              ) -> tuple[RigResult | None, str]:
-    """The CLI's rig solve, or (None, why not)."""
+def calibrate(detections: list[list[FrameDetection]], sizes, names, board: BoardSpec, refine: str,
+              given: list[str] | None = None) -> tuple[RigResult | None, str]:
+    """The CLI's rig solve (``given``: camera files whose intrinsics are held, as --camera), or (None, why not)."""
     options = SelectionOptions(border_px=border_margin(refine))
     try:
-        return solve_rig(detections, sizes, names, board, options), ""
+        return solve_rig([[frames] for frames in detections], sizes, names, [board], options, given=given), ""
     except CalibrationError as error:
         return None, str(error)
 
@@ -90,7 +90,8 @@ def truth_errors(result: RigResult, truth: DrawnRig) -> dict:
                                                                     for k in ("tx", "ty", "tz"))) / baseline})
     worst = {key: max(abs(cam[key]) for cam in cameras) for key in ("rotation_deg", "centre_mm_per_m", "fx_pct", "fy_pct")}
     return {"cameras": cameras, "worst": worst, "shared": {f"{i}-{j}": n for (i, j), n in sorted(result.shared.items())},
-            "baseline_m": baseline, "rms_px": result.rms}
+            "baseline_m": baseline, "rms_px": result.rms, "disagreement": result.disagreement,
+            "intrinsics_held": not any(result.terms)}
 
 
 def triangulated_squares(result: RigResult, board: BoardSpec) -> dict:
@@ -98,7 +99,7 @@ def triangulated_squares(result: RigResult, board: BoardSpec) -> dict:
     undistorted rays); the distances between neighbouring corners of the board against its square length."""
     by_instant: dict[int, list] = {}
     for view in result.views:
-        by_instant.setdefault(view.instant, []).append(view)
+        by_instant.setdefault(view.key, []).append(view)
     columns = board.squares_x - 1
     ratios = []
     for views in by_instant.values():
@@ -161,7 +162,8 @@ def _drawn_line(row: dict) -> str:
         return f"{head}: no rig ({row['failed']})"
     w = row["worst"]
     return (f"{head}: worst rotation {w['rotation_deg']:.3f} deg, centre {w['centre_mm_per_m']:.2f} mm/m, fx "
-            f"{w['fx_pct']:.2f} %, fy {w['fy_pct']:.2f} %, RMS {row['rms_px']:.3f} px, shared {row['shared']}")
+            f"{w['fx_pct']:.2f} %, fy {w['fy_pct']:.2f} %, RMS {row['rms_px']:.3f} px, shared {row['shared']}, "
+            f"disagreement {row['disagreement']:.2f}{' (intrinsics held)' if row['intrinsics_held'] else ''}")
 
 
 def real_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dict]:
@@ -175,25 +177,32 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dic
     names = [v.stem for v in videos]
     sizes = [(f[0].shape[1], f[0].shape[0]) for f in frames]
     theirs = [read_camera(session / f"camera_{name}.yaml") for name in names]
+    given = [str(session / f"camera_{name}.yaml") for name in names]
     rows = []
     for name in detectors:
         detector, refine = make_detector(name, board)
         detections = detect_all(frames, detector, quiet, name)
-        result, why = calibrate(detections, sizes, names, board, refine)
-        row = {"detector": name, "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
-        if result is None:
-            row["failed"] = why
-        else:
-            row.update({"rms_px": result.rms, "cameras": [
-                {"name": names[c], "rms_px": result.camera_rms(c), "views": result.camera_views(c),
-                 "fx_vs_caliscope_pct": 100 * (result.cameras[c].K[0, 0] / theirs[c].K[0, 0] - 1),
-                 "fy_vs_caliscope_pct": 100 * (result.cameras[c].K[1, 1] / theirs[c].K[1, 1] - 1),
-                 "centre_m": result.centre(c).tolist()} for c in range(len(names))],
-                "shared": {f"{names[i]}-{names[j]}": n for (i, j), n in sorted(result.shared.items())},
-                "squares": triangulated_squares(result, board), "notes": result.notes})
-        rows.append(row)
-        if not quiet:
-            print(json.dumps(row, indent=1), flush=True)
+        # As a user runs it (every camera's intrinsics solved), and with them held at caliscope's own calibration
+        # (--camera per camera), where both detectors' corners go through the same extrinsic solve.
+        for intrinsics, held in (("solved", None), ("caliscope's", given)):
+            result, why = calibrate(detections, sizes, names, board, refine, held)
+            row = {"detector": name, "intrinsics": intrinsics,
+                   "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
+            if result is None:
+                row["failed"] = why
+            else:
+                row.update({"rms_px": result.rms, "cameras": [
+                    {"name": names[c], "rms_px": result.camera_rms(c), "views": result.camera_views(c),
+                     "fx_vs_caliscope_pct": 100 * (result.cameras[c].K[0, 0] / theirs[c].K[0, 0] - 1),
+                     "fy_vs_caliscope_pct": 100 * (result.cameras[c].K[1, 1] / theirs[c].K[1, 1] - 1),
+                     "std_fx_pct": 100 * result.std[c].get("fx", 0.0) / theirs[c].K[0, 0],
+                     "centre_m": result.centre(c).tolist()} for c in range(len(names))],
+                    "shared": {f"{names[i]}-{names[j]}": n for (i, j), n in sorted(result.shared.items())},
+                    "squares": triangulated_squares(result, board), "notes": result.notes,
+                    "disagreement": result.disagreement})
+            rows.append(row)
+            if not quiet:
+                print(json.dumps(row, indent=1), flush=True)
     return rows
 
 

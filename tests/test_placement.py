@@ -230,3 +230,43 @@ def test_sampled_maps_equal_the_point_list_sampler_at_any_map_size():
         y = rng.uniform(-3, 63, shape).astype(np.float32)
         expected = _sample(gray, np.stack([x.ravel(), y.ravel()], axis=1)).reshape(shape)
         np.testing.assert_array_equal(sample_maps(gray, x, y), expected)
+
+
+# A 3x3 board: 4 corners, 4 markers. Its markers cannot prove the view by ranking among the board's own (4 of 4
+# agreeing is a 1.5e-5 chance), so their codes do (`placement.code_errors`).
+TINY = BoardSpec(squares_x=3, squares_y=3, square_length=0.04, marker_length=0.03, dictionary="DICT_5X5_100")
+
+
+def test_code_chance_needs_two_close_codes_and_half_the_readable_ones():
+    assert placement.code_error_limit(TINY) == 2  # DICT_5X5_100 corrects 3 bits; 25 bits allow 2
+    assert placement.code_error_limit(SMALL_MARKERS) == 0  # DICT_4X4_1000 corrects none
+    assert placement.code_chance(np.array([0, 9, 9, 9]), 25, 2) == 1.0  # one close code
+    assert placement.code_chance(np.array([0, 1, 9, 9, 9]), 25, 2) == 1.0  # two, but fewer than half
+    assert placement.code_chance(np.array([0, 2, 9]), 25, 2) == pytest.approx((1 / 2 ** 25) * (326 / 2 ** 25))
+
+
+def test_a_3x3_board_in_a_5_megapixel_frame_is_found_by_its_codes():
+    from evaluate.realistic import Placement, clutter, with_board
+
+    rng = np.random.default_rng(5)
+    detector = Detector(board=TINY)
+    found = 0
+    for i in range(4):
+        frame = with_board(TINY, clutter(rng, (2592, 1944)), rng, Placement(0.1, 0.15), f"tiny {i}")
+        detection = detector.detect(frame.image)
+        if len(detection.ids):
+            found += 1
+            assert len(detection.ids) == 4
+            assert np.linalg.norm(detection.corners - frame.corners[detection.ids], axis=1).max() < 3.0
+    assert found >= 3
+
+
+@pytest.mark.parametrize("name", ["other marker IDs", "mirrored", "other dictionary DICT_6X6_250"])
+def test_a_3x3_look_alike_is_refused(name):
+    board, paint = look_alikes(TINY)[name]
+    painter = None if isinstance(paint, str) else (lambda texture: paint_markers(texture, paint))
+    detector = Detector(board=TINY)
+    for pose in (dict(tilt_x_deg=20, tilt_y_deg=-10, roll_deg=5), dict(tilt_x_deg=-25, tilt_y_deg=15, roll_deg=190)):
+        image, _, homography = view(board, paint=painter, fill=0.5, **pose)
+        assert len(detector.detect(image).ids) == 0
+        assert not placement.view_is_verified(image, TINY, homography)

@@ -1,0 +1,296 @@
+"""Rig calibration (deepcharuco.rig, calibrate with several sources): exact projections through known rigs, drawn
+views through the CLI, and the refusals of bad input."""
+
+import tomllib
+
+import cv2
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, Camera, read_camera
+from deepcharuco.calibrate import main
+from deepcharuco.rig import (
+    INTRINSICS, RigError, RigView, calibrate_rig, intrinsic_vector, project, rotation_angle_deg,
+    rotations_from_vectors,
+)
+from evaluate.rig_eval import RIG_BOARD, truth_errors
+from evaluate.rig_views import board_poses, drawn_rig, rig_cameras
+
+SIZE = (640, 480)
+
+
+def exact_views(seed: int, instants: int = 30, noise: float = 0.1, cameras: int = 3, seen=None):
+    """(cameras, rotations, translations, views): the corners each camera sees, projected exactly plus Gaussian
+    noise of ``noise`` px; ``seen(camera, instant)`` False leaves a view out."""
+    rng = np.random.default_rng(seed)
+    intrinsics, rotations, translations, target = rig_cameras(rng, cameras, SIZE)
+    board_r, board_t = board_poses(rng, RIG_BOARD, target, instants)
+    points = RIG_BOARD.object_points()
+    views = []
+    for c, (camera, R, t) in enumerate(zip(intrinsics, rotations, translations)):
+        for n in range(instants):
+            if seen is not None and not seen(c, n):
+                continue
+            R_c, t_c = R @ board_r[n], R @ board_t[n] + t
+            pixels = camera.project(points, cv2.Rodrigues(R_c)[0], t_c)
+            inside = ((pixels > 15) & (pixels < np.array(SIZE) - 15)).all(1) & ((points @ R_c.T + t_c)[:, 2] > 0)
+            if inside.sum() >= 6:
+                views.append(RigView(c, n, np.flatnonzero(inside), pixels[inside] + rng.normal(0, noise, (inside.sum(), 2))))
+    return intrinsics, rotations, translations, views
+
+
+def perturbed(cameras):
+    """Starting intrinsics 1-2 % and 4 px off, the distortion 20 % off."""
+    out = []
+    for camera in cameras:
+        K = camera.K.copy()
+        K[0, 0] *= 1.02
+        K[1, 1] *= 0.99
+        K[0, 2] += 4
+        out.append(Camera(K, camera.dist * 0.8, camera.image_size))
+    return out
+
+
+def test_projection_is_opencvs_for_the_rational_model():
+    camera = Camera(np.array([[500.0, 0, 310], [0, 505, 250], [0, 0, 1]]),
+                    np.array([-0.3, 0.1, 1e-3, -2e-3, 0.02, 0.05, -0.01, 0.003]), SIZE)
+    points = np.random.default_rng(0).uniform([-0.5, -0.4, 1.0], [0.5, 0.4, 2.0], (50, 3))
+    ours = project(points, np.tile(intrinsic_vector(camera), (len(points), 1)))
+    assert np.abs(ours - camera.project(points, np.zeros(3), np.zeros(3))).max() < 1e-9
+    rvecs = np.array([[0.0, 0, 0], [1e-14, 0, 0], [0.3, -1.2, 2.0]])
+    assert np.allclose(rotations_from_vectors(rvecs), [cv2.Rodrigues(r)[0] for r in rvecs], atol=1e-12)
+
+
+def test_bundle_adjustment_recovers_the_rig_and_its_deviations_are_honest():
+    cameras, rotations, translations, views = exact_views(seed=3)
+    result = calibrate_rig(views, RIG_BOARD, perturbed(cameras), ["a", "b", "c"], ["k1 k2 k3"] * 3)
+    assert 0.12 < result.rms < 0.16  # 0.1 px per axis: sqrt(2) x 0.1 in 2-D, less what the fit absorbs
+    assert not result.dropped
+    for c, camera in enumerate(cameras):
+        fx_error = result.cameras[c].K[0, 0] - camera.K[0, 0]
+        assert abs(fx_error) < 4 * result.std[c]["fx"] and abs(fx_error) < 0.002 * camera.K[0, 0]
+        if c:
+            assert rotation_angle_deg(result.rotations[c] @ rotations[c].T) < 4 * result.std[c]["rotation_deg"] + 1e-3
+            error = result.translations[c] - translations[c]
+            deviation = np.array([result.std[c][k] for k in ("tx", "ty", "tz")])
+            assert np.all(np.abs(error) < 4 * deviation) and np.linalg.norm(error) < 0.003
+    assert result.shared[(0, 1)] >= 20
+    # The same rig in the board's frame at instant 0 projects every corner where camera 0's frame did.
+    rvec, tvec = result.board_poses[(0, 0)]
+    moved = result.reframed(rotations_from_vectors(rvec)[0], tvec)
+    for c in range(3):
+        view = next(v for v in result.views if v.camera == c and v.instant == 0)
+        points = RIG_BOARD.object_points()[view.ids]
+        before = result.cameras[c].project(points @ rotations_from_vectors(rvec)[0].T + tvec,
+                                           cv2.Rodrigues(result.rotations[c])[0], result.translations[c])
+        after = result.cameras[c].project(points, cv2.Rodrigues(moved.rotations[c])[0], moved.translations[c])
+        assert np.abs(before - after).max() < 1e-6
+
+
+def test_a_camera_is_placed_through_another_when_it_never_shares_a_view_with_the_first():
+    # Camera 2 sees the board only at instants camera 0 does not: it is linked through camera 1.
+    cameras, rotations, translations, views = exact_views(seed=4, seen=lambda c, n: not (c == 0 and n % 2) and
+                                                          not (c == 2 and n % 2 == 0))
+    result = calibrate_rig(views, RIG_BOARD, cameras, ["a", "b", "c"], [None] * 3)
+    assert (0, 2) not in result.shared
+    assert rotation_angle_deg(result.rotations[2] @ rotations[2].T) < 0.05
+    assert np.linalg.norm(result.translations[2] - translations[2]) < 0.003
+
+
+def test_a_camera_that_shares_no_view_is_refused_with_what_to_capture():
+    cameras, _, _, views = exact_views(seed=5, instants=20, seen=lambda c, n: c != 2 or n >= 10)
+    views = [v for v in views if not (v.camera != 2 and v.instant >= 10)]
+    with pytest.raises(RigError, match=r"camera c sees the board at the same instant as another camera in 0 view.*"
+                                       r"hold the board where c and one of a, b both see it"):
+        calibrate_rig(views, RIG_BOARD, cameras, ["a", "b", "c"], [None] * 3)
+
+
+def test_unsynchronised_videos_are_refused():
+    cameras, _, _, views = exact_views(seed=6, instants=24)
+    late = [RigView(v.camera, (v.instant + 3) % 24 if v.camera == 1 else v.instant, v.ids, v.corners) for v in views]
+    with pytest.raises(RigError, match="not synchronised.*--sync-offsets"):
+        calibrate_rig(late, RIG_BOARD, cameras, ["a", "b", "c"], [None] * 3)
+
+
+def test_a_misdetected_view_is_dropped_and_said():
+    cameras, rotations, _, views = exact_views(seed=7, instants=24)
+    target = next(v for v in views if v.camera == 1 and len(v.ids) > 20)
+    target.corners = target.corners + np.random.default_rng(0).normal(0, 2.5, target.corners.shape)
+    result = calibrate_rig(views, RIG_BOARD, cameras, ["a", "b", "c"], ["k1 k2"] * 3)
+    assert any(d.camera == 1 and d.instant == target.instant for d in result.dropped)
+    assert rotation_angle_deg(result.rotations[1] @ rotations[1].T) < 0.05
+
+
+# ----------------------------------------------------------------------------------------- the command
+@pytest.fixture(scope="module")
+def drawn(tmp_path_factory):
+    """Three cameras' folders of drawn frames (good light) and the truth."""
+    truth = drawn_rig(RIG_BOARD, seed=11, instants=16)
+    root = tmp_path_factory.mktemp("rig")
+    folders = []
+    for c, frames in enumerate(truth.frames):
+        folder = root / f"cam{c}"
+        folder.mkdir()
+        for n, image in enumerate(frames):
+            cv2.imwrite(str(folder / f"{n:03d}.png"), image)
+        folders.append(folder)
+    board = RIG_BOARD.save(root / "board.yaml")
+    return truth, folders, board
+
+
+def test_the_command_calibrates_a_rig_into_camera_files_a_toml_and_a_report(tmp_path, drawn, capsys):
+    truth, folders, board = drawn
+    out = tmp_path / "rig"
+    assert main([*map(str, folders), "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "3 cameras" in printed and "shared instants: cam0-cam1" in printed
+    toml = tomllib.loads((out / "rig.toml").read_text())
+    for c in range(3):
+        camera = read_camera(out / f"cam{c}.yaml")
+        assert abs(camera.K[0, 0] / truth.cameras[c].K[0, 0] - 1) < 0.01
+        storage = cv2.FileStorage(str(out / f"cam{c}.yaml"), cv2.FILE_STORAGE_READ)
+        R, t = storage.getNode("rotation_matrix").mat(), storage.getNode("translation_vector").mat().ravel()
+        assert rotation_angle_deg(R @ truth.rotations[c].T) < 0.5
+        assert np.linalg.norm(t - truth.translations[c]) < 0.01
+        entry = toml[f"cam_{c}"]
+        assert entry["name"] == f"cam{c}" and entry["size"] == list(SIZE)
+        assert np.allclose(cv2.Rodrigues(np.array(entry["rotation"]))[0], R, atol=1e-9)
+        assert np.allclose(entry["translation"], t) and np.allclose(entry["matrix"], camera.K)
+    assert (out / "rig_report.html").read_bytes().startswith(b"<!doctype html><html><head><meta charset='utf-8'><title>Rig")
+    # --origin board: the rig in the board's frame; the cameras keep their relative poses.
+    again = tmp_path / "board_frame"
+    assert main([*map(str, folders), "--board", str(board), "--detector", "opencv", "--out", str(again), "--quiet",
+                 "--origin", "board", "--no-report"]) == 0
+    toml_board = tomllib.loads((again / "rig.toml").read_text())
+    R0, R1 = (cv2.Rodrigues(np.array(toml_board[f"cam_{c}"]["rotation"]))[0] for c in (0, 1))
+    assert rotation_angle_deg(R1 @ R0.T @ truth.rotations[1].T) < 0.5
+    assert "board's at instant" in toml_board["metadata"]["frame"]
+
+
+def test_different_lengths_are_refused_and_nothing_is_written(tmp_path, drawn, capsys):
+    _, folders, board = drawn
+    short = tmp_path / "short"
+    short.mkdir()
+    for image in sorted(folders[1].iterdir())[:10]:
+        (short / image.name).write_bytes(image.read_bytes())
+    videos = []
+    for folder in (folders[0], short):  # lengths are known before reading for videos
+        path = tmp_path / f"{folder.name}.avi"
+        images = [cv2.imread(str(p)) for p in sorted(folder.iterdir())]
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, SIZE)
+        for image in images:
+            writer.write(image)
+        writer.release()
+        videos.append(str(path))
+    out = tmp_path / "rig"
+    assert main([*videos, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "different lengths (cam0 16, short 10 frames)" in error[0] and "--sync-offsets" in error[0]
+    assert not any(out.glob("*.yaml")) and not (out / "rig.toml").exists()
+
+
+def test_a_camera_that_never_sees_the_board_is_refused(tmp_path, drawn, capsys):
+    _, folders, board = drawn
+    blank = tmp_path / "blank"
+    blank.mkdir()
+    for image in sorted(folders[1].iterdir()):
+        cv2.imwrite(str(blank / image.name), np.full((SIZE[1], SIZE[0]), 90, np.uint8))
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(blank), "--board", str(board), "--detector", "opencv", "--out", str(out),
+                 "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "never found by blank in 16 instants" in error[0]
+    assert not (out / "rig.toml").exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--out", "rig.yaml"], "names a file, but 2 sources make a rig"),
+    (["--camera", "a.yaml"], "--camera given 1 times for 2 sources"),
+    (["--sync-offsets", "0"], "--sync-offsets has 1 values for 2 sources"),
+    (["--model", "fisheye"], "--model fisheye is single-camera only"),
+])
+def test_rig_options_are_checked_before_any_work(tmp_path, drawn, capsys, extra, message, monkeypatch):
+    _, folders, board = drawn
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) if extra[0] != "--out" else _no_raise():
+        code = main([str(folders[0]), str(folders[1]), "--board", str(board), "--detector", "opencv", *extra])
+        assert code == 2
+    assert message in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_one_source_with_rig_options_is_refused(drawn, capsys):
+    _, folders, board = drawn
+    with pytest.raises(SystemExit) as stop:
+        main([str(folders[0]), "--board", str(board), "--camera", "x.yaml"])
+    assert stop.value.code == 2 and "--camera is for a rig (two sources or more)" in capsys.readouterr().err
+
+
+class _no_raise:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_two_boards_link_cameras_that_never_see_the_same_one_as_the_first():
+    # Camera 0 sees board A only, camera 2 board B only, camera 1 both: one rig through camera 1.
+    other = BoardSpec(squares_x=9, squares_y=6, square_length=0.06, marker_length=0.045, dictionary="DICT_6X6_250",
+                      first_marker_id=27)
+    rng = np.random.default_rng(8)
+    cameras, rotations, translations, target = rig_cameras(rng, 3, SIZE)
+    poses = [board_poses(rng, board, target, 20) for board in (RIG_BOARD, other)]
+    views = []
+    for c, (camera, R, t) in enumerate(zip(cameras, rotations, translations)):
+        for b, board in enumerate((RIG_BOARD, other)):
+            if (c, b) in ((0, 1), (2, 0)):
+                continue
+            points = board.object_points()
+            for n in range(20):
+                R_c, t_c = R @ poses[b][0][n], R @ poses[b][1][n] + t
+                pixels = camera.project(points, cv2.Rodrigues(R_c)[0], t_c)
+                inside = ((pixels > 15) & (pixels < np.array(SIZE) - 15)).all(1)
+                if inside.sum() >= 6:
+                    views.append(RigView(c, n, np.flatnonzero(inside), pixels[inside] + rng.normal(0, 0.1, (inside.sum(), 2)),
+                                         board=b))
+    result = calibrate_rig(views, [RIG_BOARD, other], cameras, ["a", "b", "c"], [None] * 3)
+    assert {b for _, b in result.board_poses} == {0, 1} and (0, 2) not in result.shared
+    for c in (1, 2):
+        assert rotation_angle_deg(result.rotations[c] @ rotations[c].T) < 0.05
+        assert np.linalg.norm(result.translations[c] - translations[c]) < 0.003
+
+
+def test_one_detector_finds_each_of_several_boards(tmp_path, capsys):
+    from deepcharuco import Detector
+    from deepcharuco.detect import main as detect_main
+    from deepcharuco.synthetic import look_at_pose, render_board_view
+
+    a = BoardSpec(squares_x=5, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50")
+    b = BoardSpec(squares_x=5, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50",
+                  first_marker_id=10)
+    K = np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]])
+    views = [look_at_pose(a, 0.6, 15, -10, 5, offset=(-0.12, 0)), look_at_pose(b, 0.6, -10, 15, -5, offset=(0.12, 0))]
+    drawn = [render_board_view(board, K, *pose, (640, 480)) for board, pose in zip((a, b), views)]
+    image = np.where(drawn[0] != 90, drawn[0], drawn[1]).astype(np.uint8)  # both boards on one grey background
+    detector = Detector(boards=[a, b])
+    for board, pose, detection in zip((a, b), views, detector.detect_boards(image)):
+        truth = Camera(K, np.zeros(5), (640, 480)).project(board.object_points(), *pose)
+        assert len(detection.ids) == board.num_corners
+        assert np.linalg.norm(detection.corners - truth[detection.ids], axis=1).max() < 1.0
+    with pytest.raises(Exception, match="detect_boards"):
+        detector.detect(image)
+    with pytest.raises(Exception, match="same markers"):
+        Detector(boards=[a, a])
+    # The command: one CSV and JSON per board, named after the board files.
+    cv2.imwrite(str(tmp_path / "two.png"), image)
+    a.save(tmp_path / "left.yaml")
+    b.save(tmp_path / "right.yaml")
+    assert detect_main([str(tmp_path / "two.png"), "--board", str(tmp_path / "left.yaml"), "--board",
+                        str(tmp_path / "right.yaml"), "--detector", "deep", "--out", str(tmp_path / "out")]) == 0
+    import json
+
+    for name in ("left", "right"):
+        frames = json.loads((tmp_path / "out" / f"two_{name}.json").read_text())["frames"]
+        assert frames[0]["num_corners"] == 12
+    assert (tmp_path / "out" / "two_left.csv").is_file() and (tmp_path / "out" / "two_overlay.png").is_file()
