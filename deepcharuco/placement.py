@@ -65,7 +65,8 @@ MIN_RANK_Z = 5.0
 # the dictionary's own correction capacity (OpenCV's maxCorrectionBits: half its least distance between codes, so a
 # marker of another board of the dictionary reads within it only with more bit errors than that) and one bit per 12
 # (a 4x4 code: 1; 5x5: 2; 6x6: 3): a view fitted to a coarse level's four corners samples the bits up to half a
-# bit off, and on the 5 MP validation frames (`benchmarks/detect.py`, seed 1) right views read 0-2 bits off.
+# bit off, and on 8 validation frames drawn as `benchmarks/detect.py`'s 5 MP row (rng seed 0) right views read 0-2
+# bits off.
 BITS_PER_ERROR = 12
 MIN_CODE_SHARE = 0.5
 # Corners the verified view predicts where no candidate reaches the detector's threshold may take a weaker one

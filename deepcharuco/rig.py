@@ -653,6 +653,8 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
             break
     result_cameras = [camera_from_vector(intrinsics[c], sizes[c], n_dist[c]) for c in range(n)]
     for c, camera in enumerate(result_cameras):
+        if not free[c].any():
+            continue  # held at its own calibration, which checked it, or at a given file
         fold = fold_share(camera)
         if fold is not None and fold < MIN_FOLD_SHARE:
             if terms[c] is not None and "k3" in terms[c].split():
@@ -670,6 +672,9 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
             notes.append(f"{names[c]}: the distortion folds back {100 * fold:.0f} % of the way to the image's corner "
                          f"(the corners' tips only)")
     std = _deviations(problem, covariance, names)
+    for c, deviations in enumerate(priors or []):
+        if deviations and not free[c].any():  # held at its own calibration: that calibration's deviations
+            std[c] = {**{k: v for k, v in deviations.items() if k in INTRINSICS}, **std[c]}
     for c in range(n):
         for name, value in (("fx", intrinsics[c, 0]), ("fy", intrinsics[c, 1])):
             if std[c].get(name, 0.0) > MAX_RELATIVE_STD * value:

@@ -50,7 +50,8 @@ def board_like_boxes(confidence: np.ndarray, dim: bool = False, board_corners: i
     in a ``dim`` frame `DIM_MIN_CELLS` of `DIM_CONFIDENCE`), widened by `MARGIN_CELLS`; [] where the level saw
     none. A board of fewer corners than `MIN_CELLS` (``board_corners``: a 3x3 board has 4) makes a patch from all
     of them at `DIM_CONFIDENCE`: its few corners give no dense patch, and at a level where its squares are ~17 px
-    one of the four read 0.11 (validation: `benchmarks/detect.py`'s 5 MP frames at seed 1)."""
+    one of the four read 0.11 (validation: 8 frames drawn as `benchmarks/detect.py`'s 5 MP row draws them, rng
+    seed 0)."""
     min_confidence, min_cells = (DIM_CONFIDENCE, DIM_MIN_CELLS) if dim else (CONFIDENCE, MIN_CELLS)
     if board_corners is not None and board_corners < MIN_CELLS:
         min_confidence, min_cells = DIM_CONFIDENCE, min(DIM_MIN_CELLS, board_corners)

@@ -408,3 +408,18 @@ def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detection
         calibrate(detections, BOARD, SIZE, fix_k3=True)
     monkeypatch.setattr(calibration, "fold_share", lambda camera: 0.97)
     assert any("folds back 97 %" in note for note in calibrate(detections, BOARD, SIZE).notes)
+
+
+def test_deviations_are_at_least_the_view_bootstrap_spread(detections):
+    from deepcharuco.calibration import bootstrap_std
+
+    result = calibrate(detections, BOARD, SIZE)
+    objects = [BOARD.object_points()[v.ids] for v in result.views]
+    images = [v.corners for v in result.views]
+    solution = type("S", (), {"K": result.camera.K, "dist": result.camera.dist})()
+    spread = bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution)
+    assert spread == bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution)  # seeded
+    assert set(spread) >= {"fx", "fy", "cx", "cy", "k1"}
+    for name, value in spread.items():
+        assert result.std[name] >= value  # the larger of the solver's and the bootstrap's
+        assert 0 < value < 20 * result.std[name]

@@ -1,10 +1,13 @@
 """The package as a user installs it: the wheel alone into a fresh virtual environment (its dependencies from the
-package index), with no PyTorch, running `deepcharuco detect` with both detectors and `deepcharuco board`."""
+package index), with no PyTorch, running `deepcharuco detect` with both detectors, `deepcharuco board` and a rig's
+`deepcharuco calibrate`."""
 
 import json
 import subprocess
 import sys
 from pathlib import Path
+
+import cv2
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "deepcharuco" / "examples"
@@ -36,6 +39,22 @@ def test_the_wheel_installs_alone_without_torch_and_detects(tmp_path):
     run(command, "board", "--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm",
         "--out", "my_board", cwd=work)
     assert (work / "my_board.pdf").read_bytes().startswith(b"%PDF-") and (work / "my_board.yaml").is_file()
+    # A rig (scipy's least_squares under the index's numpy and OpenCV): three cameras' drawn frames.
+    from evaluate.rig_eval import RIG_BOARD
+    from evaluate.rig_views import drawn_rig
+
+    truth = drawn_rig(RIG_BOARD, seed=11, instants=14)
+    folders = []
+    for c, frames in enumerate(truth.frames):
+        folder = work / f"cam{c}"
+        folder.mkdir()
+        for n, image in enumerate(frames):
+            cv2.imwrite(str(folder / f"{n:03d}.png"), image)
+        folders.append(folder)
+    RIG_BOARD.save(work / "rig_board.yaml")
+    run(command, "calibrate", *folders, "--board", work / "rig_board.yaml", "--detector", "opencv", "--out", "rig",
+        "--no-report", "--quiet", cwd=work)
+    assert "[cam_2]" in (work / "rig" / "rig.toml").read_text() and (work / "rig" / "cam1.yaml").is_file()
     missing = subprocess.run([command, "train", "--help"], capture_output=True, text=True, cwd=work)
     assert missing.returncode == 2 and "pip install 'deepcharuco[train]'" in missing.stderr
     size = sum(p.stat().st_size for p in venv.rglob("*") if p.is_file())
