@@ -18,9 +18,9 @@ import json
 import os
 import sys
 import time
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import ExitStack
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 

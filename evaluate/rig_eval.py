@@ -4,7 +4,8 @@ Two kinds of data:
 
 - drawn rigs (`evaluate.rig_views`: exact truth of every camera's intrinsics, distortion and pose), in good light,
   dark and under shake: per detector, each camera's rotation error (degrees) and centre error (mm per metre of the
-  rig's baseline) against the truth, fx/fy error (%), and the views and shared instants kept;
+  rig's baseline) against the truth, fx/fy error (%), and the views and shared instants kept; with ``--rendered``
+  the same of Blender-rendered rigs (`evaluate.rig_renders`: good light, 1 lux, shake);
 - with ``--realdata DIR``, the four synchronised caliscope webcams (``DIR/caliscope_calibration``; no truth of the
   extrinsics exists): per detector the RMS per camera, the square length of the board as the rig triangulates it
   (every corner seen by two cameras or more at one instant, triangulated from all of them; neighbouring corners'
@@ -31,12 +32,10 @@ from tqdm import tqdm
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibrate_rig import solve_rig
 from deepcharuco.calibration import CalibrationError, FrameDetection, SelectionOptions, border_margin, sharpness
-from deepcharuco.camera import read_camera
+from deepcharuco.camera import Camera, read_camera
 from deepcharuco.rig import RigResult, rotation_angle_deg
-from evaluate.rig_views import CONDITIONS, DrawnRig, drawn_rig
+from evaluate.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
 
-# The drawn rigs' board: an A2-sized 9 x 6 board of 60 mm squares, as rigs covering a room use.
-RIG_BOARD = BoardSpec(squares_x=9, squares_y=6, square_length=0.06, marker_length=0.045, dictionary="DICT_6X6_250")
 DETECTORS = ("opencv", "deep")
 
 
@@ -166,6 +165,34 @@ def _drawn_line(row: dict) -> str:
             f"disagreement {row['disagreement']:.2f}{' (intrinsics held)' if row['intrinsics_held'] else ''}")
 
 
+def rendered_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dict]:
+    """The Blender-rendered rig in ``folder`` (`evaluate.rig_renders`): each condition's views through both
+    detectors and the same solve, against the truth."""
+    record = json.loads((folder / "truth.json").read_text())
+    board = BoardSpec.from_dict(record["board"])
+    cameras = [Camera(np.array(c["K"]), np.array(c["dist"]), tuple(c["image_size"])) for c in record["cameras"]]
+    rows = []
+    for condition in sorted(p.name for p in folder.iterdir() if p.is_dir()):
+        frames = [[cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) for path in sorted((folder / condition / f"cam{c}").glob("*.png"))]
+                  for c in range(len(cameras))]
+        if len({len(f) for f in frames}) != 1 or not frames[0]:
+            continue  # still rendering
+        truth = DrawnRig(board, cameras, np.array([c["R"] for c in record["cameras"]]),
+                         np.array([c["t"] for c in record["cameras"]]), np.zeros((0, 3, 3)), np.zeros((0, 3)), frames)
+        names = [f"cam{c}" for c in range(len(cameras))]
+        for name in detectors:
+            detector, refine = make_detector(name, board)
+            detections = detect_all(frames, detector, quiet, f"{folder.name} {condition} {name}")
+            result, why = calibrate(detections, [c.image_size for c in cameras], names, board, refine)
+            row = {"seed": record["seed"], "condition": f"rendered {condition}", "detector": name,
+                   "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
+            row.update(truth_errors(result, truth) if result else {"failed": why})
+            rows.append(row)
+            if not quiet:
+                print(_drawn_line(row), flush=True)
+    return rows
+
+
 def real_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dict]:
     """The caliscope rig (module docstring)."""
     from evaluate.realistic import video_frames
@@ -209,17 +236,23 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dic
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m evaluate.rig_eval", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2], help="drawn rigs to measure (0: validation)")
+    parser.add_argument("--seeds", type=int, nargs="*", default=[1, 2], help="drawn rigs to measure (0: validation)")
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
     parser.add_argument("--instants", type=int, default=60, help="instants (board poses) per drawn rig")
     parser.add_argument("--detectors", nargs="+", choices=DETECTORS, default=list(DETECTORS))
     parser.add_argument("--realdata", type=Path, default=None, help="folder holding caliscope_calibration/")
+    parser.add_argument("--rendered", type=Path, nargs="*", default=[],
+                        help="folders of Blender-rendered rigs (python -m evaluate.rig_renders)")
     parser.add_argument("--out", type=Path, default=Path("report/rig_eval.json"))
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     if args.realdata is not None and not (args.realdata / "caliscope_calibration").is_dir():
         parser.error(f"--realdata {args.realdata} holds no caliscope_calibration/ folder")
     results = {"drawn": drawn_experiment(args.seeds, args.conditions, args.instants, args.detectors, args.quiet)}
+    for folder in args.rendered:
+        if not (folder / "truth.json").is_file():
+            parser.error(f"--rendered {folder} holds no truth.json: render it with python -m evaluate.rig_renders")
+        results.setdefault("rendered", []).extend(rendered_experiment(folder, args.detectors, args.quiet))
     if args.realdata is not None:
         results["caliscope"] = real_experiment(args.realdata, args.detectors, args.quiet)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,8 @@ from deepcharuco.synthetic import render_board_view
 from evaluate.protocols import DARKNESS_BASE
 
 CONDITIONS = ("good", "dark", "shake")
+# The rigs' board: an A2-sized 9 x 6 board of 60 mm squares, as rigs covering a room use.
+RIG_BOARD = BoardSpec(squares_x=9, squares_y=6, square_length=0.06, marker_length=0.045, dictionary="DICT_6X6_250")
 
 
 @dataclass

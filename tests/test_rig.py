@@ -294,3 +294,22 @@ def test_one_detector_finds_each_of_several_boards(tmp_path, capsys):
         frames = json.loads((tmp_path / "out" / f"two_{name}.json").read_text())["frames"]
         assert frames[0]["num_corners"] == 12
     assert (tmp_path / "out" / "two_left.csv").is_file() and (tmp_path / "out" / "two_overlay.png").is_file()
+
+
+def test_rendered_rig_has_the_drawn_rigs_truth_and_resumes(tmp_path):
+    import json
+
+    from evaluate.rig_renders import run as render_rig
+
+    size = (160, 120)
+    assert render_rig(RIG_BOARD, tmp_path, seed=3, cameras=2, instants=6, size=size, conditions=["good"],
+                      threads=1, quiet=True) == 12
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    drawn = drawn_rig(RIG_BOARD, seed=3, cameras=2, instants=6, size=size)  # the same rig and waving
+    for c in range(2):
+        assert np.allclose(truth["cameras"][c]["K"], drawn.cameras[c].K)
+        assert np.allclose(truth["cameras"][c]["R"], drawn.rotations[c])
+        images = sorted((tmp_path / "good" / f"cam{c}").glob("*.png"))
+        assert len(images) == 6 and cv2.imread(str(images[0]), cv2.IMREAD_GRAYSCALE).shape == (120, 160)
+    assert render_rig(RIG_BOARD, tmp_path, seed=3, cameras=2, instants=6, size=size, conditions=["good"],
+                      threads=1, quiet=True) == 0  # resumed: nothing left to render
