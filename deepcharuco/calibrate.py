@@ -204,8 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a rig: one per source, in order, the camera file whose intrinsics are held fixed, or - "
                              "to solve that camera's (default: every camera's intrinsics are solved)")
     parser.add_argument("--sync-offsets", type=int, nargs="+", default=None, metavar="N",
-                        help="a rig: one per source, the frames by which each video starts late (frame n + N of "
-                             "source i shows the same instant as frame n + N' of source j); default: all 0")
+                        help="a rig: one per source, the frames to skip at its start so that the sources line up "
+                             "(a video started 3 frames before the others: 3; frame n + N_i of source i shows the "
+                             "same instant as frame n + N_j of source j); default: all 0")
+    parser.add_argument("--timestamps", default=None, metavar="CSV",
+                        help="a rig whose cameras ran at their own times: a CSV with source,frame,time_s per frame "
+                             "(source: a source's name, e.g. cam_0, or its position 0, 1, ...); the instants are the "
+                             "first source's frames, another's frame joins the one nearest in time within half a "
+                             "frame interval")
     parser.add_argument("--origin", choices=["camera", "board"], default="camera",
                         help="a rig's frame: the first camera's (camera), or the board's at the instant the most "
                              "cameras saw it (board)")
@@ -263,9 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     if any(s.isdigit() and not Path(s).exists() for s in args.source) and args.max_frames is None:
         problems.append("a live camera needs --max-frames (how many frames to capture)")
     rig = len(args.source) > 1
-    if not rig and (args.camera or args.sync_offsets):
-        problems.append(f"{'--camera' if args.camera else '--sync-offsets'} is for a rig (two sources or more); one "
-                        f"camera's intrinsics are what calibrate solves")
+    if not rig and (args.camera or args.sync_offsets or args.timestamps):
+        option = "--camera" if args.camera else "--sync-offsets" if args.sync_offsets else "--timestamps"
+        problems.append(f"{option} is for a rig (two sources or more); one camera's intrinsics are what calibrate "
+                        f"solves")
+    if args.sync_offsets and args.timestamps:
+        problems.append("give --sync-offsets or --timestamps, not both (timestamps line the sources up themselves)")
     if rig and args.camera and len(args.camera) != len(args.source):
         problems.append(f"--camera given {len(args.camera)} times for {len(args.source)} sources: give one per source "
                         f"(- for a camera to solve)")
@@ -273,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--sync-offsets has {len(args.sync_offsets)} values for {len(args.source)} sources: give one "
                         f"per source")
     if args.sync_offsets and min(args.sync_offsets) < 0:
-        problems.append("--sync-offsets are frames each video starts late: >= 0 (make the earliest 0)")
+        problems.append("--sync-offsets are frames to skip at each source's start: >= 0")
     if not rig and args.board and len(args.board) > 1:
         problems.append("several --board files are for a rig (two sources or more); one camera calibrates from one "
                         "board")

@@ -1,6 +1,7 @@
 """``python -m deepcharuco.calibrate cam0.mp4 cam1.mp4 ... --out rig/``: a rig of cameras from synchronised sources.
 
-Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant) and
+Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant; with
+``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them) and
 the board detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
 own single-camera calibration (`deepcharuco.calibration.calibrate`, as ``calibrate`` does for one camera) or
 are held at a given ``--camera`` file's; then `deepcharuco.rig.calibrate_rig` places the cameras and
@@ -12,6 +13,7 @@ leaves nothing behind (one line, exit code 2).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -46,13 +48,14 @@ def source_names(sources: list[Source]) -> list[str]:
 
 
 def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
-    """Videos of one rig recorded together have one length; without --sync-offsets other lengths are refused."""
-    totals = [(s.stem, s.total) for s in sources if s.kind == "video" and s.total]
+    """Videos (or folders of frames) of one rig recorded together have one length; without --sync-offsets other
+    lengths are refused."""
+    totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
     if offsets is None and len({total for _, total in totals}) > 1:
         listed = ", ".join(f"{name} {total}" for name, total in totals)
-        raise RigError(f"the videos have different lengths ({listed} frames), so frame n of each need not show one "
-                       f"instant: give --sync-offsets (the frames by which each starts late), or trim them to start "
-                       f"and end together")
+        raise RigError(f"the sources have different lengths ({listed} frames), so frame n of each need not show one "
+                       f"instant: give --sync-offsets (the frames to skip at each one's start so that they line up), "
+                       f"or trim them to start and end together")
 
 
 def detect_synchronised(sources: list[Source], detectors: list, offsets: list[int], *, step: int = 1,
@@ -88,6 +91,85 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
         bar.set_postfix(boards="/".join(str(sum(any(len(per_board[n].ids) for per_board in camera)
                                                 for n in range(len(camera[0])))) for camera in detections),
                         refresh=False)
+    return detections, sizes
+
+
+def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
+    """Each source's {frame: time (s)} from a CSV with the columns ``source,frame,time_s`` (``source``: the source's
+    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). A source without any row is refused."""
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+    except OSError as error:
+        raise DeepCharucoError(f"--timestamps {path}: cannot read it ({error.strerror or error})") from None
+    if not rows or not {"source", "frame", "time_s"} <= set(rows[0]):
+        raise DeepCharucoError(f"--timestamps {path} needs a header source,frame,time_s and one row per frame")
+    times: list[dict[int, float]] = [{} for _ in names]
+    for line, row in enumerate(rows, start=2):
+        key = row["source"].strip()
+        camera = names.index(key) if key in names else int(key) if key.isdigit() and int(key) < len(names) else None
+        if camera is None:
+            raise DeepCharucoError(f"--timestamps {path} line {line}: source {key!r} is none of {', '.join(names)} "
+                                   f"(or 0..{len(names) - 1})")
+        try:
+            times[camera][int(row["frame"])] = float(row["time_s"])
+        except ValueError:
+            raise DeepCharucoError(f"--timestamps {path} line {line}: frame and time_s must be numbers") from None
+    for name, table in zip(names, times):
+        if not table:
+            raise DeepCharucoError(f"--timestamps {path} has no row for {name}: give every source's frame times")
+    return times
+
+
+def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
+    """Per source, {frame: instant}: the instants are the first source's frames, and another source's frame belongs
+    to the instant nearest in time when within half of the first source's median frame interval (the nearer of two
+    frames that would share one)."""
+    reference = sorted(times[0].items(), key=lambda item: item[1])
+    frames0 = np.array([frame for frame, _ in reference])
+    times0 = np.array([t for _, t in reference])
+    tolerance = 0.5 * float(np.median(np.diff(times0))) if len(times0) > 1 else math.inf
+    mapping: list[dict[int, int]] = [{int(f): int(f) for f in frames0}]
+    for table in times[1:]:
+        best: dict[int, tuple[float, int]] = {}
+        for frame, t in table.items():
+            k = int(np.clip(np.searchsorted(times0, t), 1, len(times0) - 1)) if len(times0) > 1 else 0
+            k = k - 1 if k > 0 and abs(times0[k - 1] - t) <= abs(times0[k] - t) else k
+            gap = abs(times0[k] - t)
+            if gap <= tolerance and (frames0[k] not in best or gap < best[frames0[k]][0]):
+                best[int(frames0[k])] = (gap, frame)
+        mapping.append({frame: instant for instant, (_, frame) in best.items()})
+    return mapping
+
+
+def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,
+                   quiet: bool = False) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
+    """`detect_synchronised`'s result where the instants come from timestamps (`instants_by_time`): each source
+    is read whole, and only its frames that belong to an instant (every ``step``-th) are detected."""
+    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in sources]
+    sizes: list[tuple[int, int] | None] = [None] * len(sources)
+    total = sum(s.total or 0 for s in sources) or None
+    bar = tqdm(total=total, unit="frame", desc="detecting", disable=quiet)
+    for c, source in enumerate(sources):
+        for frame_index, (name, frame) in enumerate(source.frames):
+            bar.update(1)
+            instant = mapping[c].get(frame_index)
+            if instant is None or instant % step:
+                continue
+            gray = to_gray_u8(frame)
+            size = (gray.shape[1], gray.shape[0])
+            if sizes[c] is None:
+                sizes[c] = size
+            elif size != sizes[c]:
+                raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
+                                       f"{sizes[c][0]}x{sizes[c][1]}: one camera, one resolution")
+            for b, detector in enumerate(detectors):
+                found = detector.detect(gray)
+                detections[c][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
+                                                       sharpness(gray, found.corners)))
+    bar.close()
     return detections, sizes
 
 
@@ -174,16 +256,23 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
     refuse_foreign(out / TOML_NAME, is_rig_toml, "rig file", args.force)
     if not args.no_report:
         refuse_foreign(out / REPORT_NAME, starts_with(REPORT_START), "rig report", args.force)
-    check_lengths(sources, args.sync_offsets)
+    mapping = None  # with --timestamps: per source, {frame: instant}
+    if args.timestamps is None:
+        check_lengths(sources, args.sync_offsets)
+    else:
+        mapping = instants_by_time(read_timestamps(args.timestamps, names))
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / TOML_NAME, "another calibrate"):
-        return _rig_into(args, boards, detectors, out, sources, names, targets)
+        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping)
 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
-              targets: list[Path]) -> RigResult:
-    offsets = args.sync_offsets or [0] * len(sources)
-    detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet)
+              targets: list[Path], mapping: list[dict[int, int]] | None) -> RigResult:
+    if mapping is None:
+        offsets = args.sync_offsets or [0] * len(sources)
+        detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet)
+    else:
+        detections, sizes = detect_by_time(sources, detectors, mapping, step=args.step, quiet=args.quiet)
     for source in sources:
         for line in source.problems():
             print(f"warning: {line}", file=sys.stderr)

@@ -313,3 +313,47 @@ def test_rendered_rig_has_the_drawn_rigs_truth_and_resumes(tmp_path):
         assert len(images) == 6 and cv2.imread(str(images[0]), cv2.IMREAD_GRAYSCALE).shape == (120, 160)
     assert render_rig(RIG_BOARD, tmp_path, seed=3, cameras=2, instants=6, size=size, conditions=["good"],
                       threads=1, quiet=True) == 0  # resumed: nothing left to render
+
+
+def test_sync_offsets_line_up_sources_that_started_apart(tmp_path, drawn, capsys):
+    truth, folders, board = drawn
+    late = tmp_path / "late1"  # camera 1 started 3 frames after the others: its first frame shows instant 3
+    late.mkdir()
+    for image in sorted(folders[1].iterdir())[3:]:
+        (late / image.name).write_bytes(image.read_bytes())
+    sources = [str(folders[0]), str(late), str(folders[2])]
+    out = tmp_path / "rig"
+    assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+    assert "different lengths (cam0 16, late1 13, cam2 16 frames)" in capsys.readouterr().err
+    assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet",
+                 "--no-report", "--sync-offsets", "3", "0", "3"]) == 0
+    storage = cv2.FileStorage(str(out / "late1.yaml"), cv2.FILE_STORAGE_READ)
+    assert rotation_angle_deg(storage.getNode("rotation_matrix").mat() @ truth.rotations[1].T) < 0.5
+
+
+def test_timestamps_pair_frames_of_cameras_with_their_own_clocks(tmp_path, drawn):
+    truth, folders, board = drawn
+    # Camera 1 started 3 frames late and its clock runs 5 ms off; camera 2 dropped frame 5.
+    rows = ["source,frame,time_s"]
+    rows += [f"cam0,{n},{n / 6:.4f}" for n in range(16)]
+    rows += [f"cam1,{n - 3},{n / 6 + 0.005:.4f}" for n in range(3, 16)]
+    rows += [f"2,{k},{n / 6:.4f}" for k, n in enumerate(n for n in range(16) if n != 5)]
+    (tmp_path / "times.csv").write_text("\n".join(rows) + "\n")
+    late, dropped = tmp_path / "cam1", tmp_path / "cam2"
+    late.mkdir()
+    dropped.mkdir()
+    for image in sorted(folders[1].iterdir())[3:]:
+        (late / image.name).write_bytes(image.read_bytes())
+    for image in sorted(folders[2].iterdir()):
+        if image.name != "005.png":
+            (dropped / image.name).write_bytes(image.read_bytes())
+    from deepcharuco.calibrate_rig import instants_by_time, read_timestamps
+
+    mapping = instants_by_time(read_timestamps(tmp_path / "times.csv", ["cam0", "cam1", "cam2"]))
+    assert mapping[1][0] == 3 and mapping[2][5] == 6 and len(mapping[2]) == 15
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(late), str(dropped), "--board", str(board), "--detector", "opencv", "--out",
+                 str(out), "--quiet", "--no-report", "--timestamps", str(tmp_path / "times.csv")]) == 0
+    for c, name in ((1, "cam1"), (2, "cam2")):
+        storage = cv2.FileStorage(str(out / f"{name}.yaml"), cv2.FILE_STORAGE_READ)
+        assert rotation_angle_deg(storage.getNode("rotation_matrix").mat() @ truth.rotations[c].T) < 0.5
