@@ -214,7 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "frame interval")
     parser.add_argument("--origin", choices=["camera", "board"], default="camera",
                         help="a rig's frame: the first camera's (camera), or the board's at the instant the most "
-                             "cameras saw it (board)")
+                             "cameras saw it (board; --origin-instant chooses the instant)")
+    parser.add_argument("--origin-instant", type=int, default=None, metavar="N",
+                        help="--origin board: the board's frame at instant N (frame N of the first source)")
     parser.add_argument("--detector", choices=DETECTORS, default="deep",
                         help="corner detector. deep (the default), chosen by measurement (docs/calibration.md, "
                              "rendered calibration sequences of 5 cameras): fx/fy within 0.3 %% and cx/cy within "
@@ -273,6 +275,8 @@ def main(argv: list[str] | None = None) -> int:
         option = "--camera" if args.camera else "--sync-offsets" if args.sync_offsets else "--timestamps"
         problems.append(f"{option} is for a rig (two sources or more); one camera's intrinsics are what calibrate "
                         f"solves")
+    if args.origin_instant is not None and args.origin != "board":
+        problems.append("--origin-instant is for --origin board")
     if args.sync_offsets and args.timestamps:
         problems.append("give --sync-offsets or --timestamps, not both (timestamps line the sources up themselves)")
     if rig and args.camera and len(args.camera) != len(args.source):

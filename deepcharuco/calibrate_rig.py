@@ -230,12 +230,19 @@ def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[in
     return result
 
 
-def board_origin(result: RigResult) -> tuple[tuple[int, int], RigResult]:
-    """The rig in a board's frame at the instant the most cameras saw it (the most corners breaking ties; of several
-    boards, the first one's), and that (instant, board)."""
+def board_origin(result: RigResult, instant: int | None = None) -> tuple[tuple[int, int], RigResult]:
+    """The rig in a board's frame at ``instant``, or (None) at the instant the most cameras saw it (the most corners
+    breaking ties; of several boards, the first one's), and that (instant, board)."""
     seen: dict[tuple[int, int], list[int]] = {}
     for view in result.views:
         seen.setdefault(view.key, []).append(len(view.ids))
+    if instant is not None:
+        chosen = [key for key in seen if key[0] == instant]
+        if not chosen:
+            nearest = sorted({i for i, _ in seen}, key=lambda i: abs(i - instant))[:5]
+            raise RigError(f"--origin-instant {instant}: no board pose was solved at that instant (no camera kept a "
+                           f"view of it); instants near it that have one: {', '.join(map(str, sorted(nearest)))}")
+        seen = {key: seen[key] for key in chosen}
     key = max(seen, key=lambda k: (-k[1], len(seen[k]), sum(seen[k]), -k[0]))
     rvec, tvec = result.board_poses[key]
     return key, result.reframed(rotations_from_vectors(rvec)[0], np.asarray(tvec, np.float64))
@@ -293,7 +300,7 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
                        given=args.camera)
     frame = f"camera {names[0]}'s"
     if args.origin == "board":
-        (instant, board_index), result = board_origin(result)
+        (instant, board_index), result = board_origin(result, args.origin_instant)
         frame = f"the board's at instant {instant}" if len(boards) == 1 else \
             f"board {Path(args.board[board_index]).stem}'s at instant {instant}"
     files = {path: rig_camera_text(result, c, boards, args.detector, frame, path.name)

@@ -165,6 +165,14 @@ def test_the_command_calibrates_a_rig_into_camera_files_a_toml_and_a_report(tmp_
     R0, R1 = (cv2.Rodrigues(np.array(toml_board[f"cam_{c}"]["rotation"]))[0] for c in (0, 1))
     assert rotation_angle_deg(R1 @ R0.T @ truth.rotations[1].T) < 0.5
     assert "board's at instant" in toml_board["metadata"]["frame"]
+    # ... at a chosen instant: the board's origin there is the rig's origin, seen by camera 0 where the truth puts it.
+    chosen = tmp_path / "instant"
+    assert main([*map(str, folders), "--board", str(board), "--detector", "opencv", "--out", str(chosen), "--quiet",
+                 "--origin", "board", "--origin-instant", "4", "--no-report"]) == 0
+    toml_chosen = tomllib.loads((chosen / "rig.toml").read_text())
+    assert toml_chosen["metadata"]["frame"] == "the board's at instant 4"
+    t0 = np.array(toml_chosen["cam_0"]["translation"])  # camera 0 sees the rig's origin (the board's) at t0
+    assert np.linalg.norm(t0 - truth.board_translations[4]) < 0.01
 
 
 def test_different_lengths_are_refused_and_nothing_is_written(tmp_path, drawn, capsys):
