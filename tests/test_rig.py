@@ -10,11 +10,9 @@ import pytest
 from deepcharuco import BoardSpec, Camera, read_camera
 from deepcharuco.calibrate import main
 from deepcharuco.rig import (
-    INTRINSICS, RigError, RigView, calibrate_rig, intrinsic_vector, project, rotation_angle_deg,
-    rotations_from_vectors,
+    RigError, RigView, calibrate_rig, intrinsic_vector, project, rotation_angle_deg, rotations_from_vectors,
 )
-from evaluate.rig_eval import RIG_BOARD, truth_errors
-from evaluate.rig_views import board_poses, drawn_rig, rig_cameras
+from evaluate.rig_views import RIG_BOARD, board_poses, drawn_rig, rig_cameras
 
 SIZE = (640, 480)
 
