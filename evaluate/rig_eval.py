@@ -173,18 +173,26 @@ def rendered_experiment(folder: Path, detectors: list[str], quiet: bool) -> list
     cameras = [Camera(np.array(c["K"]), np.array(c["dist"]), tuple(c["image_size"])) for c in record["cameras"]]
     rows = []
     for condition in sorted(p.name for p in folder.iterdir() if p.is_dir()):
-        frames = [[cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) for path in sorted((folder / condition / f"cam{c}").glob("*.png"))]
-                  for c in range(len(cameras))]
-        if len({len(f) for f in frames}) != 1 or not frames[0]:
-            continue  # still rendering
-        truth = DrawnRig(board, cameras, np.array([c["R"] for c in record["cameras"]]),
-                         np.array([c["t"] for c in record["cameras"]]), np.zeros((0, 3, 3)), np.zeros((0, 3)), frames)
-        names = [f"cam{c}" for c in range(len(cameras))]
+        paths = [sorted((folder / condition / f"cam{c}").glob("[0-9]*.png")) for c in range(len(cameras))]
+        # The cameras whose every instant is rendered (a render still running has done the first ones).
+        complete = [c for c in range(len(cameras)) if paths[c] and len(paths[c]) == max(len(p) for p in paths)]
+        if len(complete) < 2:
+            continue
+        frames = [[cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) for path in paths[c]] for c in complete]
+        truth = DrawnRig(board, [cameras[c] for c in complete],
+                         np.array([record["cameras"][c]["R"] for c in complete]),
+                         np.array([record["cameras"][c]["t"] for c in complete]), np.zeros((0, 3, 3)),
+                         np.zeros((0, 3)), frames)
+        if complete[0] != 0:  # the rig's frame is its first camera's
+            R0, t0 = truth.rotations[0].copy(), truth.translations[0].copy()
+            truth.translations = truth.translations - np.einsum("cij,jk,k->ci", truth.rotations, R0.T, t0)
+            truth.rotations = truth.rotations @ R0.T
+        names = [f"cam{c}" for c in complete]
         for name in detectors:
             detector, refine = make_detector(name, board)
             detections = detect_all(frames, detector, quiet, f"{folder.name} {condition} {name}")
-            result, why = calibrate(detections, [c.image_size for c in cameras], names, board, refine)
-            row = {"seed": record["seed"], "condition": f"rendered {condition}", "detector": name,
+            result, why = calibrate(detections, [c.image_size for c in truth.cameras], names, board, refine)
+            row = {"seed": record["seed"], "condition": f"rendered {condition}", "detector": name, "cameras_used": names,
                    "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
             row.update(truth_errors(result, truth) if result else {"failed": why})
             rows.append(row)
