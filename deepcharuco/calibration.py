@@ -686,7 +686,7 @@ def select_terms(object_points: list[np.ndarray], image_points: list[np.ndarray]
 # direction, a detector's bias at one tilt), and the views chosen decide more than their count says where they
 # cover little of the image. Each parameter's reported deviation is the larger of the solver's and the spread of
 # BOOTSTRAP_ROUNDS solves over views drawn with replacement (from the final solution, BOOTSTRAP_STEPS steps each).
-# On caliscope's four webcams the bootstrap read 0.7-1.9 x the solver's deviations (cam_0's cx 5.9 -> 11.1 px).
+# On caliscope's four webcams the bootstrap read 0.7-1.9 x the solver's deviations (cam_0's cx 5.9 -> 13.7 px).
 BOOTSTRAP_ROUNDS = 20
 BOOTSTRAP_STEPS = 30
 MIN_BOOTSTRAP_VIEWS = 6

@@ -26,8 +26,8 @@ from deepcharuco.board_check import BoardView, apply_homography, assign_ids
 from deepcharuco.detection import corner_spacing, no_corners
 from deepcharuco.junction import pattern_evidence
 from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
-from deepcharuco.marker_reader import QUARTER_TURNS, board_markers, correlate, match_markers, read_squares
-from deepcharuco.marker_reader import _reader as _reader_name
+from deepcharuco.marker_reader import (DEFAULT_READER, QUARTER_TURNS, board_markers, correlate, match_markers,
+                                      read_squares)
 from deepcharuco.models.cells import CellCandidates
 from deepcharuco.vectors import lengths, pairwise_distances
 
@@ -55,7 +55,7 @@ MAX_CHANCE = 1e-5
 # look-alikes of 6 boards (other dictionaries and IDs, mirrored, plain; 10 views each, at their true pose and at
 # the view the search found) at most 2.4.
 MIN_RANK_Z = 5.0
-# ... or, on a board of few markers, where the board cannot prove itself against its own markers (a 3x3 board has
+# ... or, where neither rule proves the view, as on a board of too few markers to prove itself against its own (a 3x3 board has
 # 4: even 4 of 4 reading best as themselves happens by chance with 1.5e-5, above MAX_CHANCE), each marker's bits tell:
 # a square that shows none of the board's markers reads within e bits of the code expected there with chance
 # sum_{j <= e} C(n, j) / 2^n (n inner bits). MIN_MARKERS markers within `code_error_limit` bits each, at least
@@ -301,7 +301,7 @@ def code_errors(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, read
     if len(readable) == 0:
         return np.zeros(0, np.int64)
     flat = bits[readable].reshape(len(readable), -1)
-    if _reader_name(reader) == "learned":
+    if (reader or DEFAULT_READER) == "learned":
         white = flat > 0
     else:
         low, high = flat.min(axis=1, keepdims=True), flat.max(axis=1, keepdims=True)
