@@ -55,8 +55,9 @@ MAX_CHANCE = 1e-5
 # look-alikes of 6 boards (other dictionaries and IDs, mirrored, plain; 10 views each, at their true pose and at
 # the view the search found) at most 2.4.
 MIN_RANK_Z = 5.0
-# ... or, where neither rule proves the view, as on a board of too few markers to prove itself against its own (a 3x3 board has
-# 4: even 4 of 4 reading best as themselves happens by chance with 1.5e-5, above MAX_CHANCE), each marker's bits tell:
+# ... or, where neither rule proves the view, as on a board of too few markers to prove itself against its own (a
+# 3x3 board has 4: even 4 of 4 reading best as themselves happens by chance with 1.5e-5, above MAX_CHANCE), each
+# marker's bits tell:
 # a square that shows none of the board's markers reads within e bits of the code expected there with chance
 # sum_{j <= e} C(n, j) / 2^n (n inner bits). MIN_MARKERS markers within `code_error_limit` bits each, at least
 # MIN_CODE_SHARE of the readable ones, whose chances multiply to MAX_CHANCE or less, verify the view (two 5x5 markers
