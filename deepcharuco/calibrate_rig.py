@@ -72,26 +72,35 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
     totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
     detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in sources]
     sizes: list[tuple[int, int] | None] = [None] * len(sources)
+    seen = [0] * len(sources)  # instants at which each camera found a board, for the progress bar
     bar = tqdm(zip(*streams), total=min(totals) if totals else None, unit="instant", desc="detecting", disable=quiet)
     for instant, frames in enumerate(bar):
         if instant % step:
             continue
         for c, (name, frame) in enumerate(frames):
-            gray = to_gray_u8(frame)
-            size = (gray.shape[1], gray.shape[0])
-            if sizes[c] is None:
-                sizes[c] = size
-            elif size != sizes[c]:
-                raise CalibrationError(f"{sources[c].stem}: frame {name} is {size[0]}x{size[1]} but the first was "
-                                       f"{sizes[c][0]}x{sizes[c][1]}: one camera, one resolution")
-            for b, detector in enumerate(detectors):
-                found = detector.detect(gray)
-                detections[c][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
-                                                       sharpness(gray, found.corners)))
-        bar.set_postfix(boards="/".join(str(sum(any(len(per_board[n].ids) for per_board in camera)
-                                                for n in range(len(camera[0])))) for camera in detections),
-                        refresh=False)
+            seen[c] += _detect_frame(c, instant, name, frame, sources[c], detectors, detections, sizes)
+        bar.set_postfix(boards="/".join(map(str, seen)), refresh=False)
     return detections, sizes
+
+
+def _detect_frame(camera: int, instant: int, name: str, frame: np.ndarray, source: Source, detectors: list,
+                  detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int] | None]) -> bool:
+    """Detect every board in ``camera``'s ``frame`` of ``instant``, appended to ``detections[camera][b]``; the
+    camera's frame size is kept in ``sizes`` and another size refused. True when any board was found."""
+    gray = to_gray_u8(frame)
+    size = (gray.shape[1], gray.shape[0])
+    if sizes[camera] is None:
+        sizes[camera] = size
+    elif size != sizes[camera]:
+        raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
+                               f"{sizes[camera][0]}x{sizes[camera][1]}: one camera, one resolution")
+    found_any = False
+    for b, detector in enumerate(detectors):
+        found = detector.detect(gray)
+        detections[camera][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
+                                                    sharpness(gray, found.corners)))
+        found_any = found_any or len(found.ids) > 0
+    return found_any
 
 
 def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
@@ -158,17 +167,7 @@ def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[in
             instant = mapping[c].get(frame_index)
             if instant is None or instant % step:
                 continue
-            gray = to_gray_u8(frame)
-            size = (gray.shape[1], gray.shape[0])
-            if sizes[c] is None:
-                sizes[c] = size
-            elif size != sizes[c]:
-                raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
-                                       f"{sizes[c][0]}x{sizes[c][1]}: one camera, one resolution")
-            for b, detector in enumerate(detectors):
-                found = detector.detect(gray)
-                detections[c][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
-                                                       sharpness(gray, found.corners)))
+            _detect_frame(c, instant, name, frame, source, detectors, detections, sizes)
     bar.close()
     return detections, sizes
 

@@ -498,7 +498,7 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
                              f_scale=HUBER_PX, x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS,
                              tr_options={"atol": 1e-12, "btol": 1e-12})
     solved, cameras, boards = problem.unpack(solution.x)
-    flat = problem.residuals(solution.x)[:2 * len(problem.camera)].reshape(-1, 2)
+    flat = solution.fun[:2 * len(problem.camera)].reshape(-1, 2)  # the plain residuals (least_squares' fun)
     residuals, start = [], 0
     for v in views:
         residuals.append(flat[start:start + len(v.ids)])
@@ -511,7 +511,8 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
 
 def _global_covariance(problem: _Problem, solution, flat: np.ndarray) -> np.ndarray:
     """Covariance of the intrinsics and camera poses, each instant's board pose eliminated (Schur complement S of
-    the Gauss-Newton matrix J^T J; J and the residuals as the Huber loss weighs them). Two estimates, and per
+    the Gauss-Newton matrix J^T J; J as the Huber loss weighs it, so rows beyond `HUBER_PX` count for ~nothing).
+    Two estimates, and per
     parameter the larger variance:
 
     - the model's, S^-1 sigma^2 with sigma^2 = sum r^2 / (2N - parameters): right when every corner's error is
@@ -521,7 +522,9 @@ def _global_covariance(problem: _Problem, solution, flat: np.ndarray) -> np.ndar
       one tilt, motion blur along one direction), which the model's estimate counts as independent and understates.
     """
     J = solution.jac.tocsr() if hasattr(solution.jac, "tocsr") else np.asarray(solution.jac)
-    residual = solution.fun  # as the loss weighs them, like the Jacobian (a residual beyond HUBER_PX counts less)
+    # The plain residuals (least_squares' fun is not weighed by the loss): an outlier's row of J is ~0, so it adds
+    # nothing to the instants' estimate, but its residual does enter the model's variance (which errs large).
+    residual = solution.fun
     g = problem.n_global
     corners = 2 * len(problem.camera)  # the rows after these are the intrinsics' prior, one cluster of its own
     rows = np.repeat(problem.pose, 2)  # each corner's two residuals belong to its instant

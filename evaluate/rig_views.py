@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -43,6 +44,18 @@ class DrawnRig:
     board_rotations: np.ndarray  # (N, 3, 3) board -> camera 0's frame
     board_translations: np.ndarray  # (N, 3)
     frames: list[list[np.ndarray]]
+
+    def save_frames(self, root: Path) -> list[Path]:
+        """Write ``root/cam<c>/<instant>.png`` per camera (the folders `deepcharuco calibrate` takes as a rig's
+        sources); returns the cameras' folders."""
+        folders = []
+        for c, frames in enumerate(self.frames):
+            folder = Path(root) / f"cam{c}"
+            folder.mkdir(parents=True, exist_ok=True)
+            for n, image in enumerate(frames):
+                cv2.imwrite(str(folder / f"{n:03d}.png"), image)
+            folders.append(folder)
+        return folders
 
     @property
     def baseline(self) -> float:

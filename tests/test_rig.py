@@ -125,13 +125,7 @@ def drawn(tmp_path_factory):
     """Three cameras' folders of drawn frames (good light) and the truth."""
     truth = drawn_rig(RIG_BOARD, seed=11, instants=16)
     root = tmp_path_factory.mktemp("rig")
-    folders = []
-    for c, frames in enumerate(truth.frames):
-        folder = root / f"cam{c}"
-        folder.mkdir()
-        for n, image in enumerate(frames):
-            cv2.imwrite(str(folder / f"{n:03d}.png"), image)
-        folders.append(folder)
+    folders = truth.save_frames(root)
     board = RIG_BOARD.save(root / "board.yaml")
     return truth, folders, board
 

@@ -7,8 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
-
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "deepcharuco" / "examples"
 
@@ -42,14 +40,7 @@ def test_the_wheel_installs_alone_without_torch_and_detects(tmp_path):
     # A rig (scipy's least_squares under the index's numpy and OpenCV): three cameras' drawn frames.
     from evaluate.rig_views import RIG_BOARD, drawn_rig
 
-    truth = drawn_rig(RIG_BOARD, seed=11, instants=14)
-    folders = []
-    for c, frames in enumerate(truth.frames):
-        folder = work / f"cam{c}"
-        folder.mkdir()
-        for n, image in enumerate(frames):
-            cv2.imwrite(str(folder / f"{n:03d}.png"), image)
-        folders.append(folder)
+    folders = drawn_rig(RIG_BOARD, seed=11, instants=14).save_frames(work)
     RIG_BOARD.save(work / "rig_board.yaml")
     run(command, "calibrate", *folders, "--board", work / "rig_board.yaml", "--detector", "opencv", "--out", "rig",
         "--no-report", "--quiet", cwd=work)
