@@ -31,6 +31,7 @@ from deepcharuco.board_check import (
 from deepcharuco.detection import Detection, corner_spacing, detect_board_result, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
+from deepcharuco.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
@@ -41,7 +42,8 @@ from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers, drop_isolated,
                                    marker_view_verified, settle_corners)
 from deepcharuco.pose import Pose, estimate_pose
-from deepcharuco.print_face import canonical_view, canonical_view_local_white, corners_from_canonical
+from deepcharuco.print_face import (canonical_view, canonical_view_local_white, corners_from_canonical,
+                                       covariances_from_canonical)
 from deepcharuco.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
 from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 from deepcharuco.stage_times import stage, tally
@@ -317,14 +319,19 @@ class Detector:
             returns one `Detection` per board, in this order, each with that board's corner IDs; `detectors`
             are the per-board detectors (for `BoardTracker` and poses); ``detect`` refuses (its one result could
             not say which board a corner is of). Each board is searched on its own: N boards cost N searches.
+        corner_fit: each corner's last position is where the board's printed pattern, blurred, fits the pixels
+            around it (`deepcharuco.corner_fit`), from where ``refine`` put it, and the detection carries each
+            corner's covariance; a corner the fit cannot place keeps ``refine``'s position and `FALLBACK_SIGMA_PX`.
+            False: ``refine``'s positions, no covariances.
     """
 
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
                  mode: str = "deep", backend: str = "auto", reader: str | None = None, preview: bool = True,
-                 boards: list[BoardSpec] | None = None):
+                 boards: list[BoardSpec] | None = None, corner_fit: bool = True):
         self._each: list[Detector] = []
+        self.corner_fit = bool(corner_fit)
         if boards is not None:
             boards = list(boards)
             if board is not None:
@@ -342,7 +349,7 @@ class Detector:
                 self._each = [Detector(board=b, weights=weights, refine=refine, device=device,
                                        refine_weights=refine_weights, threshold=threshold, soft_radius=soft_radius,
                                        geometry=geometry, working_size=working_size, mode=mode, backend=backend,
-                                       reader=reader, preview=preview) for b in boards]
+                                       reader=reader, preview=preview, corner_fit=corner_fit) for b in boards]
                 self.board = None
                 return
             board = boards[0]
@@ -493,8 +500,23 @@ class Detector:
             with stage("settle"):
                 ids, corners, scores = settle_corners(self._board_xy, ids, corners, scores, self.threshold)
                 ids, corners, scores = drop_isolated(self._board_xy, ids, corners, scores)
+        covariances = None
+        if self.corner_fit:
+            with stage("corner fit"):
+                corners, covariances = self._fitted(region, ids, corners)
         corners = corners + np.array(found.box[:2], np.float32)
-        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores)
+        return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
+                         covariances=covariances_from_canonical(covariances, self.board))
+
+    def _fitted(self, full: np.ndarray, ids: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 2) corners of ``ids`` in ``full`` -> (the printed pattern's fit of each where it converges, else the
+        corner as it was; (N, 2, 2) covariances: the fit's, else `FALLBACK_SIGMA_PX` squared)."""
+        homography = view_homography(self.board, ids, corners)
+        if homography is None:
+            return corners, None
+        fit = fit_corners(full, self.board, homography, ids, corners)
+        covariances = np.where(fit.ok[:, None, None], fit.covariances, FALLBACK_SIGMA_PX ** 2 * np.eye(2))
+        return fit.corners.astype(np.float32), covariances
 
     def _refined(self, full: np.ndarray, gray: np.ndarray, pixels: np.ndarray, corners: np.ndarray, seen: np.ndarray,
                  ratio: np.ndarray, preview: bool, early: EarlyRefinement | None) -> np.ndarray:

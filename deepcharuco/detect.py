@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import sys
 import time
@@ -48,7 +49,9 @@ from deepcharuco.video import VideoFrames
 HINT_FRAMES, HINT_STRIDE = 12, 5
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
-              "rvec", "tvec", "reprojection_error", "num_inliers"]
+              "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
+# What a CSV of this command begins with, in this version and those before the sigmas column: safe to overwrite.
+CSV_SIGNATURE = ",".join(CSV_FIELDS[:6])
 
 
 class SourceError(DeepCharucoError):
@@ -176,6 +179,9 @@ def _csv_row(record: dict) -> dict:
         "rvec": _join(pose.get("rvec", [])), "tvec": _join(pose.get("tvec", [])),
         "reprojection_error": pose.get("reprojection_error", ""),
         "num_inliers": len(pose["inliers"]) if pose else "",
+        # each corner's standard deviation along its least certain direction (px); nan where none is given
+        "sigmas": _join(math.sqrt(max(c[0] + c[2], 0.0) / 2 + math.hypot((c[0] - c[2]) / 2, c[1])) if c else math.nan
+                        for c in record["covariances"]),
     }
 
 
@@ -236,7 +242,7 @@ def run(args: argparse.Namespace) -> dict:
                       out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
             for path, detector, suffix in zip(board_files, detectors, suffixes)]
     for board_run in runs:
-        refuse_foreign(board_run.csv_path, starts_with(",".join(CSV_FIELDS).encode()), "detection CSV", args.force)
+        refuse_foreign(board_run.csv_path, starts_with(CSV_SIGNATURE.encode()), "detection CSV", args.force)
         refuse_foreign(board_run.json_path, starts_with(JSON_START), "detection JSON", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)

@@ -22,26 +22,50 @@ class Detection:
         ids: (N,) int64 unique corner IDs (OpenCV's ChArUco IDs), ascending.
         corners: (N, 2) float32 pixel positions; the centre of the top-left pixel is (0, 0).
         scores: (N,) float32 confidences in [0, 1].
+        covariances: (N, 2, 2) float32 each corner's position covariance (px^2, x then y) about the true corner,
+            calibrated on validation views (docs/detector.md); NaN where the detector gives none (None: all NaN).
     """
 
     ids: np.ndarray
     corners: np.ndarray
     scores: np.ndarray
+    covariances: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         ids = np.asarray(self.ids, dtype=np.int64).reshape(-1)
         corners = np.asarray(self.corners, dtype=np.float32).reshape(-1, 2)
         scores = np.asarray(self.scores, dtype=np.float32).reshape(-1)
-        if not (ids.shape[0] == corners.shape[0] == scores.shape[0]):
-            raise ValueError(
-                f"ids, corners and scores disagree in length: {ids.shape[0]}, {corners.shape[0]}, {scores.shape[0]}"
-            )
+        covariances = np.full((len(ids), 2, 2), np.nan, np.float32) if self.covariances is None else \
+            np.asarray(self.covariances, dtype=np.float32).reshape(-1, 2, 2)
+        if not (ids.shape[0] == corners.shape[0] == scores.shape[0] == covariances.shape[0]):
+            raise ValueError(f"ids, corners, scores and covariances disagree in length: {ids.shape[0]}, "
+                             f"{corners.shape[0]}, {scores.shape[0]}, {covariances.shape[0]}")
         if np.unique(ids).size != ids.size:
             raise ValueError(f"corner IDs must be unique, got {ids.tolist()}")
         order = np.argsort(ids, kind="stable")
         object.__setattr__(self, "ids", ids[order])
         object.__setattr__(self, "corners", corners[order])
         object.__setattr__(self, "scores", scores[order])
+        object.__setattr__(self, "covariances", covariances[order])
+
+    @property
+    def sigmas(self) -> np.ndarray:
+        """(N,) float32 px: each corner's standard deviation along its least certain direction (the square root of
+        its covariance's larger eigenvalue); NaN where there is no covariance."""
+        if len(self) == 0:
+            return np.zeros(0, np.float32)
+        finite = np.all(np.isfinite(self.covariances), axis=(1, 2))
+        largest = np.full(len(self), np.nan, np.float32)
+        if finite.any():
+            largest[finite] = np.linalg.eigvalsh(self.covariances[finite].astype(np.float64))[:, -1]
+        return np.sqrt(np.maximum(largest, 0.0)).astype(np.float32)
+
+    def information(self) -> np.ndarray | None:
+        """(N, 2, 2) float64 inverse covariances (px^-2), the weights of a least-squares fit of these corners, or None
+        where any corner has no covariance."""
+        if len(self) == 0 or not np.all(np.isfinite(self.covariances)):
+            return None
+        return np.linalg.inv(self.covariances.astype(np.float64))
 
     @classmethod
     def empty(cls) -> "Detection":
@@ -55,6 +79,9 @@ class Detection:
             "ids": self.ids.tolist(),
             "corners": self.corners.astype(float).round(4).tolist(),
             "scores": self.scores.astype(float).round(4).tolist(),
+            # (xx, xy, yy) px^2 per corner; null where the detector gives none (JSON has no NaN)
+            "covariances": [None if not np.all(np.isfinite(c)) else [round(float(c[0, 0]), 6), round(float(c[0, 1]), 6),
+                                                                      round(float(c[1, 1]), 6)] for c in self.covariances],
         }
 
 

@@ -66,3 +66,14 @@ def corners_from_canonical(corners: np.ndarray, board: BoardSpec, width: int) ->
     mapped = np.array(corners, copy=True)
     mapped[:, 0] = (width - 1) - mapped[:, 0]
     return mapped
+
+
+def covariances_from_canonical(covariances: np.ndarray | None, board: BoardSpec) -> np.ndarray | None:
+    """(N, 2, 2) corner covariances in `canonical_view`'s image -> the same in the image itself (a mirror flips
+    the sign of the x-y term); None stays None."""
+    if covariances is None or not board.mirrored:
+        return covariances
+    mapped = np.array(covariances, copy=True)
+    mapped[:, 0, 1] *= -1
+    mapped[:, 1, 0] *= -1
+    return mapped

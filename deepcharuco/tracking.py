@@ -66,7 +66,7 @@ class BoardTracker:
             found = self._detect_crop(image[y0:y1, x0:x1], max(height, width))
             if len(found) >= MIN_CORNERS:
                 detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
-                                      scores=found.scores)
+                                      scores=found.scores, covariances=found.covariances)
                 self._follow(detection, (width, height))
                 self.last_search = "crop"
                 return detection
