@@ -68,7 +68,7 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
                                    f"calibrate frames of one camera at one resolution")
         detection = detector.detect(gray)
         detections.append(FrameDetection(index, str(name), detection.ids, detection.corners,
-                                         sharpness(gray, detection.corners)))
+                                         sharpness(gray, detection.corners), detection.covariances))
         bar.set_postfix(boards=sum(len(d.ids) > 0 for d in detections), refresh=False)
     return detections, size
 

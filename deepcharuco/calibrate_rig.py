@@ -98,7 +98,7 @@ def _detect_frame(camera: int, instant: int, name: str, frame: np.ndarray, sourc
     for b, detector in enumerate(detectors):
         found = detector.detect(gray)
         detections[camera][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
-                                                    sharpness(gray, found.corners)))
+                                                    sharpness(gray, found.corners), found.covariances))
         found_any = found_any or len(found.ids) > 0
     return found_any
 

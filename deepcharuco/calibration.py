@@ -86,6 +86,8 @@ class FrameDetection:
         index: frame number in the source; name: its name (file name or frame number).
         ids: (N,) int64 corner IDs; corners: (N, 2) float64 pixels.
         sharpness: `sharpness` of the frame around the board (0 without corners).
+        covariances: (N, 2, 2) each corner's covariance (px^2, `Detection.covariances`); None where the detector
+            gives none.
     """
 
     index: int
@@ -93,10 +95,20 @@ class FrameDetection:
     ids: np.ndarray
     corners: np.ndarray
     sharpness: float = 0.0
+    covariances: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.ids = np.asarray(self.ids, np.int64).reshape(-1)
         self.corners = np.asarray(self.corners, np.float64).reshape(-1, 2)
+        if self.covariances is not None:
+            self.covariances = np.asarray(self.covariances, np.float64).reshape(-1, 2, 2)
+            if not np.all(np.isfinite(self.covariances)):
+                self.covariances = None  # a weight for some corners only would weigh the others by nothing
+
+    def subset(self, keep: np.ndarray) -> "FrameDetection":
+        """This frame with only its corners ``keep`` (a bool mask or indices)."""
+        covariances = None if self.covariances is None else self.covariances[keep]
+        return FrameDetection(self.index, self.name, self.ids[keep], self.corners[keep], self.sharpness, covariances)
 
 
 @dataclass
@@ -132,6 +144,7 @@ class SelectionOptions:
     border_px: float = 0.0  # corners nearer the image's border than this are not used (`border_margin`)
     select_terms: bool = True  # hold p1 p2 at 0 where held-out views are predicted as well without them (`select_terms`)
     weight_views: bool = True  # weigh each view by the spread of its own residuals (`weigh_views`)
+    weight_corners: bool = True  # ... and each corner by its detector's covariance, where the detector gives them
     weight_spread: float = VIEW_WEIGHT_SPREAD  # views within this x the median view's spread keep their full weight
 
 
@@ -157,7 +170,7 @@ def within_border(frame: FrameDetection, image_size: tuple[int, int], border_px:
     width, height = image_size
     x, y = frame.corners[:, 0], frame.corners[:, 1]
     inside = (x >= border_px - 0.5) & (y >= border_px - 0.5) & (x <= width - 0.5 - border_px) & (y <= height - 0.5 - border_px)
-    return FrameDetection(frame.index, frame.name, frame.ids[inside], frame.corners[inside], frame.sharpness)
+    return frame.subset(inside)
 
 
 @dataclass
@@ -570,7 +583,10 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
             residuals, norms, rms, view_rms = _residuals(objects, images, solution, model)
     view_weights = np.zeros(0)
     if model != "fisheye" and options.weight_views and len(active) >= MIN_WEIGHTED_VIEWS:
-        solution, view_weights = weigh_views(objects, images, solution, model, terms, options.weight_spread)
+        covariances = [v.covariances[masks[v.index]] for v in active] \
+            if options.weight_corners and all(v.covariances is not None for v in active) else None
+        solution, view_weights = weigh_views(objects, images, solution, model, terms, options.weight_spread,
+                                             corner_covariances=covariances)
         residuals, norms, rms, view_rms = _residuals(objects, images, solution, model)
     if model != "fisheye" and len(active) >= MIN_BOOTSTRAP_VIEWS:
         solution.std.update({name: value for name, value in
@@ -591,8 +607,7 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
         else:
             stage, reason = reasons[frame.index]
             decisions.append(ViewDecision(frame.index, frame.name, len(frame.ids), "dropped", stage, reason))
-    used_views = [FrameDetection(v.index, v.name, v.ids[masks[v.index]], v.corners[masks[v.index]], v.sharpness)
-                  for v in active]
+    used_views = [v.subset(masks[v.index]) for v in active]
     camera = Camera(K=solution.K, dist=solution.dist, image_size=image_size,
                     model="fisheye" if model == "fisheye" else "pinhole")
     fold = fold_share(camera)
@@ -733,7 +748,8 @@ LM_STEPS = 50  # Levenberg-Marquardt steps of one weighted solve (from OpenCV's 
 
 
 def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray], solution: _Solution, model: str,
-                terms: str, spread: float = VIEW_WEIGHT_SPREAD, rounds: int = WEIGHT_ROUNDS) -> tuple[_Solution, np.ndarray]:
+                terms: str, spread: float = VIEW_WEIGHT_SPREAD, rounds: int = WEIGHT_ROUNDS,
+                corner_covariances: list[np.ndarray] | None = None) -> tuple[_Solution, np.ndarray]:
     """The pinhole or rational solution refitted with each view weighed by its residuals' spread (iteratively
     reweighted least squares from ``solution``; `weighted_solve`), and each view's weight along its noisiest
     direction (V,) (1: full weight).
@@ -741,10 +757,19 @@ def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray],
     A view's information matrix is the inverse of its residuals' 2 x 2 covariance (pose's degrees of freedom taken
     out), scaled so that a view within ``spread`` x the median view's standard deviation in every direction weighs
     as OpenCV weighs it (1) and a worse one less, only in its worse direction. ``terms`` names the distortion terms
-    solved (`terms_name`); the others stay where ``solution`` has them (0)."""
+    solved (`terms_name`); the others stay where ``solution`` has them (0).
+
+    With ``corner_covariances`` (per view, (N, 2, 2) px^2: the detector's), each corner's information is instead the
+    inverse of its own covariance plus its view's excess: the part of the view's residual covariance that its
+    corners' covariances do not explain (a board's flex, a rolling shutter, a motion the detector did not see), so a
+    sharp corner counts more than a blurred one of the same view and a view worse than its corners say counts
+    less. A view's weight is then its information's smallest eigenvalue (mean over its corners) over the median
+    view's."""
     names = _intrinsic_names(model)
     free = np.array([n in ("fx", "fy", "cx", "cy") or n in terms.split() for n in names])
     current = solution
+    if corner_covariances is not None:
+        return _weigh_corners(object_points, image_points, current, model, free, corner_covariances, rounds)
     information = [np.eye(2)] * len(object_points)
     for _ in range(rounds):
         residuals = _residuals(object_points, image_points, current, model)[0]
@@ -762,16 +787,35 @@ def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray],
     return current, weights
 
 
+def _weigh_corners(object_points: list[np.ndarray], image_points: list[np.ndarray], solution: _Solution, model: str,
+                   free: np.ndarray, corner_covariances: list[np.ndarray], rounds: int) -> tuple[_Solution, np.ndarray]:
+    """`weigh_views` with each corner's covariance (its docstring)."""
+    current = solution
+    information = [np.linalg.inv(c) for c in corner_covariances]
+    for _ in range(rounds):
+        residuals = _residuals(object_points, image_points, current, model)[0]
+        information = []
+        for r, covariances in zip(residuals, corner_covariances):
+            observed = r.T @ r / max(len(r) - 3, 1)  # the pose's 6 degrees of freedom over the view's 2N residuals
+            variance, axes = np.linalg.eigh(observed - covariances.mean(axis=0))
+            excess = (axes * np.maximum(variance, 0.0)) @ axes.T
+            information.append(np.linalg.inv(covariances + excess))
+        current = weighted_solve(object_points, image_points, current, free, information)
+    strength = np.array([float(np.linalg.eigvalsh(w.mean(axis=0))[0]) for w in information])
+    return current, np.minimum(strength / max(float(np.median(strength)), 1e-300), 1.0)
+
+
 def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarray], start: _Solution, free: np.ndarray,
                    information: list[np.ndarray]) -> _Solution:
     """Levenberg-Marquardt over the intrinsics marked ``free`` (in `STD_NAMES` order: fx fy cx cy k1 k2 p1 p2 k3
     [k4 k5 k6]) and every view's pose, minimising sum over views v and corners i of r_vi^T W_v r_vi (r: detected
-    minus projected, W_v: the view's 2 x 2 ``information``), from ``start``. OpenCV's calibration has no weights;
+    minus projected, W_v: the view's 2 x 2 ``information``, or (N, 2, 2): one per corner), from ``start``. OpenCV's
+    calibration has no weights;
     this uses cv2.projectPoints' derivatives and eliminates the poses per view (Schur complement). ``std``: the
     free intrinsics' standard deviations from the weighted normal equations, scaled by the weighted residuals."""
     K, dist = start.K.copy(), start.dist.copy()
     rvecs, tvecs = start.rvecs.copy(), start.tvecs.copy()
-    roots = [np.linalg.cholesky(w + 1e-12 * np.eye(2)).T for w in information]  # W = L^T L
+    roots = [np.swapaxes(np.linalg.cholesky(w + 1e-12 * np.eye(2)), -1, -2) for w in information]  # W = L^T L
     objects = [p.astype(np.float64).reshape(-1, 3) for p in object_points]
     images = [p.astype(np.float64).reshape(-1, 2) for p in image_points]
     count = int(free.sum())
@@ -780,9 +824,11 @@ def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarra
         out = []
         for points, image, r, t, root in zip(objects, images, rvecs, tvecs, roots):
             projected, jacobian = cv2.projectPoints(points, r, t, K, dist)
-            residual = (projected.reshape(-1, 2) - image) @ root.T
+            difference = projected.reshape(-1, 2) - image
+            residual = difference @ root.T if root.ndim == 2 else np.einsum("nij,nj->ni", root, difference)
             if derivatives:
-                jacobian = np.einsum("ij,njk->nik", root, jacobian.reshape(-1, 2, jacobian.shape[1]))
+                jacobian = np.einsum("ij,njk->nik" if root.ndim == 2 else "nij,njk->nik", root,
+                                     jacobian.reshape(-1, 2, jacobian.shape[1]))
                 jacobian = jacobian.reshape(-1, jacobian.shape[2])
                 out.append((residual.reshape(-1), jacobian[:, :6], jacobian[:, 6:6 + len(free)][:, free]))
             else:

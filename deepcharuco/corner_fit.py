@@ -40,6 +40,9 @@ MIN_PIXELS = 12  # a window of fewer pixels is not fitted
 ITERATIONS = 6
 PARAMETERS = 6  # the shift (x, y), the log blur across each line, alpha, beta
 CONVERGED_PX = 1e-3  # the fit stops when every corner's last step was shorter than this
+DAMPING = 1e-3  # Levenberg's damping, relative to the normal matrix's diagonal
+MAX_STEP_PX = 0.5  # one step moves a corner at most this far ...
+MAX_LOG_BLUR_STEP = 0.4  # ... and changes a blur by at most this factor's log
 START_SIGMA_PX = 1.0
 PRE_BLUR_PX = 0.7  # the image is blurred by this much before the fit
 SIGMA_RANGE_PX = (0.15, 10.0)  # a fit whose blur leaves this range has not found the pattern
@@ -165,26 +168,25 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     params = np.column_stack([np.zeros((n, 2)), np.full((n, 2), np.log(START_SIGMA_PX)), np.zeros((n, 2))])
     ink, _ = pattern.ink(params, derivatives=False)
     params[:, 4], params[:, 5] = _linear(values, ink, weight)
-    damping = np.full(n, 1e-3)
-    cost = _cost(values, params, pattern, weight)
-    for _ in range(ITERATIONS):
-        residual, jacobian = _residual(values, params, pattern, derivatives=True)
-        jw = jacobian * weight[..., None]
-        normal = np.einsum("nmi,nmj->nij", jw, jacobian)  # (N, P, P)
-        gradient = np.einsum("nmi,nm->ni", jw, residual)
-        diagonal = np.einsum("nii->ni", normal)
-        damped = normal + (damping[:, None] * np.maximum(diagonal, 1e-9))[:, :, None] * np.eye(PARAMETERS)
-        step = _solve(damped, -gradient)
-        trial = params + step
-        trial[:, 2:4] = np.clip(trial[:, 2:4], np.log(0.5 * SIGMA_RANGE_PX[0]), np.log(2 * SIGMA_RANGE_PX[1]))
-        trial_cost = _cost(values, trial, pattern, weight)
-        better = trial_cost < cost
-        params[better], cost[better] = trial[better], trial_cost[better]
-        damping = np.where(better, np.maximum(damping / 10, 1e-7), damping * 10)
-        if np.all(np.abs(step[:, :2]).max(axis=1) < CONVERGED_PX):
-            break
-
+    # Gauss-Newton, lightly damped, each step's shift capped: the start is within a pixel or so, where the model is
+    # smooth (`PRE_BLUR_PX`); a fit that ends worse than it began is refused below.
     residual, jacobian = _residual(values, params, pattern, derivatives=True)
+    start_cost = (weight * residual ** 2).sum(axis=1)
+    for _ in range(ITERATIONS):
+        jw = np.swapaxes(jacobian * weight[..., None], 1, 2)  # (N, P, M)
+        normal = jw @ jacobian  # (N, P, P)
+        gradient = (jw @ residual[..., None])[..., 0]
+        diagonal = np.einsum("nii->ni", normal)
+        damped = normal + (DAMPING * np.maximum(diagonal, 1e-9))[:, :, None] * np.eye(PARAMETERS)
+        step = _solve(damped, -gradient)
+        length = np.linalg.norm(step[:, :2], axis=1)
+        step *= np.minimum(1.0, MAX_STEP_PX / np.maximum(length, 1e-12))[:, None]
+        step[:, 2:4] = np.clip(step[:, 2:4], -MAX_LOG_BLUR_STEP, MAX_LOG_BLUR_STEP)
+        params += step
+        params[:, 2:4] = np.clip(params[:, 2:4], np.log(0.5 * SIGMA_RANGE_PX[0]), np.log(2 * SIGMA_RANGE_PX[1]))
+        residual, jacobian = _residual(values, params, pattern, derivatives=True)
+        if np.all(length < CONVERGED_PX):
+            break
     count = weight.sum(axis=1)
     jw = jacobian * weight[..., None]
     normal = np.einsum("nmi,nmj->nij", jw, jacobian)
@@ -195,7 +197,7 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     # neighbour's ink), each taken as noise of its variance; and a floor for what neither shows.
     covariances = (NOISE_GAIN * noise ** 2 + MISFIT_GAIN * misfit)[:, None, None] * inverse + FLOOR_PX ** 2 * np.eye(2)
     fitted, sigma, contrast = start + params[:, :2], np.exp(params[:, 2:4]), params[:, 5]
-    ok = (finite & (count >= MIN_PIXELS) & (contrast > 0) & np.all(sigma >= SIGMA_RANGE_PX[0], axis=1)
+    ok = (finite & (count >= MIN_PIXELS) & (contrast > 0) & ((weight * residual ** 2).sum(axis=1) <= start_cost) & np.all(sigma >= SIGMA_RANGE_PX[0], axis=1)
           & np.all(sigma <= SIGMA_RANGE_PX[1], axis=1)
           & (np.linalg.norm(fitted - start, axis=1) <= MAX_MOVE_PX) & np.all(np.isfinite(covariances), axis=(1, 2)))
     return CornerFit(np.where(ok[:, None], fitted, start), np.where(ok[:, None, None], covariances, np.nan),
@@ -263,28 +265,28 @@ class _Pattern:
 
         Four quadrants of ink: the two black squares (signs (1, b) and (-1, -b) along the normals, b = ``black``)
         and the two markers' borders in the white squares (signs (1, -b) and (-1, b)), ``margins`` out."""
-        sigma_s, sigma_t = np.exp(params[:, 2:3]), np.exp(params[:, 3:4])
-        along = self.along - np.einsum("nij,nj->ni", self.normals, params[:, :2])[:, None]  # (N, M, 2)
-        ink = np.zeros(along.shape[:2])
-        d_s = d_t = d_sigma_s = d_sigma_t = 0.0
-        b = self.black[:, None]
-        for sign_s, sign_t, shifted in ((1.0, b, 0.0), (-1.0, -b, 0.0), (1.0, -b, 1.0), (-1.0, b, 1.0)):
-            zs = (sign_s * along[..., 0] - shifted * self.margins[:, 0:1]) / sigma_s
-            zt = (sign_t * along[..., 1] - shifted * self.margins[:, 1:2]) / sigma_t
-            fs, ft = ndtr(zs), ndtr(zt)
-            ink += fs * ft
-            if derivatives:  # d zs / d shift = -sign_s n_s / sigma_s; d zs / d log sigma_s = -zs
-                ps, pt = np.exp(-0.5 * zs * zs), np.exp(-0.5 * zt * zt)
-                d_s = d_s - ps * ft * sign_s
-                d_t = d_t - pt * fs * sign_t
-                d_sigma_s = d_sigma_s - ps * ft * zs
-                d_sigma_t = d_sigma_t - pt * fs * zt
+        sigma = np.exp(params[:, None, 2:4])  # (N, 1, 2)
+        # px from each line, the second's sign flipped where the black squares are at (+1, -1), so that the black
+        # squares are the quadrants (+, +) and (-, -) and the markers' borders (+ margin, - margin) and (-, +) for all
+        shift = np.einsum("nij,nj->ni", self.normals, params[:, :2])[:, None]
+        flip = np.stack([np.ones_like(self.black), self.black], axis=1)[:, None]  # (N, 1, 2)
+        along = (self.along - shift) * flip
+        margins = self.margins[:, None]
+        z0, zp, zm = along / sigma, (along - margins) / sigma, (-along - margins) / sigma  # each (N, M, 2)
+        f0, fp, fm = ndtr(z0), ndtr(zp), ndtr(zm)
+        ink = (f0[..., 0] * f0[..., 1] + (1 - f0[..., 0]) * (1 - f0[..., 1])
+               + fp[..., 0] * fm[..., 1] + fm[..., 0] * fp[..., 1])
         if not derivatives:
             return ink, None
         root = 1.0 / np.sqrt(2 * np.pi)
-        d_s, d_t = d_s * root / sigma_s, d_t * root / sigma_t
-        d_shift = d_s[..., None] * self.normals[:, None, 0, :] + d_t[..., None] * self.normals[:, None, 1, :]
-        return ink, np.concatenate([d_shift, (d_sigma_s * root)[..., None], (d_sigma_t * root)[..., None]], axis=2)
+        p0, pp, pm = np.exp(-0.5 * z0 * z0) * root, np.exp(-0.5 * zp * zp) * root, np.exp(-0.5 * zm * zm) * root
+        other = (2 * f0[..., ::-1] - 1, fm[..., ::-1], fp[..., ::-1])  # the other line's factors, for each line
+        # d ink / d along (per line, times sigma) and d ink / d log sigma (per line)
+        d_along = (p0 * other[0] + pp * other[1] - pm * other[2]) / sigma
+        d_sigma = -(p0 * z0 * other[0] + pp * zp * other[1] + pm * zm * other[2])
+        axes = flip[:, 0, :, None] * self.normals  # (N, 2, 2): d along / d shift = -flip n
+        d_shift = -(d_along[..., 0:1] * axes[:, None, 0] + d_along[..., 1:2] * axes[:, None, 1])
+        return ink, np.concatenate([d_shift, d_sigma], axis=2)
 
 
 def _residual(values: np.ndarray, params: np.ndarray, pattern: _Pattern, derivatives: bool):

@@ -118,6 +118,10 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
         from evaluate.unseen_boards import sections as unseen_sections
 
         out += unseen_sections(results["unseen_boards"], LABELS)
+    if results.get("corner_precision"):
+        from evaluate.corner_precision import sections as precision_sections
+
+        out += precision_sections(results["corner_precision"])
     if results.get("calibration"):
         from evaluate.calibration_eval import calibration_sections
 

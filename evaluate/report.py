@@ -33,7 +33,7 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import write_atomic
 from deepcharuco.opencv_detector import OpenCVDetector
 from evaluate import captures as real_captures
-from evaluate import calibration_eval, documents, experiments, false_positives, figures, unseen_boards
+from evaluate import calibration_eval, corner_precision, documents, experiments, false_positives, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
 from evaluate.machine import cpu_description
 from evaluate.protocols import LEVELS
@@ -42,6 +42,7 @@ DEFAULT_SEQUENCES = Path("data/sequences")
 DEFAULT_DATA = Path("data/test")
 TEST_SEED = 1000  # held-out renders: training renders use other seeds (the sequences are evaluation-only scenes)
 DEFAULT_TEST_FRAMES = 120
+CORNER_PRECISION_FRAMES = 4  # drawn views per board and condition (2 with --quick): 180 frames, ~1.5 min
 SYNTHETIC_IMAGES, QUICK_SYNTHETIC_IMAGES = 20, 6  # the paper's 20; --quick's fewer unless --synthetic-images says
 
 
@@ -203,7 +204,15 @@ def run_report(args: argparse.Namespace) -> dict:
         results["false_positives"] = false_positives.false_positive_experiment(
             suspects, board, views=4 if quick else args.look_alike_views, seed=args.seed, quiet=args.quiet)
 
+    if not args.no_corner_precision:
+        # Sub-pixel error against exact truth by condition, every placer on the same drawn views; seed 1 (0 tuned).
+        results["corner_precision"] = corner_precision.run(seed=1, frames=2 if quick else CORNER_PRECISION_FRAMES,
+                                                           boards=list(corner_precision.BOARDS),
+                                                           conditions=list(corner_precision.CONDITIONS), quiet=args.quiet)
+        pictures["corner_sigma"] = corner_precision.sigma_figure(results["corner_precision"])
+
     results["targets"] = experiments.targets(results, [*false_positives.targets(results.get("false_positives", {})),
+                                                       *corner_precision.targets(results.get("corner_precision")),
                                                        *unseen_boards.targets(results.get("unseen_boards", {}))])
     results["seconds"] = round(time.perf_counter() - started, 1)
     notes.append(_summary(results))
@@ -281,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="views of each look-alike board in the false-positive section (default: %(default)s, "
                              "--quick 4)")
     parser.add_argument("--no-false-positives", action="store_true", help="skip the false-positive section")
+    parser.add_argument("--no-corner-precision", action="store_true",
+                        help="skip the sub-pixel corner error section (evaluate.corner_precision)")
     parser.add_argument("--board", default=None, help="BoardSpec file (default: the test shards' board)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",

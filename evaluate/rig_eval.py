@@ -56,7 +56,8 @@ def detect_all(frames: list[list[np.ndarray]], detector, quiet: bool = True, lab
         detections = []
         for n, image in enumerate(tqdm(views, desc=f"{label} camera {c}", disable=quiet, leave=False)):
             found = detector.detect(image)
-            detections.append(FrameDetection(n, str(n), found.ids, found.corners, sharpness(image, found.corners)))
+            detections.append(FrameDetection(n, str(n), found.ids, found.corners, sharpness(image, found.corners),
+                                             found.covariances))
         out.append(detections)
     return out
 

@@ -180,7 +180,8 @@ def test_report_end_to_end(frames, camera, tmp_path, checkpoint):
             "--no-calibration",  # a data/calibration in the checkout must not slow this down (test_calibrate covers it)
             "--no-captures",  # nor the shipped real-capture sample (test_captures covers it)
             "--no-unseen-boards",  # nor a data/unseen (evaluate.unseen_boards; test_any_board covers the detector)
-            "--no-false-positives"]  # test_false_positives covers it with the shipped weights
+            "--no-false-positives",  # test_false_positives covers it with the shipped weights
+            "--no-corner-precision"]  # test_corner_fit covers it
     assert report.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
     assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "deep_paper", "deep_markers", "opencv",
@@ -216,7 +217,8 @@ def test_report_of_a_points_only_model_leaves_out_the_papers_decoding(frames, ca
     argv = ["--sequences", str(tmp_path / "seq"), "--data", str(tmp_path / "data"), "--out", str(out), "--quiet",
             "--weights", str(tmp_path / "family.pt"), "--refine-weights", str(checkpoint / "refinenet.pt"),
             "--synthetic-images", "2", "--timing-seconds", "0.1", "--gallery", "1", "--no-autolabel-check",
-            "--no-render", "--no-calibration", "--no-captures", "--no-unseen-boards", "--no-false-positives"]
+            "--no-render", "--no-calibration", "--no-captures", "--no-unseen-boards", "--no-false-positives",
+            "--no-corner-precision"]
     assert report.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
     assert set(results["detectors"]) == {"deep", "deep_subpix", "deep_norefine", "opencv", "opencv_norefine"}
