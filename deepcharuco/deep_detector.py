@@ -28,10 +28,10 @@ from deepcharuco.board import BoardSpec, marker_family
 from deepcharuco.board_check import (
     GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, apply_homography, assign_ids, fit_board_homography, id_hypotheses,
 )
+from deepcharuco.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.detection import Detection, corner_spacing, detect_board_result, no_corners
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.image import to_gray_u8
-from deepcharuco.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
@@ -466,7 +466,7 @@ class Detector:
             with stage("opencv"):
                 found = self._opencv.detect(image)
             if self._verified(found):
-                return found
+                return self._opencv_fitted(image, found) if self.corner_fit else found
         with stage("canonical view"):
             gray_u8 = to_gray_u8(image)
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
@@ -503,20 +503,38 @@ class Detector:
         covariances = None
         if self.corner_fit:
             with stage("corner fit"):
-                corners, covariances = self._fitted(region, ids, corners)
+                # a corner the point head missed sits on a shadow's edge, which the fit's model does not hold: the
+                # junction's pattern, which allows the edge, keeps it (tests/test_junction.py)
+                corners, covariances = self._fitted(region, ids, corners, keep=scores == PATTERN_SCORE)
         corners = corners + np.array(found.box[:2], np.float32)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
                          covariances=covariances_from_canonical(covariances, self.board))
 
-    def _fitted(self, full: np.ndarray, ids: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def _opencv_fitted(self, image: np.ndarray, found: Detection) -> Detection:
+        """OpenCV's verified corners placed by the printed-pattern fit, with their covariances (hybrid mode)."""
+        with stage("corner fit"):
+            full = canonical_view(to_gray_u8(image), self.board)
+            width = full.shape[1]
+            # a mirror's flip is its own inverse: the same call maps the corners into the canonical view and back
+            corners, covariances = self._fitted(full, found.ids, corners_from_canonical(found.corners, self.board, width))
+            return Detection(found.ids, corners_from_canonical(corners, self.board, width), found.scores,
+                             covariances_from_canonical(covariances, self.board))
+
+    def _fitted(self, full: np.ndarray, ids: np.ndarray, corners: np.ndarray, keep: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, 2) corners of ``ids`` in ``full`` -> (the printed pattern's fit of each where it converges, else the
-        corner as it was; (N, 2, 2) covariances: the fit's, else `FALLBACK_SIGMA_PX` squared)."""
+        corner as it was; (N, 2, 2) covariances: the fit's, else `FALLBACK_SIGMA_PX` squared). ``keep`` (N,) bool:
+        corners left where they are, with the fallback's covariance."""
         homography = view_homography(self.board, ids, corners)
         if homography is None:
             return corners, None
-        fit = fit_corners(full, self.board, homography, ids, corners)
-        covariances = np.where(fit.ok[:, None, None], fit.covariances, FALLBACK_SIGMA_PX ** 2 * np.eye(2))
-        return fit.corners.astype(np.float32), covariances
+        fit_rows = np.ones(len(ids), bool) if keep is None else ~keep
+        fit = fit_corners(full, self.board, homography, ids[fit_rows], corners[fit_rows])
+        fitted = corners.copy()
+        fitted[fit_rows] = fit.corners
+        covariances = np.broadcast_to(FALLBACK_SIGMA_PX ** 2 * np.eye(2), (len(ids), 2, 2)).copy()
+        covariances[fit_rows] = np.where(fit.ok[:, None, None], fit.covariances, covariances[fit_rows])
+        return fitted.astype(np.float32), covariances
 
     def _refined(self, full: np.ndarray, gray: np.ndarray, pixels: np.ndarray, corners: np.ndarray, seen: np.ndarray,
                  ratio: np.ndarray, preview: bool, early: EarlyRefinement | None) -> np.ndarray:

@@ -191,3 +191,15 @@ def test_corner_precision_experiment_scores_every_placer_on_the_same_corners():
     again = corner_precision.make_frame(corner_precision.BOARDS["paper 5x5 DICT_5X5_50"], "blur5",
                                         np.random.default_rng(0))
     assert np.array_equal(frame.image, again.image)  # same seed, same bytes
+
+
+@pytest.mark.parametrize("name", ["paper", "inverted"])
+def test_hybrid_mode_fits_opencvs_corners_too(name):
+    board = BOARDS[name]
+    image, truth = view(board, fill=0.5)
+    hybrid = Detector(board=board, mode="hybrid").detect(image)
+    plain = Detector(board=board, mode="hybrid", corner_fit=False).detect(image)
+    assert np.array_equal(hybrid.ids, plain.ids) and len(hybrid) >= board.num_corners - 2
+    assert np.all(np.isnan(plain.covariances)) and np.all(np.isfinite(hybrid.covariances))
+    fitted_error = np.median(np.linalg.norm(hybrid.corners - truth[hybrid.ids], axis=1))
+    assert fitted_error < 0.5 * np.median(np.linalg.norm(plain.corners - truth[plain.ids], axis=1))
