@@ -45,7 +45,7 @@ DARK_K = 7
 SMALL, LARGE, FILLING = Placement(0.10, 0.30), Placement(0.50, 0.95), Placement(0.30, 0.95)
 FIVE_MP = (2592, 1944)
 TINY_BOARD = BoardSpec(squares_x=3, squares_y=3, square_length=0.04, marker_length=0.03, dictionary="DICT_5X5_100")
-STAGE_GROUPS = ("network", "candidates", "board check", "markers", "refine", "pose", "other")
+STAGE_GROUPS = ("network", "candidates", "board check", "markers", "refine", "corner fit", "pose", "other")
 
 
 def parse_size(text: str) -> tuple[int, int]:

@@ -305,6 +305,38 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def calibration_check(seed: int, conditions: list[str], instants: int = 40, quiet: bool = False) -> list[dict]:
+    """Each camera of a drawn two-camera rig (`evaluate.rig_views`, exact intrinsics) calibrated on its own from the
+    shipped detector's corners weighed by their covariances and not, RefineNet's corners alone, and OpenCV +
+    cornerSubPix's: fx / fy error (%), cx / cy error (px), RMS (px) per camera, or why there is no calibration."""
+    from deepcharuco.calibration import CalibrationError, SelectionOptions, border_margin, calibrate
+    from evaluate.rig_eval import detect_all
+    from evaluate.rig_views import RIG_BOARD, drawn_rig
+
+    board = RIG_BOARD
+    placers = {"deep": (Detector(board=board), "refinenet", (True, False)),
+               "RefineNet": (Detector(board=board, corner_fit=False), "refinenet", (False,)),
+               "OpenCV + cornerSubPix": (OpenCVDetector(board), "subpix", (False,))}
+    rows = []
+    for condition in conditions:
+        rig = drawn_rig(board, seed=seed, cameras=2, instants=instants, condition=condition)
+        for name, (detector, refine, weighings) in placers.items():
+            for camera, frames in enumerate(detect_all(rig.frames, detector, quiet, f"{condition} {name}")):
+                for weighed in weighings:
+                    row = {"condition": condition, "placer": name, "camera": camera, "corner_weights": weighed}
+                    options = SelectionOptions(border_px=border_margin(refine), weight_corners=weighed)
+                    try:
+                        result = calibrate(frames, board, rig.cameras[camera].image_size, options=options)
+                    except CalibrationError as error:
+                        rows.append({**row, "failed": str(error)})
+                        continue
+                    K, truth = result.camera.K, rig.cameras[camera].K
+                    rows.append({**row, "fx_pct": 100 * (K[0, 0] / truth[0, 0] - 1), "fy_pct": 100 * (K[1, 1] / truth[1, 1] - 1),
+                                 "cx_px": K[0, 2] - truth[0, 2], "cy_px": K[1, 2] - truth[1, 2], "rms_px": result.rms,
+                                 "views": len(result.views)})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m evaluate.corner_precision", description=__doc__.split("\n")[0])
     parser.add_argument("--seed", type=int, default=1, help="0 is validation, 1 measures (default 1)")
@@ -314,7 +346,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
     parser.add_argument("--out", type=Path, help="write the results as JSON here")
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--calibration", action="store_true",
+                        help="instead: calibrate each camera of a drawn two-camera rig in good light, dark and shake from "
+                             "each placer's corners (`calibration_check`, ~5 min)")
     args = parser.parse_args(argv)
+    if args.calibration:
+        rows = calibration_check(args.seed, ["good", "dark", "shake"], quiet=args.quiet)
+        for row in rows:
+            what = f"{row['condition']:6s} {row['placer']:22s} camera {row['camera']} corner weights {row['corner_weights']!s:5s}"
+            print(what, row["failed"] if "failed" in row else
+                  f"fx {row['fx_pct']:+.3f} % fy {row['fy_pct']:+.3f} % cx {row['cx_px']:+.2f} cy {row['cy_px']:+.2f} px "
+                  f"RMS {row['rms_px']:.3f} px, {row['views']} views")
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps(rows, indent=1))
+        return 0
     results = run(args.seed, args.frames, args.boards, args.conditions, args.quiet)
     print(table(results))
     if args.out:

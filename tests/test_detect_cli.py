@@ -36,6 +36,27 @@ def test_image_with_pose(tmp_path):
     assert len(rows) == 2 and rows[1].startswith("0,board_320x240.png,16,0 1 2")
 
 
+@pytest.mark.parametrize("detector", ["deep", "hybrid", "opencv"])
+def test_corner_uncertainties_in_the_csv_and_json(tmp_path, detector):
+    import csv
+
+    for fit in (True, False):
+        out = tmp_path / f"{detector}-{fit}"
+        extra = [] if fit else ["--no-corner-fit"]
+        assert main([str(EXAMPLES / "board_320x240.png"), "--detector", detector, "--out", str(out), "--quiet",
+                     *extra]) == 0
+        row = next(csv.DictReader((out / "board_320x240.csv").open()))
+        sigmas = np.array(row["sigmas"].split(), float)
+        covariances = json.loads((out / "board_320x240.json").read_text())["frames"][0]["covariances"]
+        assert len(sigmas) == len(covariances) == int(row["num_corners"]) >= 14
+        if fit and detector != "opencv":  # OpenCV's corners carry none
+            assert np.all((sigmas > 0.001) & (sigmas < 0.5))
+            xx, xy, yy = np.array(covariances).T
+            assert np.allclose(sigmas ** 2, (xx + yy) / 2 + np.hypot((xx - yy) / 2, xy), rtol=1e-3, atol=1e-6)
+        else:
+            assert np.all(np.isnan(sigmas)) and all(c is None for c in covariances)
+
+
 def test_video_and_scaled_camera(tmp_path, camera):
     board = BoardSpec()
     video = tmp_path / "clip.avi"
