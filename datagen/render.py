@@ -27,7 +27,7 @@ import cv2
 import deepcharuco
 from datagen.family import FamilySampling, check_prefixes, parse_families
 from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
-from datagen.shards import ShardReader, list_shards, temporary_prefix, update_index, write_shard
+from datagen.shards import INDEX_NAME, ShardReader, list_shards, temporary_prefix, update_index, write_shard
 from datagen.workers import TaskError, death_cause, report_progress, run_tasks
 from deepcharuco.board import BoardSpec
 from deepcharuco.cli import describe_os_error, output_folder, run_command
@@ -154,10 +154,13 @@ def check_existing(job: RenderJob, mine: list[int], resume: bool) -> set[int]:
 
 
 def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
-    """Leftovers of a killed run for the shards this job owns (never complete, never read)."""
+    """Leftovers of a killed run for the shards this job owns (never complete, never read), and a half-written
+    index of a run killed while it rebuilt the index (this run rebuilds it)."""
     for shard in shards:
         for path in out.glob(f"{temporary_prefix(shard)}*"):
             path.unlink(missing_ok=True)
+    for path in out.glob(f".{INDEX_NAME}.tmp-*"):
+        path.unlink(missing_ok=True)
 
 
 def run_shard_tasks(function, tasks: list[tuple], shards: list[int], out: Path, *, noun: str = "shard",

@@ -266,7 +266,7 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]], list[str]]]
             f"seed {results['seed']}, {results['frames_per_cell']} frames per board and condition, boards: "
             f"{', '.join(results['boards'])}), on the corners every placer found. OpenCV's corners are without OpenCV "
             "4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the printed-pattern fit "
-            "(deepcharuco/corner_fit.py). Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and "
+            "(deepcharuco/corner_fit.py), with the shipped weights for each board whatever --weights says. Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and "
             "covariances C (1: the covariances are right).")
     return [("Sub-pixel corner error", text, rows, ["corner_sigma"])]
 

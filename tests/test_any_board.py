@@ -283,7 +283,12 @@ def test_hybrid_keeps_verified_opencv_corners_and_falls_back_to_the_networks(cam
     image, truth = view_of(board, camera, **POSES[0])
     lit = hybrid.detect(image)
     reference = opencv.detect(image)
-    assert np.array_equal(lit.ids, reference.ids) and np.allclose(lit.corners, reference.corners)
+    unfitted = Detector(board=board, mode="hybrid", corner_fit=False).detect(image)
+    assert np.array_equal(unfitted.ids, reference.ids) and np.allclose(unfitted.corners, reference.corners)
+    # OpenCV's corners, placed by the printed-pattern fit: the same corners, nearer the truth
+    assert np.array_equal(lit.ids, reference.ids) and np.abs(lit.corners - reference.corners).max() < 0.5
+    assert (np.median(np.linalg.norm(lit.corners - truth[lit.ids], axis=1))
+            < np.median(np.linalg.norm(reference.corners - truth[reference.ids], axis=1)))
     dark = np.round(image * 0.6 ** 9).astype(np.uint8)
     assert len(opencv.detect(dark).ids) == 0
     found = hybrid.detect(dark)
@@ -391,10 +396,13 @@ def test_hybrid_keeps_opencvs_corners_of_a_board_too_small_for_the_geometry_chec
     image = render_board_view(board, camera.K, rvec, tvec, camera.image_size)
     reference = OpenCVDetector(board, refine="subpix").detect(image)
     assert len(reference.ids) == board.num_corners == 4
-    found = Detector(board=board, mode="hybrid").detect(image)
+    found = Detector(board=board, mode="hybrid", corner_fit=False).detect(image)
     assert np.array_equal(found.ids, reference.ids) and np.allclose(found.corners, reference.corners)
     truth = project_corners(board, rvec, tvec, camera.K)
     assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 0.5
+    fitted = Detector(board=board, mode="hybrid").detect(image)  # four corners: the fit's homography still holds
+    assert np.array_equal(fitted.ids, reference.ids) and np.all(np.isfinite(fitted.covariances))
+    assert np.linalg.norm(fitted.corners - truth[fitted.ids], axis=1).max() < 0.1
 
 
 def test_a_degenerate_cell_maps_to_non_finite_values_without_a_warning():

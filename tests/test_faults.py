@@ -239,7 +239,7 @@ def test_detect_stopped_by_ctrl_c_writes_what_it_did_marked_incomplete(tmp_path,
         def estimate_pose(self, *args):
             return self.detector.estimate_pose(*args)
 
-    monkeypatch.setattr(detect_cli, "make_detector", lambda *args: StopsAtThird(made(*args)))
+    monkeypatch.setattr(detect_cli, "make_detector", lambda *args, **kwargs: StopsAtThird(made(*args, **kwargs)))
     out = tmp_path / "out"
     assert detect_cli.main([str(board_video), "--out", str(out), "--refresh-every", "1", "--quiet"]) == 130
     captured = capsys.readouterr()
