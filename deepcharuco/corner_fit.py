@@ -67,8 +67,8 @@ class CornerFit:
         covariances: (N, 2, 2) float64 px^2, calibrated (`NOISE_GAIN`); NaN where ``ok`` is False.
         sigma: (N, 2) the fitted blur (px) across each of the board's two lines; contrast: (N,) ``beta`` (grey
             levels); pixels: (N,) the pixels fitted.
-        ok: (N,) bool: the fit converged on the pattern (positive contrast, a blur in `SIGMA_RANGE_PX`, a move
-            within `MAX_MOVE_PX`, at least `MIN_PIXELS` pixels).
+        ok: (N,) bool: the fit found the pattern (positive contrast, blurs in `SIGMA_RANGE_PX`, a move within
+            `MAX_MOVE_PX`, at least `MIN_PIXELS` pixels, a residual no larger than at the start).
         noise: (N,) the sensor noise (grey levels) measured around the corners (`image_noise`); misfit: (N,) the
             fit's residual variance (grey levels^2, of the smoothed pixels); spread: (N, 2, 2) the corner's
             covariance per unit noise variance (the inverse normal matrix's corner block, px^2).
@@ -123,10 +123,10 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     ids = np.asarray(ids, np.int64)
     start = np.asarray(corners, np.float64).reshape(-1, 2)
     n = len(ids)
-    empty = CornerFit(start.copy(), np.full((n, 2, 2), np.nan), np.full((n, 2), np.nan), np.full(n, np.nan),
-                      np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n), np.zeros(n), np.full((n, 2, 2), np.nan))
     if n == 0:
-        return empty
+        nothing = np.zeros((0, 2, 2))
+        return CornerFit(start.copy(), nothing, np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool),
+                         np.zeros(0), np.zeros(0), nothing)
     margin, reach = _window_reach(board)
     axes = board_axes(homography, board.corner_points()[ids, :2], board.square_length)  # (N, 2, 2)
     with np.errstate(all="ignore"):
@@ -169,9 +169,9 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
 
     params = np.column_stack([np.zeros((n, 2)), np.full((n, 2), np.log(START_SIGMA_PX)), np.zeros((n, 2))])
     # the paper's level and the contrast from the window's extremes; the first steps put them right
-    inside = weight > 0
-    brightest = np.where(inside, values, -np.inf).max(axis=1)
-    params[:, 4], params[:, 5] = brightest, brightest - np.where(inside, values, np.inf).min(axis=1)
+    window = weight > 0
+    brightest = np.where(window, values, -np.inf).max(axis=1)
+    params[:, 4], params[:, 5] = brightest, brightest - np.where(window, values, np.inf).min(axis=1)
     # Gauss-Newton, lightly damped, each step's shift capped: the start is within a pixel or so, where the model is
     # smooth (`PRE_BLUR_PX`); a fit that ends worse than it began is refused below.
     residual, jacobian = _residual(values, params, pattern, derivatives=True)
@@ -194,15 +194,16 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     count = weight.sum(axis=1)
     jw = jacobian * weight[..., None]
     normal = np.einsum("nmi,nmj->nij", jw, jacobian)
-    misfit = (weight * residual ** 2).sum(axis=1) / np.maximum(count - PARAMETERS, 1)  # the smoothed pixels' residual variance
+    cost = (weight * residual ** 2).sum(axis=1)
+    misfit = cost / np.maximum(count - PARAMETERS, 1)  # the smoothed pixels' residual variance
     with np.errstate(all="ignore"):
         inverse = np.linalg.pinv(normal)[:, :2, :2]  # per unit noise variance
     # The sensor's noise, and what the model does not explain (a shadow's edge, a motion's box-shaped blur, a
     # neighbour's ink), each taken as noise of its variance; and a floor for what neither shows.
     covariances = (NOISE_GAIN * noise ** 2 + MISFIT_GAIN * misfit)[:, None, None] * inverse + FLOOR_PX ** 2 * np.eye(2)
     fitted, sigma, contrast = start + params[:, :2], np.exp(params[:, 2:4]), params[:, 5]
-    ok = (finite & (count >= MIN_PIXELS) & (contrast > 0) & ((weight * residual ** 2).sum(axis=1) <= start_cost) & np.all(sigma >= SIGMA_RANGE_PX[0], axis=1)
-          & np.all(sigma <= SIGMA_RANGE_PX[1], axis=1)
+    ok = (finite & (count >= MIN_PIXELS) & (contrast > 0) & (cost <= start_cost)
+          & np.all((sigma >= SIGMA_RANGE_PX[0]) & (sigma <= SIGMA_RANGE_PX[1]), axis=1)
           & (np.linalg.norm(fitted - start, axis=1) <= MAX_MOVE_PX) & np.all(np.isfinite(covariances), axis=(1, 2)))
     return CornerFit(np.where(ok[:, None], fitted, start), np.where(ok[:, None, None], covariances, np.nan),
                      sigma, contrast, count.astype(np.int64), ok, noise, misfit, inverse)

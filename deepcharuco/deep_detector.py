@@ -516,7 +516,8 @@ class Detector:
             full = canonical_view(to_gray_u8(image), self.board)
             width = full.shape[1]
             # a mirror's flip is its own inverse: the same call maps the corners into the canonical view and back
-            corners, covariances = self._fitted(full, found.ids, corners_from_canonical(found.corners, self.board, width))
+            canonical = corners_from_canonical(found.corners, self.board, width)
+            corners, covariances = self._fitted(full, found.ids, canonical)
             return Detection(found.ids, corners_from_canonical(corners, self.board, width), found.scores,
                              covariances_from_canonical(covariances, self.board))
 

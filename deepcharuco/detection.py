@@ -80,8 +80,8 @@ class Detection:
             "corners": self.corners.astype(float).round(4).tolist(),
             "scores": self.scores.astype(float).round(4).tolist(),
             # (xx, xy, yy) px^2 per corner; null where the detector gives none (JSON has no NaN)
-            "covariances": [None if not np.all(np.isfinite(c)) else [round(float(c[0, 0]), 6), round(float(c[0, 1]), 6),
-                                                                      round(float(c[1, 1]), 6)] for c in self.covariances],
+            "covariances": [[round(float(c[0, 0]), 6), round(float(c[0, 1]), 6), round(float(c[1, 1]), 6)]
+                            if np.all(np.isfinite(c)) else None for c in self.covariances],
         }
 
 

@@ -262,11 +262,12 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]], list[str]]]
     rows = [["condition", "corners", *PLACERS, "spread"]]
     for line in table(results).splitlines()[2:]:
         rows.append([c.strip() for c in line.strip("|").split("|")])
-    text = (f"Corner error (px, median / 90th percentile) against exact truth on drawn views (evaluate.corner_precision, "
-            f"seed {results['seed']}, {results['frames_per_cell']} frames per board and condition, boards: "
-            f"{', '.join(results['boards'])}), on the corners every placer found. OpenCV's corners are without OpenCV "
-            "4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the printed-pattern fit "
-            "(deepcharuco/corner_fit.py), with the shipped weights for each board whatever --weights says. Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and "
+    text = (f"Corner error (px, median / 90th percentile) against exact truth on drawn views "
+            f"(evaluate.corner_precision, seed {results['seed']}, {results['frames_per_cell']} frames per board and "
+            f"condition, boards: {', '.join(results['boards'])}), on the corners every placer found. OpenCV's "
+            "corners are without OpenCV 4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the printed-pattern fit "
+            "(deepcharuco/corner_fit.py), with the shipped weights for each board whatever --weights says. "
+            "Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and "
             "covariances C (1: the covariances are right).")
     return [("Sub-pixel corner error", text, rows, ["corner_sigma"])]
 
@@ -280,7 +281,8 @@ def sigma_figure(results: dict) -> bytes:
     for condition, cell in results["conditions"].items():
         bins = cell["sigma_bins"]
         if bins:
-            axis.plot([b["predicted"] for b in bins], [b["observed"] for b in bins], "-o", label=condition, markersize=4)
+            axis.plot([b["predicted"] for b in bins], [b["observed"] for b in bins], "-o", label=condition,
+                      markersize=4)
     axis.plot([0.003, 1.0], [0.003, 1.0], "k--", linewidth=1, label="observed = predicted")
     axis.set_xscale("log")
     axis.set_yscale("log")
@@ -331,9 +333,9 @@ def calibration_check(seed: int, conditions: list[str], instants: int = 40, quie
                         rows.append({**row, "failed": str(error)})
                         continue
                     K, truth = result.camera.K, rig.cameras[camera].K
-                    rows.append({**row, "fx_pct": 100 * (K[0, 0] / truth[0, 0] - 1), "fy_pct": 100 * (K[1, 1] / truth[1, 1] - 1),
-                                 "cx_px": K[0, 2] - truth[0, 2], "cy_px": K[1, 2] - truth[1, 2], "rms_px": result.rms,
-                                 "views": len(result.views)})
+                    rows.append({**row, "fx_pct": 100 * (K[0, 0] / truth[0, 0] - 1),
+                                 "fy_pct": 100 * (K[1, 1] / truth[1, 1] - 1), "cx_px": K[0, 2] - truth[0, 2],
+                                 "cy_px": K[1, 2] - truth[1, 2], "rms_px": result.rms, "views": len(result.views)})
     return rows
 
 
@@ -347,15 +349,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="write the results as JSON here")
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--calibration", action="store_true",
-                        help="instead: calibrate each camera of a drawn two-camera rig in good light, dark and shake from "
-                             "each placer's corners (`calibration_check`, ~5 min)")
+                        help="instead: calibrate each camera of a drawn two-camera rig in good light, dark and shake "
+                             "from each placer's corners (`calibration_check`, ~5 min)")
     args = parser.parse_args(argv)
     if args.calibration:
         rows = calibration_check(args.seed, ["good", "dark", "shake"], quiet=args.quiet)
         for row in rows:
-            what = f"{row['condition']:6s} {row['placer']:22s} camera {row['camera']} corner weights {row['corner_weights']!s:5s}"
+            what = (f"{row['condition']:6s} {row['placer']:22s} camera {row['camera']} "
+                    f"corner weights {row['corner_weights']!s:5s}")
             print(what, row["failed"] if "failed" in row else
-                  f"fx {row['fx_pct']:+.3f} % fy {row['fy_pct']:+.3f} % cx {row['cx_px']:+.2f} cy {row['cy_px']:+.2f} px "
+                  f"fx {row['fx_pct']:+.3f} % fy {row['fy_pct']:+.3f} % cx {row['cx_px']:+.2f} "
+                  f"cy {row['cy_px']:+.2f} px "
                   f"RMS {row['rms_px']:.3f} px, {row['views']} views")
         if args.out:
             args.out.parent.mkdir(parents=True, exist_ok=True)
