@@ -265,10 +265,10 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]], list[str]]]
     text = (f"Corner error (px, median / 90th percentile) against exact truth on drawn views "
             f"(evaluate.corner_precision, seed {results['seed']}, {results['frames_per_cell']} frames per board and "
             f"condition, boards: {', '.join(results['boards'])}), on the corners every placer found. OpenCV's "
-            "corners are without OpenCV 4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the printed-pattern fit "
-            "(deepcharuco/corner_fit.py), with the shipped weights for each board whatever --weights says. "
-            "Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and "
-            "covariances C (1: the covariances are right).")
+            "corners are without OpenCV 4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the "
+            "printed-pattern fit (deepcharuco/corner_fit.py), with the shipped weights for each board whatever "
+            "--weights says. Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and covariances C "
+            "(1: the covariances are right).")
     return [("Sub-pixel corner error", text, rows, ["corner_sigma"])]
 
 
