@@ -170,6 +170,9 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     params = np.column_stack([np.zeros((n, 2)), np.full((n, 2), np.log(START_SIGMA_PX)), np.zeros((n, 2))])
     # the paper's level and the contrast from the window's extremes; the first steps put them right
     window = weight > 0
+    if not window.any(axis=1).all():  # a window wholly outside the image: nothing to fit, and no extremes to start from
+        values = np.where(window, values, 0.0)
+        window[~window.any(axis=1)] = True
     brightest = np.where(window, values, -np.inf).max(axis=1)
     params[:, 4], params[:, 5] = brightest, brightest - np.where(window, values, np.inf).min(axis=1)
     # Gauss-Newton, lightly damped, each step's shift capped: the start is within a pixel or so, where the model is
@@ -196,13 +199,14 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     normal = np.einsum("nmi,nmj->nij", jw, jacobian)
     cost = (weight * residual ** 2).sum(axis=1)
     misfit = cost / np.maximum(count - PARAMETERS, 1)  # the smoothed pixels' residual variance
+    normal = np.where(np.isfinite(normal).all(axis=(1, 2))[:, None, None], normal, 0.0)  # a diverged fit: refused below
     with np.errstate(all="ignore"):
         inverse = np.linalg.pinv(normal)[:, :2, :2]  # per unit noise variance
     # The sensor's noise, and what the model does not explain (a shadow's edge, a motion's box-shaped blur, a
     # neighbour's ink), each taken as noise of its variance; and a floor for what neither shows.
     covariances = (NOISE_GAIN * noise ** 2 + MISFIT_GAIN * misfit)[:, None, None] * inverse + FLOOR_PX ** 2 * np.eye(2)
     fitted, sigma, contrast = start + params[:, :2], np.exp(params[:, 2:4]), params[:, 5]
-    ok = (finite & (count >= MIN_PIXELS) & (contrast > 0) & (cost <= start_cost)
+    ok = (finite & (count >= MIN_PIXELS) & (contrast > 0) & (cost <= start_cost) & np.isfinite(params).all(axis=1)
           & np.all((sigma >= SIGMA_RANGE_PX[0]) & (sigma <= SIGMA_RANGE_PX[1]), axis=1)
           & (np.linalg.norm(fitted - start, axis=1) <= MAX_MOVE_PX) & np.all(np.isfinite(covariances), axis=(1, 2)))
     return CornerFit(np.where(ok[:, None], fitted, start), np.where(ok[:, None, None], covariances, np.nan),

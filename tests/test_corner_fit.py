@@ -100,6 +100,12 @@ def test_fit_refuses_where_there_is_no_pattern():
     assert np.isnan(fit.covariances).all()
     empty = fit_corners(image, board, view_homography(board, ids, truth), np.zeros(0, int), np.zeros((0, 2)))
     assert len(empty.corners) == 0
+    # corners whose windows leave the image, wholly or in part (the report's synthetic protocol met one)
+    outside = truth + np.array([-400.0, 0.0]) * (np.arange(len(truth)) % 2 == 0)[:, None]
+    fit = fit_corners(image, board, view_homography(board, ids, truth), ids, outside)
+    assert not fit.ok[::2].any() and fit.ok[1::2].all() and np.array_equal(fit.corners[::2], outside[::2])
+    edge = np.array([[0.3, 100.0], [639.4, 200.0]])
+    assert fit_corners(image, board, view_homography(board, ids, truth), ids[:2], edge).corners.shape == (2, 2)
 
 
 def test_board_axes_are_the_homography_derivative():
