@@ -26,7 +26,7 @@ from evaluate.protocols import (
 )
 
 LABELS = {
-    "deep": "ChArUcoNet + RefineNet", "deep_subpix": "ChArUcoNet + cornerSubPix", "deep_norefine": "ChArUcoNet + NoRefine",
+    "deep": "ChArUcoNet + RefineNet + pattern fit", "deep_subpix": "ChArUcoNet + cornerSubPix", "deep_norefine": "ChArUcoNet + NoRefine",
     "deep_paper": "ChArUcoNet + RefineNet, paper's decoding",
     "deep_markers": "ChArUcoNet points + markers (any board) + RefineNet",
     "deep_paper_weights": "ChArUcoNet + RefineNet, the paper board's weights",

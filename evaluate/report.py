@@ -80,9 +80,12 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
         notes.append("**No deep detector**: this version ships no weights (deepcharuco/weights/detector.pt) and none "
                      "were given with --weights, so only OpenCV was evaluated.")
         return detectors
-    for name, refine in (("deep", "refinenet"), ("deep_subpix", "subpix"), ("deep_norefine", "none")):
+    # The paper's refinement comparison: its three configurations as the paper has them, with no printed-pattern fit
+    # after them; the shipped detector ("deep") has it.
+    for name, refine, fit in (("deep", "refinenet", True), ("deep_subpix", "subpix", False),
+                              ("deep_norefine", "none", False)):
         detectors[name] = Detector(board=board, weights=weights, refine=refine, device=device,
-                                   refine_weights=refine_weights)
+                                   refine_weights=refine_weights, corner_fit=fit)
     if detectors["deep"].geometry == "markers":  # no ID head for this board: a family model, or another layout
         notes.append(f"**The deep detector reads {board} by its markers** ({detectors['deep'].weights} is a points-only "
                      f"family model, or was trained for another layout): the deep rows are the markers decoding; the "

@@ -21,7 +21,7 @@ SAMPLE = Path(__file__).resolve().parents[1] / "captures_sample"  # shipped in t
 DEFAULT_STEP = 4
 DEFAULT_GALLERY = 3  # frames a set
 JPEG_QUALITY = 85
-LABELS = {"opencv": "OpenCV + cornerSubPix", "deep": "deep (ChArUcoNet + RefineNet)",
+LABELS = {"opencv": "OpenCV + cornerSubPix", "deep": "deep (ChArUcoNet + RefineNet + pattern fit)",
           "hybrid": "hybrid (OpenCV, else the networks)"}
 SHORT = {"opencv": "OpenCV", "deep": "deep", "hybrid": "hybrid"}  # in the gallery's captions
 
