@@ -50,7 +50,8 @@ class OpenCVDetector:
             markers), less the half-pixel bias of OpenCV 4.7-4.12 (`charuco_detector_bias`).
             ``"subpix"`` — the paper's "OpenCV + cornerSubPix" baseline — adds an explicit
             cornerSubPix pass converged to 0.001 px, with each corner's window kept clear of
-            the nearest detected marker corner as OpenCV does (half-window at least `MIN_WINDOW`).
+            the nearest detected marker corner as OpenCV does (half-window at least `MIN_WINDOW`, or
+            ``max_window`` where that is smaller).
         max_window: the largest cornerSubPix half-window (px) for ``"subpix"``.
     """
 
@@ -99,7 +100,7 @@ class OpenCVDetector:
         # of evaluate.corner_precision, seed 0: small squares p90 0.69 -> 0.24 px, oblique 0.22 -> 0.15, the rest
         # unchanged).
         nearest = np.linalg.norm(corners[:, None, :] - marker_points[None, :, :], axis=2).min(axis=1)
-        windows = np.clip((nearest - 2.0).astype(int), MIN_WINDOW, max(self.max_window, MIN_WINDOW))
+        windows = np.clip((nearest - 2.0).astype(int), min(MIN_WINDOW, self.max_window), self.max_window)
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 0.001)
         refined = corners.copy()
         for window in np.unique(windows):
