@@ -553,7 +553,7 @@ class Detector:
                            ) -> np.ndarray:
         """The corners ``placing`` (bool (N,)) of (ids (N,), corners (N, 2)) located where the board's printed
         pattern fits ``full`` best (`junction.locate_by_pattern`) in the view the others fit (least squares)."""
-        homography, _ = cv2.findHomography(self._board_xy[ids[~placing]], corners[~placing].astype(np.float64), 0)
+        homography = view_homography(self.board, ids[~placing], corners[~placing])
         if homography is None:
             return corners[placing]
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)

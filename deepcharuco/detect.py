@@ -34,7 +34,7 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.board_hints import what_matches
 from deepcharuco.camera import Camera, read_camera
 from deepcharuco.cli import output_folder, run_command
-from deepcharuco.detection import Detection
+from deepcharuco.detection import Detection, largest_sigmas
 from deepcharuco.draw import draw_detection
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
@@ -181,8 +181,8 @@ def _csv_row(record: dict) -> dict:
         "reprojection_error": pose.get("reprojection_error", ""),
         "num_inliers": len(pose["inliers"]) if pose else "",
         # each corner's standard deviation along its least certain direction (px); nan where none is given
-        "sigmas": _join(math.sqrt(max(c[0] + c[2], 0.0) / 2 + math.hypot((c[0] - c[2]) / 2, c[1])) if c else math.nan
-                        for c in record["covariances"]),
+        "sigmas": _join(largest_sigmas([[[c[0], c[1]], [c[1], c[2]]] if c else [[math.nan] * 2] * 2
+                                        for c in record["covariances"]])),
     }
 
 

@@ -9,6 +9,17 @@ import numpy as np
 from deepcharuco.vectors import pairwise_distances
 
 
+def largest_sigmas(covariances: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) covariances (px^2) -> (N,) float32 px: each one's standard deviation along its least certain
+    direction (the square root of the larger eigenvalue); NaN where a covariance is not finite."""
+    covariances = np.asarray(covariances, np.float64).reshape(-1, 2, 2)
+    finite = np.all(np.isfinite(covariances), axis=(1, 2))
+    largest = np.full(len(covariances), np.nan)
+    if finite.any():
+        largest[finite] = np.linalg.eigvalsh(covariances[finite])[:, -1]
+    return np.sqrt(np.maximum(largest, 0.0)).astype(np.float32)
+
+
 def no_corners() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ids (0,) int64, corners (0, 2) float32, scores (0,) float32): the decoders' answer when nothing is found."""
     return np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
@@ -50,15 +61,8 @@ class Detection:
 
     @property
     def sigmas(self) -> np.ndarray:
-        """(N,) float32 px: each corner's standard deviation along its least certain direction (the square root of
-        its covariance's larger eigenvalue); NaN where there is no covariance."""
-        if len(self) == 0:
-            return np.zeros(0, np.float32)
-        finite = np.all(np.isfinite(self.covariances), axis=(1, 2))
-        largest = np.full(len(self), np.nan, np.float32)
-        if finite.any():
-            largest[finite] = np.linalg.eigvalsh(self.covariances[finite].astype(np.float64))[:, -1]
-        return np.sqrt(np.maximum(largest, 0.0)).astype(np.float32)
+        """(N,) float32 px: `largest_sigmas` of the corners' covariances."""
+        return largest_sigmas(self.covariances)
 
     def information(self) -> np.ndarray | None:
         """(N, 2, 2) float64 inverse covariances (px^-2), the weights of a least-squares fit of these corners, or None

@@ -48,18 +48,17 @@ from deepcharuco.print_face import canonical_view
 from deepcharuco.synthetic import look_at_pose, render_board_view
 from evaluate.protocols import TestFrame, darken, motion_blur
 from evaluate.realistic import Placement, clutter, with_board
+from evaluate.unseen_boards import UNSEEN_BOARDS
 
 SIZE = (640, 480)
+# The report's boards (the unseen boards' three, the paper's) and a legacy layout; this order seeds each frame.
 BOARDS: dict[str, BoardSpec] = {
     "paper 5x5 DICT_5X5_50": BoardSpec(),
-    "7x5 DICT_6X6_250": BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03,
-                                  dictionary="DICT_6X6_250"),
-    "11x8 DICT_5X5_1000": BoardSpec(squares_x=11, squares_y=8, square_length=0.022, marker_length=0.016,
-                                    dictionary="DICT_5X5_1000"),
+    "7x5 DICT_6X6_250": UNSEEN_BOARDS["7x5 DICT_6X6_250"],
+    "11x8 DICT_5X5_1000": UNSEEN_BOARDS["11x8 DICT_5X5_1000"],
     "6x8 DICT_4X4_50 legacy": BoardSpec(squares_x=6, squares_y=8, square_length=0.03, marker_length=0.022,
                                         dictionary="DICT_4X4_50", legacy=True),
-    "4x5 DICT_4X4_1000 inverted": BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
-                                            dictionary="DICT_4X4_1000", inverted=True),
+    "4x5 DICT_4X4_1000 inverted": UNSEEN_BOARDS["4x5 DICT_4X4_1000 inverted"],
 }
 CONDITIONS = ("good", "oblique", "small", "lens", "dark5", "dark7", "blur5", "blur9", "shadow")
 GOOD = Placement(0.35, 0.8)
