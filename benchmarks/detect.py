@@ -36,7 +36,7 @@ from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
 from deepcharuco.stage_times import StageTimes, stage
 from deepcharuco.tracking import BoardTracker
-from evaluate.machine import cpu_description
+from evaluate.machine import cpu_description, gpu_name
 from evaluate.protocols import TestFrame, darken, score_corners, time_pipelines
 from evaluate.realistic import Placement, clutter, fit, real_backgrounds, video_frames, with_board, without_board
 from evaluate.unseen_boards import UNSEEN_BOARDS
@@ -131,7 +131,7 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
         print_row(label, [f"{groups[g]:.1f}" for g in STAGE_GROUPS] + [f"{levels:.1f}"], 11)
 
 
-def video_rows(realdata: Path) -> None:
+def video_rows(realdata: Path, device: str = "cpu") -> None:
     """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
     frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, and tracked."""
     videos = sorted(realdata.glob("*/*.mp4"))
@@ -143,7 +143,7 @@ def video_rows(realdata: Path) -> None:
     print_row("video", names, 20)
     for path in videos:
         board = BoardSpec.load(path.parent / "board.yaml")
-        deep, hybrid = Detector(board), Detector(board, mode="hybrid")
+        deep, hybrid = Detector(board, device=device), Detector(board, mode="hybrid", device=device)
         runs = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep, "deep tracked": BoardTracker(deep),
                 "hybrid tracked": BoardTracker(hybrid)}
         frames = video_frames(path)
@@ -170,6 +170,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="frames' seed (default: 0)")
     parser.add_argument("--skip-videos", action="store_true", help="leave the real videos out")
     parser.add_argument("--skip-boards", action="store_true", help="leave the drawn boards out (videos only)")
+    parser.add_argument("--device", default="cpu",
+                        help="where the deep detector's networks run: cpu (default), cuda, ... (PyTorch on a GPU)")
     args = parser.parse_args()
     if args.count < 1:
         parser.error("--count must be >= 1")
@@ -177,8 +179,9 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     real = [] if args.realdata is None else real_backgrounds(args.realdata / "caliscope_calibration", limit=24)
     board = BoardSpec()
-    deep = Detector(board)
-    print(f"# {cpu_description()}, OpenCV {cv2.__version__}; deep backend {deep.runner.name}")
+    deep = Detector(board, device=args.device)
+    print(f"# {cpu_description()}, OpenCV {cv2.__version__}; deep backend {deep.runner.name} on {args.device}"
+          + (f" ({gpu_name(args.device)})" if args.device != "cpu" else ""))
     print("# backgrounds: procedural clutter" + (f" and {len(real)} real frames without a board" if real else
                                                 " only (--realdata holds no caliscope_calibration review)"))
     print("# each detector: detect + estimate_pose; 'deep' = Detector(board), 'hybrid' = Detector(board, mode='hybrid')"
@@ -186,21 +189,21 @@ def main() -> None:
     if not args.skip_boards:
         sizes = [parse_size(s) for s in args.sizes.split(",")]
         detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep,
-                     "hybrid": Detector(board, mode="hybrid")}
+                     "hybrid": Detector(board, mode="hybrid", device=args.device)}
         print(f"\nthe paper's board ({board.squares_x}x{board.squares_y} {board.dictionary}), {args.count} frames a row")
         time_rows(board_rows(board, sizes, args.count, rng, real), detectors, args.seconds)
 
         frames = [with_board(TINY_BOARD, b, rng, Placement(0.08, 0.15), f"5MP #{i}")
                   for i, b in enumerate(backgrounds_for(FIVE_MP, max(2, args.count // 2), rng, real))]
-        tiny = {"opencv": OpenCVDetector(TINY_BOARD, refine="subpix"), "deep": Detector(TINY_BOARD),
-                "hybrid": Detector(TINY_BOARD, mode="hybrid")}
+        tiny = {"opencv": OpenCVDetector(TINY_BOARD, refine="subpix"), "deep": Detector(TINY_BOARD, device=args.device),
+                "hybrid": Detector(TINY_BOARD, mode="hybrid", device=args.device)}
         print(f"\na 3x3 board (4 corners, {TINY_BOARD.dictionary}) at 8-15 % of a {FIVE_MP[0]}x{FIVE_MP[1]} frame")
         time_rows([("5 MP tiny board", frames), ("5 MP tiny board dark", [darkened(f) for f in frames])], tiny,
                   args.seconds)
 
         for name, unseen in UNSEEN_BOARDS.items():
-            others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen),
-                      "hybrid": Detector(unseen, mode="hybrid")}
+            others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen, device=args.device),
+                      "hybrid": Detector(unseen, mode="hybrid", device=args.device)}
             print(f"\nboard never seen in training ({name}), read by its markers, on clutter")
             frames = [with_board(unseen, b, rng, FILLING, f"{name} #{i}")
                       for i, b in enumerate(backgrounds_for((640, 480), args.count, rng, real))]
@@ -211,7 +214,7 @@ def main() -> None:
     if args.realdata is None:
         print("\nno real videos timed: pass --realdata (docs/evaluation.md, Real captures)")
         return
-    video_rows(args.realdata)
+    video_rows(args.realdata, args.device)
 
 
 if __name__ == "__main__":

@@ -191,6 +191,10 @@ class BoardSpec:
     def cv_dictionary(self) -> cv2.aruco.Dictionary:
         return cv2.aruco.getPredefinedDictionary(_dictionary_id(self.dictionary))
 
+    def __getstate__(self) -> dict:
+        # Cached OpenCV objects do not pickle (worker processes are sent board specs): rebuilt there on first use.
+        return {name: value for name, value in self.__dict__.items() if not name.startswith("_")}
+
     @cached_property
     def _cv_board(self) -> cv2.aruco.CharucoBoard:
         ids = np.arange(self.first_marker_id, self.first_marker_id + self.num_markers, dtype=np.int32)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -30,10 +31,11 @@ from deepcharuco.calibration import (
 )
 from deepcharuco.camera import camera_file_text, is_camera_file
 from deepcharuco.cli import check_output_folder, run_command
-from deepcharuco.detect import make_detector, open_source
+from deepcharuco.detect import CHUNK_FRAMES, make_detector, make_finders, open_source
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8
+from deepcharuco.parallel import DetectorPool
 
 DETECTORS = ("opencv", "deep", "hybrid")
 
@@ -48,28 +50,38 @@ def make_calibration_detector(name: str, board: BoardSpec, refine: str, weights:
     return Detector(board=board, weights=weights, refine=refine, mode="hybrid")
 
 
-def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, quiet: bool = False
-                  ) -> tuple[list[FrameDetection], tuple[int, int] | None]:
+def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, quiet: bool = False,
+                  jobs: int = 1, make_finders=None) -> tuple[list[FrameDetection], tuple[int, int] | None]:
     """Detect the board in every ``step``-th frame of the iterable of (name, image) ``frames``.
 
     Returns (one `FrameDetection` per frame looked at, (width, height)); each frame is dropped as soon
-    as it is detected. Frames of another size than the first raise CalibrationError."""
-    detections: list[FrameDetection] = []
+    as it is detected. Frames of another size than the first raise CalibrationError. ``jobs`` > 1: the frames
+    are detected on that many worker processes (`deepcharuco.parallel`), each with the detector that the picklable
+    ``make_finders`` returns (a list of one)."""
     size = None
-    bar = tqdm(frames, total=total, unit="frame", desc="detecting", disable=quiet)
-    for index, (name, frame) in enumerate(bar):
-        if index % step:
-            continue
-        gray = to_gray_u8(frame)
-        if size is None:
-            size = (gray.shape[1], gray.shape[0])
-        elif (gray.shape[1], gray.shape[0]) != size:
-            raise CalibrationError(f"frame {name} is {gray.shape[1]}x{gray.shape[0]} but the first was {size[0]}x{size[1]}: "
-                                   f"calibrate frames of one camera at one resolution")
-        detection = detector.detect(gray)
-        detections.append(FrameDetection(index, str(name), detection.ids, detection.corners,
-                                         sharpness(gray, detection.corners), detection.covariances))
-        bar.set_postfix(boards=sum(len(d.ids) > 0 for d in detections), refresh=False)
+
+    def wanted():
+        nonlocal size
+        for index, (name, frame) in enumerate(frames):
+            if index % step:
+                continue
+            gray = to_gray_u8(frame)
+            if size is None:
+                size = (gray.shape[1], gray.shape[0])
+            elif (gray.shape[1], gray.shape[0]) != size:
+                raise CalibrationError(f"frame {name} is {gray.shape[1]}x{gray.shape[0]} but the first was "
+                                       f"{size[0]}x{size[1]}: calibrate frames of one camera at one resolution")
+            yield (index, str(name), gray), gray
+
+    detections: list[FrameDetection] = []
+    pool = DetectorPool(lambda: [detector]) if jobs == 1 else DetectorPool(make_finders, jobs, chunk=CHUNK_FRAMES)
+    with pool:
+        bar = tqdm(pool.detect(wanted()), total=None if total is None else -(-total // step), unit="frame",
+                   desc="detecting", disable=quiet)
+        for (index, name, gray), (detection,) in bar:
+            detections.append(FrameDetection(index, name, detection.ids, detection.corners,
+                                             sharpness(gray, detection.corners), detection.covariances))
+            bar.set_postfix(boards=sum(len(d.ids) > 0 for d in detections), refresh=False)
     return detections, size
 
 
@@ -146,7 +158,9 @@ def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) ->
     board = BoardSpec.load(args.board[0]) if args.board else BoardSpec()
     detector = make_calibration_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source[0], args.max_frames)
-    frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet)
+    make = partial(make_finders, args.detector, [board], args.refine, args.weights, None, "auto", True, "cpu", 1)
+    frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet,
+                                 jobs=args.jobs, make_finders=make)
     for line in source.problems():  # damaged stretches of a video, unreadable images: said, then calibrated without
         print(f"warning: {line}", file=sys.stderr)
     if size is None:
@@ -250,6 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="corners nearer the image's border than this (px) are not used (default: 12 for "
                              "--refine refinenet, whose 24 px patch would reach past the border, else 0)")
     parser.add_argument("--step", type=int, default=1, help="look at every n-th frame only")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="one camera: worker processes that detect frames side by side (up to ~jobs x the frames "
+                             "a second where the cores are there; the same detections)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (a camera: required)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -262,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")
     problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
-                for name, low in (("max_views", 4), ("min_views", 4), ("min_corners", 4), ("step", 1))
+                for name, low in (("max_views", 4), ("min_views", 4), ("min_corners", 4), ("step", 1), ("jobs", 1))
                 if getattr(args, name) < low]
     if args.max_frames is not None and args.max_frames < 1:
         problems.append(f"--max-frames must be >= 1, got {args.max_frames}")
@@ -275,6 +292,9 @@ def main(argv: list[str] | None = None) -> int:
         option = "--camera" if args.camera else "--sync-offsets" if args.sync_offsets else "--timestamps"
         problems.append(f"{option} is for a rig (two sources or more); one camera's intrinsics are what calibrate "
                         f"solves")
+    if rig and args.jobs > 1:
+        problems.append("--jobs is for one camera: a rig's synchronised sources are detected in one process (leave "
+                        "--jobs out)")
     if args.origin_instant is not None and args.origin != "board":
         problems.append("--origin-instant is for --origin board")
     if args.sync_offsets and args.timestamps:

@@ -47,6 +47,7 @@ import numpy as np
 from deepcharuco.board import BoardSpec
 from deepcharuco.camera import Camera
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.opencv_api import fisheye_calibration_flags
 from deepcharuco.pose import MIN_SPREAD_RATIO
 
 MODELS = ("pinhole", "rational", "fisheye")
@@ -507,11 +508,13 @@ def _named(raw: tuple, model: str, fix_k3: bool, zero_tangent: bool = False) -> 
 
 def _solve_fisheye(object_points: list[np.ndarray], image_points: list[np.ndarray],
                    image_size: tuple[int, int]) -> _Solution:
-    flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+    flags = fisheye_calibration_flags()
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+    # (1, N, 3) and (1, N, 2): OpenCV 5's fisheye calibration fails on OpenCV 4's (N, 1, 3) with "Sizes of input
+    # arguments do not match"; both take these
     _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
-        [p.reshape(-1, 1, 3).astype(np.float64) for p in object_points],
-        [p.reshape(-1, 1, 2).astype(np.float64) for p in image_points], image_size, None, None,
+        [p.reshape(1, -1, 3).astype(np.float64) for p in object_points],
+        [p.reshape(1, -1, 2).astype(np.float64) for p in image_points], image_size, None, None,
         flags=flags, criteria=criteria)
     return _Solution(K=np.asarray(K, np.float64), dist=np.asarray(dist, np.float64).ravel(),
                      rvecs=np.asarray(rvecs, np.float64).reshape(-1, 3), tvecs=np.asarray(tvecs, np.float64).reshape(-1, 3),

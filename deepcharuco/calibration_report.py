@@ -18,6 +18,7 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.calibration import CalibrationResult
 from deepcharuco.files import write_atomic
 from deepcharuco.html_page import html_page, png, pyplot
+from deepcharuco.opencv_api import undistort_points
 
 MAX_LISTED = 200  # rows of the per-frame table; the counts by reason cover every frame
 
@@ -31,7 +32,7 @@ def ideal_pixels(result: CalibrationResult, pixels: np.ndarray) -> np.ndarray:
         rays = cv2.fisheye.undistortPoints(points, K, dist)
     else:
         criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-        rays = cv2.undistortPointsIter(points, K, dist, None, None, criteria)
+        rays = undistort_points(points, K, dist, None, criteria)
     rays = rays.reshape(-1, 2)
     return np.stack([K[0, 0] * rays[:, 0] + K[0, 1] * rays[:, 1] + K[0, 2], K[1, 1] * rays[:, 1] + K[1, 2]], axis=1)
 

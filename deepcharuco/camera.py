@@ -13,6 +13,7 @@ import numpy as np
 
 from deepcharuco.errors import CameraFileError
 from deepcharuco.files import write_atomic
+from deepcharuco.opencv_api import undistort_points
 
 # "pinhole": OpenCV's standard model (cv2.projectPoints; 4, 5, 8, 12 or 14 coefficients, the rational
 # model included); "fisheye": cv2.fisheye's equidistant model (k1..k4), which cv2.projectPoints would
@@ -119,7 +120,7 @@ class Camera:
         if self.model == "fisheye":
             undistorted = cv2.fisheye.undistortPoints(points, self.K, self.dist, R=np.eye(3), P=self.K, criteria=criteria)
         else:
-            undistorted = cv2.undistortPointsIter(points, self.K, self.dist, None, self.K, criteria)
+            undistorted = undistort_points(points, self.K, self.dist, self.K, criteria)
         return undistorted.reshape(-1, 2)
 
 
@@ -134,15 +135,20 @@ def read_camera(path: str | Path) -> Camera:
     if not path.is_file():
         raise CameraFileError(f"camera file {path} does not exist: calibrate the camera first (python -m "
                               f"deepcharuco.calibrate VIDEO --board board.yaml --out {path})")
+
+    def not_ours(exc: Exception) -> CameraFileError:
+        return CameraFileError(f"{path} is not an OpenCV FileStorage file ({exc.__class__.__name__}); it must start "
+                               f"with '%YAML:1.0' (OpenCV 5: '%YAML 1.2') and hold camera_matrix as an opencv-matrix")
+
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:
-        raise CameraFileError(
-            f"{path} is not an OpenCV FileStorage file ({exc.__class__.__name__}); it must start with "
-            f"'%YAML:1.0' and hold camera_matrix as an opencv-matrix"
-        ) from exc
+        raise not_ours(exc) from exc
     try:
-        K = storage.getNode("camera_matrix").mat()
+        try:
+            K = storage.getNode("camera_matrix").mat()
+        except cv2.error as exc:  # OpenCV 5 opens a file without the header, and fails on its first node instead
+            raise not_ours(exc) from exc
         if K is None:
             raise CameraFileError(f"{path} has no camera_matrix (an opencv-matrix node)")
         dist = storage.getNode("distortion_coefficients").mat()

@@ -23,6 +23,7 @@ from collections import Counter
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -40,6 +41,7 @@ from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
 from deepcharuco.image import to_gray_u8
 from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.parallel import DetectorPool
 from deepcharuco.pose import Pose
 from deepcharuco.tracking import BoardTracker
 from deepcharuco.video import VideoFrames
@@ -47,6 +49,7 @@ from deepcharuco.video import VideoFrames
 # Frames kept (spread over the source, every HINT_STRIDE-th of a camera's, until the board is found) to say what
 # they show when no frame has the board.
 HINT_FRAMES, HINT_STRIDE = 12, 5
+CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`deepcharuco.parallel`)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
               "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
@@ -147,9 +150,11 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
 
 
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
-                  refine_weights: str | None = None, backend: str = "auto", corner_fit: bool = True):
+                  refine_weights: str | None = None, backend: str = "auto", corner_fit: bool = True,
+                  device: str = "cpu"):
     """"opencv", "deep" or "hybrid" (OpenCV first, the networks where its corners do not verify); ``corner_fit``:
-    the deep and hybrid detectors place corners last by the printed-pattern fit (`deepcharuco.corner_fit`)."""
+    the deep and hybrid detectors place corners last by the printed-pattern fit (`deepcharuco.corner_fit`);
+    ``device``: where their networks run ("cuda": PyTorch on the GPU)."""
     if name == "opencv":
         if refine == "refinenet":
             raise DeepCharucoError("--refine refinenet needs --detector deep or hybrid; OpenCV takes subpix or none")
@@ -157,7 +162,18 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
     from deepcharuco.deep_detector import Detector
 
     return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights,
-                    mode="hybrid" if name == "hybrid" else "deep", backend=backend, corner_fit=corner_fit)
+                    mode="hybrid" if name == "hybrid" else "deep", backend=backend, corner_fit=corner_fit,
+                    device=device)
+
+
+def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights: str | None,
+                 refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int
+                 ) -> list:
+    """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.parallel`): the detector,
+    wrapped in a `BoardTracker` where ``refresh_every`` > 1."""
+    detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
+                 for board in boards]
+    return [BoardTracker(d, refresh_every) if refresh_every > 1 else d for d in detectors]
 
 
 def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
@@ -234,11 +250,13 @@ def run(args: argparse.Namespace) -> dict:
     boards = [BoardSpec.load(path) if path else None for path in board_files]  # deep: default to the weights' board
     camera = read_camera(args.camera) if args.camera else None
     detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend,
-                               corner_fit=not args.no_corner_fit)
+                               corner_fit=not args.no_corner_fit, device=args.device)
                  for board in boards]
     source = open_source(args.source, args.max_frames)
-    # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames).
-    tracking = source.kind in ("video", "camera") and args.refresh_every > 1
+    # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames). A camera's
+    # frames go to --jobs workers one at a time, as they come: each is searched whole.
+    tracking = source.kind == "video" or (source.kind == "camera" and args.jobs == 1)
+    tracking = tracking and args.refresh_every > 1
     out = output_folder(args.out)
     runs = [_BoardRun(path, detector, BoardTracker(detector, args.refresh_every) if tracking else detector,
                       out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
@@ -265,12 +283,25 @@ def run(args: argparse.Namespace) -> dict:
             rows.writeheader()
             writers.append(rows)
         detect_seconds, total_seconds = None, 0.0
+        jobs = 1 if source.kind == "image" else args.jobs
+        if jobs == 1:
+            pool = DetectorPool(lambda: [board_run.finder for board_run in runs])
+        else:
+            print(f"detecting on {jobs} worker processes", file=sys.stderr)
+            pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
+                                        args.refine_weights, args.backend, not args.no_corner_fit, args.device,
+                                        args.refresh_every if tracking else 1),
+                                jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
+        files.callback(pool.close)
         try:
-            progress = tqdm(source.frames, total=source.total, unit="frame", disable=source.kind == "image" or args.quiet)
-            for index, (name, frame) in enumerate(progress):
-                started = time.perf_counter()
-                detections = [board_run.finder.detect(frame) for board_run in runs]
-                elapsed = time.perf_counter() - started
+            results = pool.detect(((name, frame), to_gray_u8(frame)) for name, frame in source.frames)
+            progress = tqdm(results, total=source.total, unit="frame", disable=source.kind == "image" or args.quiet)
+            mark = time.perf_counter()
+            for index, ((name, frame), detections) in enumerate(progress):
+                # One worker: reading and detecting this frame. Several: the time between results (they detect while
+                # this process writes), what the run delivers.
+                now = time.perf_counter()
+                elapsed = now - mark
                 total_seconds += elapsed
                 frames_read += 1
                 # Live detection speed (an exponential average: a camera's rate changes as the board moves), beside
@@ -295,6 +326,7 @@ def run(args: argparse.Namespace) -> dict:
                                                  board_run.detector.board)
                 if not args.no_overlay:
                     overlays.add(name, overlay)
+                mark = time.perf_counter() if jobs == 1 else now
         except KeyboardInterrupt:
             interrupted = True
             print(f"interrupted after {frames_read} frames; writing what was done (marked incomplete)", file=sys.stderr)
@@ -427,6 +459,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--backend", choices=list(BACKENDS), default="auto",
                         help="deep/hybrid: how the networks run (auto: ONNX Runtime when installed, int8 when the "
                              "weights carry an accepted int8 model; else PyTorch)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="worker processes that detect frames side by side (a folder, a video, a camera; each "
+                             "worker's network gets CPUs / jobs threads): up to ~jobs x the frames a second where the "
+                             "cores are there. A video's frames go to them in chunks of %d, each tracked from its "
+                             "first frame; a camera's one at a time, each searched whole" % CHUNK_FRAMES)
+    parser.add_argument("--device", default="cpu",
+                        help="deep/hybrid: where the networks run: cpu, or a PyTorch device such as cuda (needs "
+                             "PyTorch with CUDA; the decoding stays on the CPU, so --jobs helps there too)")
     parser.add_argument("--refresh-every", type=int, default=30,
                         help="video/camera: search the whole frame at least every N frames, in between only around "
                              "the last board found (1: whole frames always)")
@@ -456,6 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.refresh_every < 1:
         parser.error(f"--refresh-every must be >= 1 (1: search whole frames always), got {args.refresh_every}")
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1 (1: detect in this process), got {args.jobs}")
     if args.max_frames is not None and args.max_frames < 1:
         parser.error(f"--max-frames must be >= 1 (leave it out for every frame), got {args.max_frames}")
     args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")

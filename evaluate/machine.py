@@ -37,3 +37,13 @@ def cpu_description(cpuinfo: str | None = None) -> str:
     details = [machine] if machine and machine not in name else []
     details += [label for flag, label in VECTOR_EXTENSIONS if flag in flags][:1]
     return f"{name} ({', '.join(details)})" if details else name
+
+
+def gpu_name(device: str) -> str:
+    """The accelerator behind a PyTorch ``device`` ("cuda", "cuda:1", "mps"), e.g. ``"NVIDIA H200"``; the device
+    string itself where PyTorch cannot name it."""
+    import torch
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        return torch.cuda.get_device_name(torch.device(device))
+    return device

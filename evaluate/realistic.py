@@ -50,8 +50,11 @@ def clutter(rng: np.random.Generator, size: tuple[int, int]) -> np.ndarray:
             end = (centre[0] + int(rng.normal(0, 2 * extent)), centre[1] + int(rng.normal(0, 2 * extent)))
             cv2.line(image, centre, end, colour, max(1, int(rng.uniform(1, 4) * scale)))
         elif kind == 3:
-            cv2.putText(image, str(rng.choice(WORDS)), centre, cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.4, 1.5) * scale),
-                        colour, max(1, int(2 * scale)))
+            # drawn as a uint8 mask: OpenCV 5's putText takes 8-bit images only (the same pixels as 4.x's float)
+            mask = np.zeros((height, width), np.uint8)
+            cv2.putText(mask, str(rng.choice(WORDS)), centre, cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.4, 1.5) * scale),
+                        255, max(1, int(2 * scale)))
+            image[mask > 0] = colour
         else:  # a tiled grid: dark gaps between light tiles, seen at an angle
             _tiled_grid(image, rng, centre, extent, colour)
     image = cv2.GaussianBlur(image, (0, 0), 0.8)

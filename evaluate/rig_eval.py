@@ -33,6 +33,7 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.calibrate_rig import solve_rig
 from deepcharuco.calibration import CalibrationError, FrameDetection, SelectionOptions, border_margin, sharpness
 from deepcharuco.camera import Camera, read_camera
+from deepcharuco.opencv_api import undistort_points
 from deepcharuco.rig import RigResult, rotation_angle_deg
 from evaluate.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
 
@@ -108,8 +109,8 @@ def triangulated_squares(result: RigResult, board: BoardSpec) -> dict:
         rays: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
         for view in views:
             camera = result.cameras[view.camera]
-            normalised = cv2.undistortPointsIter(view.corners.reshape(-1, 1, 2), camera.K, camera.dist, None, None,
-                                                 (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-12)).reshape(-1, 2)
+            normalised = undistort_points(view.corners.reshape(-1, 1, 2), camera.K, camera.dist, None,
+                                          (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-12)).reshape(-1, 2)
             P = np.column_stack([result.rotations[view.camera], result.translations[view.camera]])
             for corner_id, xy in zip(view.ids, normalised):
                 rays.setdefault(int(corner_id), []).append((P, xy))

@@ -418,8 +418,9 @@ def test_deviations_are_at_least_the_view_bootstrap_spread(detections):
     images = [v.corners for v in result.views]
     solution = type("S", (), {"K": result.camera.K, "dist": result.camera.dist})()
     spread = bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution)
-    assert spread == bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution)  # seeded
+    # seeded: the same resamples (OpenCV 5's calibrateCamera repeats itself to ~1e-9, not bit for bit)
+    assert spread == pytest.approx(bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution), rel=1e-6)
     assert set(spread) >= {"fx", "fy", "cx", "cy", "k1"}
     for name, value in spread.items():
-        assert result.std[name] >= value  # the larger of the solver's and the bootstrap's
+        assert result.std[name] >= value * (1 - 1e-6)  # the larger of the solver's and the bootstrap's
         assert 0 < value < 20 * result.std[name]

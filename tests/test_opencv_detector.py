@@ -42,8 +42,10 @@ def test_non_default_board_through_the_same_code(camera):
     for pose_args in VIEW_POSES[:3]:
         image, rvec, tvec, truth = make_view(board, camera, **{**pose_args, "distance": 0.38})
         detection = detector.detect(image)
-        assert len(detection) == 24
-        assert match_corners(detection, truth).accuracy == 1.0
+        # every corner with OpenCV 4; OpenCV 5's detector leaves 2 of one view's out
+        assert len(detection) >= 22
+        match = match_corners(detection, truth)
+        assert match.num_correct == len(detection)
         pose = detector.estimate_pose(detection, camera.K, camera.dist)
         assert pose.reprojection_error < 0.3
         assert rotation_error_deg(pose.rvec, rvec) < 1.0
@@ -131,9 +133,9 @@ def test_detect_board_is_opencvs_call_in_shape_and_type(camera, mirrored):
         assert isinstance(marker_corners, tuple)
         # Usable as OpenCV's output: matchImagePoints pairs them with the board's points.
         objects, pixels = board.cv_board().matchImagePoints(corners, ids)
-        assert objects.shape == (n, 1, 3) and pixels.shape == (n, 1, 2)
+        assert objects.size == 3 * n and pixels.size == 2 * n  # (n, 1, 3) from OpenCV 4, (n, 3) from OpenCV 5
     corners, ids, marker_corners, marker_ids = OpenCVDetector(board).detectBoard(image)
-    assert len(marker_corners) == len(theirs[2]) == 12 and marker_ids.shape == (12, 1)
+    assert len(marker_corners) == len(theirs[2]) == 12 and marker_ids.shape == np.shape(theirs[3])  # (12, 1); OpenCV 5: (12,)
     assert all(m.shape == (1, 4, 2) and m.dtype == np.float32 for m in marker_corners)
     # The markers are OpenCV's, in this image's pixels: a mirrored board's mapped back from the flipped view.
     expected = [m.reshape(4, 2).copy() for m in theirs[2]]

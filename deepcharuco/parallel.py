@@ -1,0 +1,121 @@
+"""Detection spread over worker processes: a video, a folder or a camera's frames detected on several cores
+(and, on a GPU, by several processes feeding it), the results returned in the frames' order.
+
+One process runs the deep detector's decoding (numpy, one core) after each network pass, so a frame takes the
+network's time plus the decoding's whichever device runs the network: on a GPU the network is ~1 ms of a
+frame and the decoding all the rest. Frames are independent, so ``workers`` processes, each with its own
+detector, go through ``workers`` times as many frames a second where the cores are there (`benchmarks/
+throughput.py` measures it).
+
+Consecutive frames go to a worker in chunks of ``chunk``; where the finders track (`BoardTracker`), each chunk
+is tracked from its first frame, which is searched whole. A worker's network runs on cpu_count / workers
+threads, so that the workers do not fight over the cores.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
+from itertools import islice
+from multiprocessing import get_context
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+import cv2
+import numpy as np
+
+from deepcharuco.detection import Detection
+
+# Chunks given out ahead per worker: enough to keep each one busy while the caller reads frames, few enough that
+# a long video is never held in memory.
+AHEAD_PER_WORKER = 2
+
+_finders: list[Any] = []  # a worker's own finders, made once by its initializer
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _start_worker(make_finders: Callable[[], Sequence[Any]], threads: int) -> None:
+    # Before any network is made: ONNX Runtime and PyTorch take their thread counts from these (`network_threads`).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's: it stops giving out frames and closes
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    cv2.setNumThreads(threads)  # OpenCV's own pool: as many threads as cores in every worker would fight
+    torch = sys.modules.get("torch")  # unpickling make_finders may have imported it already
+    if torch is not None:
+        torch.set_num_threads(threads)
+    _finders[:] = list(make_finders())
+
+
+def _detect_chunk(frames: list[np.ndarray]) -> list[list[Detection]]:
+    for finder in _finders:
+        if hasattr(finder, "reset"):  # a tracker: this chunk does not follow the last one this worker saw
+            finder.reset()
+    return [[finder.detect(frame) for finder in _finders] for frame in frames]
+
+
+class DetectorPool:
+    """Finders (detectors or `BoardTracker`s) on ``workers`` processes.
+
+    Args:
+        make_finders: a picklable callable (a module-level function, or a ``functools.partial`` of one) that
+            returns the finders; each worker calls it once. Every frame is given to each finder in turn.
+        workers: processes (>= 1). One runs the finders in this process, as a plain loop would.
+        chunk: consecutive frames a worker takes at once (>= 1); 1 for a live camera (each frame as it comes).
+
+    ``detect(items)`` yields, for each (key, image) in order, the key and its finders' detections.
+    """
+
+    def __init__(self, make_finders: Callable[[], Sequence[Any]], workers: int = 1, chunk: int = 16):
+        if workers < 1 or chunk < 1:
+            raise ValueError(f"workers and chunk must be >= 1, got workers={workers}, chunk={chunk}")
+        self.workers, self.chunk = workers, chunk
+        self._executor: ProcessPoolExecutor | None = None
+        self._local: list[Any] | None = None
+        if workers == 1:
+            self._local = list(make_finders())
+        else:
+            # spawn, not fork: a forked copy of a process that holds ONNX Runtime's or PyTorch's threads can hang
+            self._executor = ProcessPoolExecutor(
+                max_workers=workers, mp_context=get_context("spawn"), initializer=_start_worker,
+                initargs=(make_finders, max(1, available_cpus() // workers)))
+
+    def detect(self, items: Iterable[tuple[Any, np.ndarray]]) -> Iterator[tuple[Any, list[Detection]]]:
+        """(key, image) pairs -> (key, [each finder's `Detection`]) in the same order. The keys stay in this
+        process (a frame's name, the colour frame to draw on); only the images travel to the workers."""
+        if self._local is not None:
+            for key, image in items:
+                yield key, [finder.detect(image) for finder in self._local]
+            return
+        pending: deque[tuple[list[Any], Future]] = deque()
+        items = iter(items)
+        try:
+            while True:
+                while len(pending) < AHEAD_PER_WORKER * self.workers:
+                    chunk = list(islice(items, self.chunk))
+                    if not chunk:
+                        break
+                    keys, images = zip(*chunk)
+                    pending.append((list(keys), self._executor.submit(_detect_chunk, list(images))))
+                if not pending:
+                    return
+                keys, future = pending.popleft()
+                yield from zip(keys, future.result())
+        finally:
+            for _, future in pending:
+                future.cancel()
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    def __enter__(self) -> "DetectorPool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
