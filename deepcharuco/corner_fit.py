@@ -34,6 +34,11 @@ from scipy.special import ndtr
 from deepcharuco.board import BoardSpec
 from deepcharuco.junction import printed_pattern
 
+try:  # the compiled iterations (pip install deepcharuco[fast]); else numpy's, the same arithmetic
+    from deepcharuco import corner_fit_kernel
+except ImportError:
+    corner_fit_kernel = None
+
 MARKER_BORDER_SHARE = 0.6  # the window reaches this far into the markers' black border (of a bit's width)
 # Pixels beyond this many from the starting pixel are left out (a large view's corner): 7 gave the same corners in
 # good light and 0.072 px against 0.088 at darkness k = 7 (validation views), for 1.6x the time.
@@ -48,6 +53,7 @@ MAX_LOG_BLUR_STEP = 0.4  # ... and changes a blur by at most this factor's log
 START_SIGMA_PX = 1.0
 PRE_BLUR_PX = 0.7  # the image is blurred by this much before the fit
 SIGMA_RANGE_PX = (0.15, 10.0)  # a fit whose blur leaves this range has not found the pattern
+LOG_BLUR_LIMITS = (float(np.log(0.5 * SIGMA_RANGE_PX[0])), float(np.log(2 * SIGMA_RANGE_PX[1])))  # the fit's bounds
 MAX_MOVE_PX = 1.5  # a corner the fit moves farther than this from its start keeps its start
 # A corner's covariance: (NOISE_GAIN * noise^2 + MISFIT_GAIN * misfit) * spread + FLOOR_PX^2 (`CornerFit`), chosen on
 # the validation views (python -m evaluate.corner_precision --seed 0, docs/detector.md): the spread of error / sigma
@@ -116,10 +122,11 @@ def _window_reach(board: BoardSpec) -> tuple[float, float]:
 
 
 def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids: np.ndarray,
-                corners: np.ndarray) -> CornerFit:
+                corners: np.ndarray, compiled: bool | None = None) -> CornerFit:
     """The printed-pattern fit of corners ``ids`` (N,) started at ``corners`` (N, 2) in ``gray`` (H, W) uint8, the
     board's canonical view, seen through ``homography`` (board metres -> pixels; it gives the window's shape
-    and the pattern's directions, so a rough one serves)."""
+    and the pattern's directions, so a rough one serves). ``compiled``: the iterations by `corner_fit_kernel`
+    (numba) or by numpy (False); None: compiled where numba is installed."""
     ids = np.asarray(ids, np.int64)
     start = np.asarray(corners, np.float64).reshape(-1, 2)
     n = len(ids)
@@ -177,27 +184,16 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     params[:, 4], params[:, 5] = brightest, brightest - np.where(window, values, np.inf).min(axis=1)
     # Gauss-Newton, lightly damped, each step's shift capped: the start is within a pixel or so, where the model is
     # smooth (`PRE_BLUR_PX`); a fit that ends worse than it began is refused below.
-    residual, jacobian = _residual(values, params, pattern, derivatives=True)
-    start_cost = (weight * residual ** 2).sum(axis=1)
-    for _ in range(ITERATIONS):
-        jw = np.swapaxes(jacobian * weight[..., None], 1, 2)  # (N, P, M)
-        normal = jw @ jacobian  # (N, P, P)
-        gradient = (jw @ residual[..., None])[..., 0]
-        diagonal = np.einsum("nii->ni", normal)
-        damped = normal + (DAMPING * np.maximum(diagonal, 1e-9))[:, :, None] * np.eye(PARAMETERS)
-        step = _solve(damped, -gradient)
-        length = np.linalg.norm(step[:, :2], axis=1)
-        step *= np.minimum(1.0, MAX_STEP_PX / np.maximum(length, 1e-12))[:, None]
-        step[:, 2:4] = np.clip(step[:, 2:4], -MAX_LOG_BLUR_STEP, MAX_LOG_BLUR_STEP)
-        params += step
-        params[:, 2:4] = np.clip(params[:, 2:4], np.log(0.5 * SIGMA_RANGE_PX[0]), np.log(2 * SIGMA_RANGE_PX[1]))
-        residual, jacobian = _residual(values, params, pattern, derivatives=True)
-        if np.all(length < CONVERGED_PX):
-            break
+    if compiled is None:
+        compiled = corner_fit_kernel is not None
+    if compiled:
+        start_cost, cost, normal = corner_fit_kernel.iterate(
+            np.ascontiguousarray(values), weight, np.ascontiguousarray(pattern.along), pattern.normals,
+            pattern.margins, pattern.black, params, ITERATIONS, DAMPING, MAX_STEP_PX, MAX_LOG_BLUR_STEP,
+            *LOG_BLUR_LIMITS, CONVERGED_PX)
+    else:
+        start_cost, cost, normal = _iterate(values, weight, pattern, params)
     count = weight.sum(axis=1)
-    jw = jacobian * weight[..., None]
-    normal = np.einsum("nmi,nmj->nij", jw, jacobian)
-    cost = (weight * residual ** 2).sum(axis=1)
     misfit = cost / np.maximum(count - PARAMETERS, 1)  # the smoothed pixels' residual variance
     normal = np.where(np.isfinite(normal).all(axis=(1, 2))[:, None, None], normal, 0.0)  # a diverged fit: refused below
     with np.errstate(all="ignore"):
@@ -211,6 +207,35 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
           & (np.linalg.norm(fitted - start, axis=1) <= MAX_MOVE_PX) & np.all(np.isfinite(covariances), axis=(1, 2)))
     return CornerFit(np.where(ok[:, None], fitted, start), np.where(ok[:, None, None], covariances, np.nan),
                      sigma, contrast, count.astype(np.int64), ok, noise, misfit, inverse)
+
+
+def _iterate(values: np.ndarray, weight: np.ndarray, pattern: "_Pattern", params: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton over (N,) corners' ``params`` (N, 6), updated in place; a corner stops after a step shorter than
+    `CONVERGED_PX` (its last step taken). Returns (the cost at the start (N,), at the end (N,), and the normal
+    matrices J^T W J there (N, 6, 6)). numpy over every corner at once; `corner_fit_kernel.iterate` is the same
+    compiled, a corner at a time."""
+    residual, jacobian = _residual(values, params, pattern, derivatives=True)
+    start_cost = (weight * residual ** 2).sum(axis=1)
+    active = np.ones(len(params), bool)
+    for _ in range(ITERATIONS):
+        jw = np.swapaxes(jacobian * weight[..., None], 1, 2)  # (N, P, M)
+        normal = jw @ jacobian  # (N, P, P)
+        gradient = (jw @ residual[..., None])[..., 0]
+        diagonal = np.einsum("nii->ni", normal)
+        damped = normal + (DAMPING * np.maximum(diagonal, 1e-9))[:, :, None] * np.eye(PARAMETERS)
+        step = _solve(damped, -gradient)
+        length = np.hypot(step[:, 0], step[:, 1])
+        step *= np.minimum(1.0, MAX_STEP_PX / np.maximum(length, 1e-12))[:, None]
+        step[:, 2:4] = np.clip(step[:, 2:4], -MAX_LOG_BLUR_STEP, MAX_LOG_BLUR_STEP)
+        params[active] += step[active]
+        params[:, 2:4] = np.clip(params[:, 2:4], *LOG_BLUR_LIMITS)
+        residual, jacobian = _residual(values, params, pattern, derivatives=True)
+        active &= length >= CONVERGED_PX
+        if not active.any():
+            break
+    jw = jacobian * weight[..., None]
+    return start_cost, (weight * residual ** 2).sum(axis=1), np.einsum("nmi,nmj->nij", jw, jacobian)
 
 
 # Immerkaer's noise operator: the difference of two Laplacians, blind to a flat patch, a ramp and an edge along a
@@ -297,11 +322,6 @@ def _residual(values: np.ndarray, params: np.ndarray, pattern: _Pattern, derivat
         return residual, None
     jacobian = np.concatenate([-beta[..., None] * d_ink, np.ones_like(ink)[..., None], -ink[..., None]], axis=2)
     return residual, jacobian
-
-
-def _cost(values: np.ndarray, params: np.ndarray, pattern: _Pattern, weight: np.ndarray) -> np.ndarray:
-    residual, _ = _residual(values, params, pattern, derivatives=False)
-    return (weight * residual ** 2).sum(axis=1)
 
 
 def view_homography(board: BoardSpec, ids: np.ndarray, corners: np.ndarray) -> np.ndarray | None:

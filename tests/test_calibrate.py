@@ -68,6 +68,19 @@ def test_calibration_recovers_the_true_camera(waved, detections):
     assert sum(d.status == "kept" for d in result.decisions) == len(result.views)
 
 
+def test_cli_with_jobs_writes_the_same_camera_file(tmp_path, waved):
+    """Frames detected on 2 worker processes (`deepcharuco.parallel`) calibrate the camera one process does."""
+    images, _, _ = waved
+    video = _video(tmp_path / "wave.avi", images[:12])
+    texts = []
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}.yaml"
+        assert main([str(video), "--out", str(out), "--quiet", "--no-report", "--min-views", "4",
+                     "--jobs", str(jobs)]) == 0
+        texts.append(out.read_text())
+    assert texts[0] == texts[1]
+
+
 def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
     images, K, _ = waved
     video = _video(tmp_path / "wave.avi", images)

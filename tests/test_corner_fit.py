@@ -89,6 +89,30 @@ def test_fit_through_blur_and_noise_and_its_covariance():
     assert 0.6 < spread < 1.6, spread
 
 
+@pytest.mark.parametrize("condition", ["sharp", "dark and blurred", "no pattern"])
+def test_compiled_and_numpy_iterations_agree(condition):
+    """`corner_fit_kernel` (numba) and the numpy path fit the same corners, covariances and refusals."""
+    pytest.importorskip("numba")
+    board = BOARDS["legacy"]
+    image, truth = view(board)
+    if condition == "dark and blurred":
+        blurred = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.5)
+        image = np.clip(np.rint(blurred * 0.08 + np.random.default_rng(1).normal(0, 1.5, image.shape)), 0,
+                        255).astype(np.uint8)
+    elif condition == "no pattern":
+        image = np.random.default_rng(2).integers(0, 255, image.shape, dtype=np.uint8)
+    ids = np.arange(board.num_corners)
+    start = started(truth, 5)
+    fits = [fit_corners(canonical_view(image, board), board, view_homography(board, ids, start), ids, start,
+                        compiled=compiled) for compiled in (False, True)]
+    assert np.array_equal(fits[0].ok, fits[1].ok)
+    assert fits[0].ok.mean() < 0.5 if condition == "no pattern" else fits[0].ok.mean() > 0.9
+    assert np.allclose(fits[0].corners, fits[1].corners, atol=1e-9, rtol=0)
+    ok = fits[0].ok
+    assert np.allclose(fits[0].covariances[ok], fits[1].covariances[ok], rtol=1e-7, atol=0)
+    assert np.allclose(fits[0].sigma, fits[1].sigma, rtol=1e-7) and np.allclose(fits[0].misfit, fits[1].misfit, rtol=1e-6)
+
+
 def test_fit_refuses_where_there_is_no_pattern():
     board = BOARDS["paper"]
     image, truth = view(board)

@@ -1,0 +1,112 @@
+"""Detection on worker processes (`deepcharuco.parallel`, ``detect --jobs``, ``calibrate --jobs``): the same
+detections as one process, in the frames' order; the OpenCV 4 / 5 calls behind `deepcharuco.opencv_api`."""
+
+import json
+import pickle
+from functools import partial
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import VIEW_POSES, make_view
+from deepcharuco import BoardSpec
+from deepcharuco.detect import main as detect_main
+from deepcharuco.detect import make_finders
+from deepcharuco.opencv_api import fisheye_calibration_flags, undistort_points
+from deepcharuco.parallel import DetectorPool
+
+
+@pytest.fixture(scope="module")
+def frames(camera):
+    """Views of the paper's board, with a frame without it in between."""
+    views = [make_view(BoardSpec(), camera, **pose)[0] for pose in VIEW_POSES[:4]]
+    return views[:2] + [np.full_like(views[0], 128)] + views[2:]
+
+
+def test_a_board_spec_pickles_after_its_opencv_board_was_built():
+    board = BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250", legacy=True)
+    board.cv_board()  # cached: an OpenCV object, which does not pickle
+    copy = pickle.loads(pickle.dumps(board))
+    assert copy == board and copy.cv_board().getLegacyPattern()
+    assert np.array_equal(copy.object_points(), board.object_points())
+
+
+@pytest.mark.parametrize("name", ["deep", "opencv"])
+def test_workers_give_one_process_detections_in_order(frames, name):
+    make = partial(make_finders, name, [BoardSpec()], "refinenet" if name == "deep" else "subpix", None, None, "auto",
+                   True, "cpu", 1)
+    with DetectorPool(make) as one:
+        expected = [d for _, (d,) in one.detect((i, f) for i, f in enumerate(frames))]
+    with DetectorPool(make, workers=2, chunk=2) as pool:
+        got = list(pool.detect((i, f) for i, f in enumerate(frames)))
+        assert [key for key, _ in got] == list(range(len(frames)))
+        again = [d for _, (d,) in pool.detect((i, f) for i, f in enumerate(frames[:2]))]  # the workers stay
+    assert [len(d) >= 15 for d in expected] == [True, True, False, True, True] and len(expected[2]) == 0
+    for (_, (detection,)), reference in zip(got, expected):
+        assert np.array_equal(detection.ids, reference.ids)
+        assert np.allclose(detection.corners, reference.corners, atol=1e-4)
+    assert all(np.array_equal(a.ids, b.ids) for a, b in zip(again, expected))
+
+
+def test_pool_arguments_are_checked():
+    with pytest.raises(ValueError, match="workers and chunk must be >= 1"):
+        DetectorPool(list, workers=0)
+
+
+def test_detect_with_jobs_writes_what_one_process_writes(tmp_path, frames):
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (frames[0].shape[1], frames[0].shape[0]))
+    for frame in frames:
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    results = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        # --refresh-every 1: every frame searched whole, so that chunks tracked from their first frame change nothing
+        assert detect_main([str(video), "--out", str(out), "--quiet", "--detector", "deep", "--jobs", str(jobs),
+                            "--refresh-every", "1", "--no-overlay"]) == 0
+        results[jobs] = json.loads((out / "clip.json").read_text())
+    assert [f["num_corners"] >= 15 for f in results[2]["frames"]] == [True, True, False, True, True]
+    for a, b in zip(results[1]["frames"], results[2]["frames"]):
+        assert a["frame"] == b["frame"] and a["ids"] == b["ids"]
+        assert np.allclose(np.array(a["corners"], float).reshape(-1, 2), np.array(b["corners"], float).reshape(-1, 2),
+                           atol=1e-3)
+    assert results[2]["detect_fps"] > 0
+
+
+@pytest.mark.parametrize("command", ["detect", "calibrate"])
+def test_jobs_below_one_is_a_clear_error(tmp_path, capsys, command):
+    if command == "detect":
+        from deepcharuco.detect import main
+    else:
+        from deepcharuco.calibrate import main
+    with pytest.raises(SystemExit) as stop:
+        main([str(tmp_path / "clip.avi"), "--out", str(tmp_path / "out.yaml"), "--jobs", "0"])
+    assert stop.value.code == 2 and "--jobs must be >= 1" in capsys.readouterr().err
+
+
+def test_a_rig_refuses_jobs(tmp_path, capsys):
+    from deepcharuco.calibrate import main
+
+    with pytest.raises(SystemExit) as stop:
+        main([str(tmp_path / "a.avi"), str(tmp_path / "b.avi"), "--out", str(tmp_path / "rig"), "--jobs", "2"])
+    assert stop.value.code == 2 and "--jobs is for one camera" in capsys.readouterr().err
+
+
+def test_undistort_points_inverts_the_projection(camera):
+    K, dist = camera.K, np.array([-0.28, 0.09, 0.001, -0.002, 0.0])
+    rays = np.random.default_rng(0).uniform(-0.5, 0.5, (40, 1, 2))
+    pixels, _ = cv2.projectPoints(np.concatenate([rays, np.ones((40, 1, 1))], axis=2), np.zeros(3), np.zeros(3), K, dist)
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    assert np.allclose(undistort_points(pixels, K, dist, None, criteria), rays, atol=1e-9)
+    ideal = undistort_points(pixels, K, dist, K, criteria).reshape(-1, 2)
+    assert np.allclose(ideal, rays.reshape(-1, 2) * [K[0, 0], K[1, 1]] + K[:2, 2], atol=1e-6)
+
+
+def test_fisheye_flags_recompute_the_poses_and_fix_the_skew():
+    flags = fisheye_calibration_flags()
+    if hasattr(cv2.fisheye, "CALIB_FIX_SKEW"):
+        assert flags == cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+    else:
+        assert flags == cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
