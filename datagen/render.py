@@ -22,8 +22,6 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
-
 import deepcharuco
 from datagen.family import FamilySampling, check_prefixes, parse_families
 from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
@@ -32,6 +30,7 @@ from datagen.workers import TaskError, death_cause, report_progress, run_tasks
 from deepcharuco.board import BoardSpec
 from deepcharuco.cli import describe_os_error, output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.opencv_api import log_errors_only
 
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
 CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean", "family",
@@ -115,7 +114,7 @@ def render_shard(job: RenderJob, shard: int) -> int:
     config = scene_config(job)
     # OpenCV warns on stderr about every board whose markers fill more than ~0.8 of their squares (the
     # family's ratios reach 0.85 on purpose, as printed boards do): it would bury the progress bar.
-    cv2.setLogLevel(2)  # errors only; this is a worker process of its own
+    log_errors_only()  # this is a worker process of its own
     frames = []
     for index in job.frames_of(shard):
         frames.append(make_frame(index, job.seed, job.board, config, threads=job.threads, device=job.device,

@@ -26,3 +26,12 @@ def fisheye_calibration_flags() -> int:
     if hasattr(fisheye, "CALIB_RECOMPUTE_EXTRINSIC"):
         return fisheye.CALIB_RECOMPUTE_EXTRINSIC | fisheye.CALIB_FIX_SKEW
     return cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+
+
+def log_errors_only() -> None:
+    """OpenCV's own log messages: errors only (OpenCV 4: ``cv2.setLogLevel``; 5: ``cv2.utils.logging``)."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is not None and hasattr(logging, "setLogLevel"):
+        logging.setLogLevel(logging.LOG_LEVEL_ERROR)
+    else:
+        cv2.setLogLevel(2)  # OpenCV 4's LOG_LEVEL_ERROR
