@@ -186,6 +186,8 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     # smooth (`PRE_BLUR_PX`); a fit that ends worse than it began is refused below.
     if compiled is None:
         compiled = corner_fit_kernel is not None
+    elif compiled and corner_fit_kernel is None:
+        raise ImportError("compiled=True needs numba: pip install 'deepcharuco[fast]'")
     if compiled:
         start_cost, cost, normal = corner_fit_kernel.iterate(
             np.ascontiguousarray(values), weight, np.ascontiguousarray(pattern.along), pattern.normals,

@@ -62,8 +62,9 @@ class DetectorPool:
     """Finders (detectors or `BoardTracker`s) on ``workers`` processes.
 
     Args:
-        make_finders: a picklable callable (a module-level function, or a ``functools.partial`` of one) that
-            returns the finders; each worker calls it once. Every frame is given to each finder in turn.
+        make_finders: a callable that returns the finders, called once by each worker (with ``workers`` > 1 it
+            must pickle: a module-level function, or a ``functools.partial`` of one). Every frame is given to each
+            finder in turn.
         workers: processes (>= 1). One runs the finders in this process, as a plain loop would.
         chunk: consecutive frames a worker takes at once (>= 1); 1 for a live camera (each frame as it comes).
 
