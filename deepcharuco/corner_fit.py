@@ -35,9 +35,9 @@ from deepcharuco.board import BoardSpec
 from deepcharuco.junction import printed_pattern
 
 try:  # the compiled iterations (pip install deepcharuco[fast]); else numpy's, the same arithmetic
-    from deepcharuco import corner_fit_kernel
+    from deepcharuco.corner_fit_kernel import iterate as compiled_iterate
 except ImportError:
-    corner_fit_kernel = None
+    compiled_iterate = None
 
 MARKER_BORDER_SHARE = 0.6  # the window reaches this far into the markers' black border (of a bit's width)
 # Pixels beyond this many from the starting pixel are left out (a large view's corner): 7 gave the same corners in
@@ -185,11 +185,11 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     # Gauss-Newton, lightly damped, each step's shift capped: the start is within a pixel or so, where the model is
     # smooth (`PRE_BLUR_PX`); a fit that ends worse than it began is refused below.
     if compiled is None:
-        compiled = corner_fit_kernel is not None
-    elif compiled and corner_fit_kernel is None:
+        compiled = compiled_iterate is not None
+    elif compiled and compiled_iterate is None:
         raise ImportError("compiled=True needs numba: pip install 'deepcharuco[fast]'")
     if compiled:
-        start_cost, cost, normal = corner_fit_kernel.iterate(
+        start_cost, cost, normal = compiled_iterate(
             np.ascontiguousarray(values), weight, np.ascontiguousarray(pattern.along), pattern.normals,
             pattern.margins, pattern.black, params, ITERATIONS, DAMPING, MAX_STEP_PX, MAX_LOG_BLUR_STEP,
             *LOG_BLUR_LIMITS, CONVERGED_PX)
