@@ -213,13 +213,12 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
 
 def _iterate(values: np.ndarray, weight: np.ndarray, pattern: "_Pattern", params: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton over (N,) corners' ``params`` (N, 6), updated in place; a corner stops after a step shorter than
-    `CONVERGED_PX` (its last step taken). Returns (the cost at the start (N,), at the end (N,), and the normal
-    matrices J^T W J there (N, 6, 6)). numpy over every corner at once; `corner_fit_kernel.iterate` is the same
-    compiled, a corner at a time."""
+    """Gauss-Newton over (N,) corners' ``params`` (N, 6), updated in place, until a step was shorter than
+    `CONVERGED_PX` for every corner (or `ITERATIONS`). Returns (the cost at the start (N,), at the end (N,), and the
+    normal matrices J^T W J there (N, 6, 6)). numpy over every corner at once; `corner_fit_kernel.iterate` takes the
+    same steps compiled."""
     residual, jacobian = _residual(values, params, pattern, derivatives=True)
     start_cost = (weight * residual ** 2).sum(axis=1)
-    active = np.ones(len(params), bool)
     for _ in range(ITERATIONS):
         jw = np.swapaxes(jacobian * weight[..., None], 1, 2)  # (N, P, M)
         normal = jw @ jacobian  # (N, P, P)
@@ -227,14 +226,13 @@ def _iterate(values: np.ndarray, weight: np.ndarray, pattern: "_Pattern", params
         diagonal = np.einsum("nii->ni", normal)
         damped = normal + (DAMPING * np.maximum(diagonal, 1e-9))[:, :, None] * np.eye(PARAMETERS)
         step = _solve(damped, -gradient)
-        length = np.hypot(step[:, 0], step[:, 1])
+        length = np.linalg.norm(step[:, :2], axis=1)
         step *= np.minimum(1.0, MAX_STEP_PX / np.maximum(length, 1e-12))[:, None]
         step[:, 2:4] = np.clip(step[:, 2:4], -MAX_LOG_BLUR_STEP, MAX_LOG_BLUR_STEP)
-        params[active] += step[active]
+        params += step
         params[:, 2:4] = np.clip(params[:, 2:4], *LOG_BLUR_LIMITS)
         residual, jacobian = _residual(values, params, pattern, derivatives=True)
-        active &= length >= CONVERGED_PX
-        if not active.any():
+        if np.all(length < CONVERGED_PX):
             break
     jw = jacobian * weight[..., None]
     return start_cost, (weight * residual ** 2).sum(axis=1), np.einsum("nmi,nmj->nij", jw, jacobian)

@@ -1,7 +1,6 @@
 """`corner_fit`'s Gauss-Newton iterations compiled by numba, one corner at a time: the same arithmetic as its numpy
 path (`corner_fit._iterate`), without numpy's per-call overhead, which is most of that path's time on a frame's
-few corners (a 16-corner frame's fit: ~4.6 ms with numpy on a 2-core CPU, ~2.4 ms with these iterations, which
-take ~1.1 ms of it).
+few corners (a 16-corner frame's fit on a 2-core CPU: ~3.6 ms with numpy's iterations, ~2.3 ms with these).
 
 Imported only where numba is installed (``pip install deepcharuco[fast]``); `corner_fit` uses the numpy path
 otherwise. The first call compiles (a few seconds, cached on disk beside this file where it is writable).
@@ -110,27 +109,31 @@ def _solve6(matrix, vector, out) -> None:
 @njit(cache=True)
 def iterate(values, weights, along, normals, margins, black, params, iterations, damping, max_step, max_log_blur_step,
             log_blur_low, log_blur_high, converged):
-    """`corner_fit._iterate` for (N,) corners: ``params`` (N, 6) are updated in place; returns (start cost (N,),
-    final cost (N,), final normal matrices (N, 6, 6))."""
+    """`corner_fit._iterate` compiled: Gauss-Newton steps of (N,) corners' ``params`` (N, 6), updated in place, all in
+    step until a step was shorter than ``converged`` px for every corner (or ``iterations``). Returns (start cost
+    (N,), final cost (N,), final normal matrices (N, 6, 6))."""
     n = values.shape[0]
     start_cost = np.empty(n)
     cost = np.empty(n)
-    normals_out = np.empty((n, 6, 6))
-    normal = np.empty((6, 6))
-    gradient = np.empty(6)
+    normal = np.empty((n, 6, 6))
+    gradient = np.empty((n, 6))
     damped = np.empty((6, 6))
     step = np.empty(6)
     for c in range(n):
-        p = params[c]
-        current = _normal_equations(values[c], weights[c], along[c], normals[c], margins[c], black[c], p, normal,
-                                    gradient)
-        start_cost[c] = current
-        for _ in range(iterations):
-            damped[:] = normal
+        start_cost[c] = _normal_equations(values[c], weights[c], along[c], normals[c], margins[c], black[c], params[c],
+                                          normal[c], gradient[c])
+        cost[c] = start_cost[c]
+    for _ in range(iterations):
+        every_short = True
+        for c in range(n):
+            p = params[c]
+            damped[:] = normal[c]
             for i in range(6):
-                damped[i, i] += damping * max(normal[i, i], 1e-9)
-            _solve6(damped, -gradient, step)
+                damped[i, i] += damping * max(normal[c, i, i], 1e-9)
+            _solve6(damped, -gradient[c], step)
             length = math.sqrt(step[0] * step[0] + step[1] * step[1])
+            if not length < converged:  # NaN too, as numpy's all(length < converged)
+                every_short = False
             scale = min(1.0, max_step / max(length, 1e-12))
             for i in range(6):
                 step[i] *= scale
@@ -140,10 +143,8 @@ def iterate(values, weights, along, normals, margins, black, params, iterations,
                 p[i] += step[i]
             for i in (2, 3):
                 p[i] = min(max(p[i], log_blur_low), log_blur_high)
-            current = _normal_equations(values[c], weights[c], along[c], normals[c], margins[c], black[c], p, normal,
-                                        gradient)
-            if length < converged:
-                break
-        cost[c] = current
-        normals_out[c] = normal
-    return start_cost, cost, normals_out
+            cost[c] = _normal_equations(values[c], weights[c], along[c], normals[c], margins[c], black[c], p,
+                                        normal[c], gradient[c])
+        if every_short:
+            break
+    return start_cost, cost, normal
