@@ -43,7 +43,7 @@ def test_non_default_board_through_the_same_code(camera):
         image, rvec, tvec, truth = make_view(board, camera, **{**pose_args, "distance": 0.38})
         detection = detector.detect(image)
         # every corner with OpenCV 4; OpenCV 5's detector leaves 2 of one view's out
-        assert len(detection) >= 22
+        assert len(detection) >= (24 if int(cv2.__version__.split(".")[0]) < 5 else 22)
         match = match_corners(detection, truth)
         assert match.num_correct == len(detection)
         pose = detector.estimate_pose(detection, camera.K, camera.dist)
