@@ -265,8 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "--refine refinenet, whose 24 px patch would reach past the border, else 0)")
     parser.add_argument("--step", type=int, default=1, help="look at every n-th frame only")
     parser.add_argument("--jobs", type=int, default=1,
-                        help="one camera: worker processes that detect frames side by side (up to ~jobs x the frames "
-                             "a second where the cores are there; the same detections)")
+                        help="worker processes that detect frames side by side, of one camera or of a rig's (up to "
+                             "~jobs x the frames a second where the cores are there; the same detections)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (a camera: required)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -292,9 +292,6 @@ def main(argv: list[str] | None = None) -> int:
         option = "--camera" if args.camera else "--sync-offsets" if args.sync_offsets else "--timestamps"
         problems.append(f"{option} is for a rig (two sources or more); one camera's intrinsics are what calibrate "
                         f"solves")
-    if rig and args.jobs > 1:
-        problems.append("--jobs is for one camera: a rig's synchronised sources are detected in one process (leave "
-                        "--jobs out)")
     if args.origin_instant is not None and args.origin != "board":
         problems.append("--origin-instant is for --origin board")
     if args.sync_offsets and args.timestamps:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -26,10 +27,11 @@ from deepcharuco.calibration import (
 )
 from deepcharuco.camera import Camera, is_camera_file, read_camera
 from deepcharuco.cli import check_output_folder
-from deepcharuco.detect import Source, open_source
+from deepcharuco.detect import CHUNK_FRAMES, Source, make_finders, open_source
 from deepcharuco.errors import CameraFileError, DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8
+from deepcharuco.parallel import DetectorPool
 from deepcharuco.rig import RigError, RigResult, RigView, calibrate_rig, rotations_from_vectors
 from deepcharuco.rig_files import is_rig_toml, rig_camera_text, rig_toml
 
@@ -59,10 +61,12 @@ def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
 
 
 def detect_synchronised(sources: list[Source], detectors: list, offsets: list[int], *, step: int = 1,
-                        quiet: bool = False) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
+                        quiet: bool = False, pool: DetectorPool | None = None
+                        ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
     """``detections[c][b]``: camera c's `FrameDetection` of board b (``detectors[b]``'s) at every ``step``-th
     instant (the instant as its index), and each camera's frame size. Frame ``n + offsets[c]`` of source c is
-    instant n; reading stops when the first source ends."""
+    instant n; reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
+    detectors (worker processes; default: these detectors in this process)."""
     streams = []
     for source, offset in zip(sources, offsets):
         frames = iter(source.frames)
@@ -70,23 +74,22 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
             next(frames, None)
         streams.append(frames)
     totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
-    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in sources]
     sizes: list[tuple[int, int] | None] = [None] * len(sources)
-    seen = [0] * len(sources)  # instants at which each camera found a board, for the progress bar
-    bar = tqdm(zip(*streams), total=min(totals) if totals else None, unit="instant", desc="detecting", disable=quiet)
-    for instant, frames in enumerate(bar):
-        if instant % step:
-            continue
-        for c, (name, frame) in enumerate(frames):
-            seen[c] += _detect_frame(c, instant, name, frame, sources[c], detectors, detections, sizes)
-        bar.set_postfix(boards="/".join(map(str, seen)), refresh=False)
-    return detections, sizes
+
+    def wanted():
+        for instant, frames in enumerate(zip(*streams)):
+            if instant % step == 0:
+                for c, (name, frame) in enumerate(frames):
+                    gray = _checked_gray(c, name, frame, sources[c], sizes)
+                    yield (c, instant, str(name), gray), gray
+
+    total = len(sources) * -(-min(totals) // step) if totals else None
+    return _detect_all(wanted(), detectors, len(sources), pool, total, quiet), sizes
 
 
-def _detect_frame(camera: int, instant: int, name: str, frame: np.ndarray, source: Source, detectors: list,
-                  detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int] | None]) -> bool:
-    """Detect every board in ``camera``'s ``frame`` of ``instant``, appended to ``detections[camera][b]``; the
-    camera's frame size is kept in ``sizes`` and another size refused. True when any board was found."""
+def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
+                  sizes: list[tuple[int, int] | None]) -> np.ndarray:
+    """``camera``'s ``frame`` as uint8 grey; the camera's frame size is kept in ``sizes`` and another size refused."""
     gray = to_gray_u8(frame)
     size = (gray.shape[1], gray.shape[0])
     if sizes[camera] is None:
@@ -94,13 +97,24 @@ def _detect_frame(camera: int, instant: int, name: str, frame: np.ndarray, sourc
     elif size != sizes[camera]:
         raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
                                f"{sizes[camera][0]}x{sizes[camera][1]}: one camera, one resolution")
-    found_any = False
-    for b, detector in enumerate(detectors):
-        found = detector.detect(gray)
-        detections[camera][b].append(FrameDetection(instant, str(name), found.ids, found.corners,
-                                                    sharpness(gray, found.corners), found.covariances))
-        found_any = found_any or len(found.ids) > 0
-    return found_any
+    return gray
+
+
+def _detect_all(items, detectors: list, cameras: int, pool: DetectorPool | None, total: int | None, quiet: bool
+                ) -> list[list[list[FrameDetection]]]:
+    """Every board found in each ((camera, instant, name, gray), gray) of ``items`` by ``detectors`` (or ``pool``),
+    as ``detections[camera][board]``, with a progress bar of frames."""
+    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in range(cameras)]
+    seen = [0] * cameras  # frames in which each camera found a board, for the progress bar
+    with pool or DetectorPool(lambda: detectors) as detecting:
+        bar = tqdm(detecting.detect(items), total=total, unit="frame", desc="detecting", disable=quiet)
+        for (camera, instant, name, gray), found in bar:
+            for b, detection in enumerate(found):
+                detections[camera][b].append(FrameDetection(instant, name, detection.ids, detection.corners,
+                                                            sharpness(gray, detection.corners), detection.covariances))
+            seen[camera] += any(len(d.ids) for d in found)
+            bar.set_postfix(boards="/".join(map(str, seen)), refresh=False)
+    return detections
 
 
 def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
@@ -154,22 +168,22 @@ def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
 
 
 def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,
-                   quiet: bool = False) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
+                   quiet: bool = False, pool: DetectorPool | None = None
+                   ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
     """`detect_synchronised`'s result where the instants come from timestamps (`instants_by_time`): each source
     is read whole, and only its frames that belong to an instant (every ``step``-th) are detected."""
-    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in sources]
     sizes: list[tuple[int, int] | None] = [None] * len(sources)
-    total = sum(s.total or 0 for s in sources) or None
-    bar = tqdm(total=total, unit="frame", desc="detecting", disable=quiet)
-    for c, source in enumerate(sources):
-        for frame_index, (name, frame) in enumerate(source.frames):
-            bar.update(1)
-            instant = mapping[c].get(frame_index)
-            if instant is None or instant % step:
-                continue
-            _detect_frame(c, instant, name, frame, source, detectors, detections, sizes)
-    bar.close()
-    return detections, sizes
+
+    def wanted():
+        for c, source in enumerate(sources):
+            for frame_index, (name, frame) in enumerate(source.frames):
+                instant = mapping[c].get(frame_index)
+                if instant is not None and instant % step == 0:
+                    gray = _checked_gray(c, name, frame, source, sizes)
+                    yield (c, instant, str(name), gray), gray
+
+    total = sum(1 for c in range(len(sources)) for instant in mapping[c].values() if instant % step == 0) or None
+    return _detect_all(wanted(), detectors, len(sources), pool, total, quiet), sizes
 
 
 def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
@@ -274,11 +288,15 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
               targets: list[Path], mapping: list[dict[int, int]] | None) -> RigResult:
+    pool = None
+    if args.jobs > 1:
+        pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights, None, "auto", True,
+                                    "cpu", 1), args.jobs, chunk=CHUNK_FRAMES)
     if mapping is None:
         offsets = args.sync_offsets or [0] * len(sources)
-        detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet)
+        detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet, pool=pool)
     else:
-        detections, sizes = detect_by_time(sources, detectors, mapping, step=args.step, quiet=args.quiet)
+        detections, sizes = detect_by_time(sources, detectors, mapping, step=args.step, quiet=args.quiet, pool=pool)
     for source in sources:
         for line in source.problems():
             print(f"warning: {line}", file=sys.stderr)

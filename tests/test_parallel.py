@@ -86,14 +86,6 @@ def test_jobs_below_one_is_a_clear_error(tmp_path, capsys, command):
     assert stop.value.code == 2 and "--jobs must be >= 1" in capsys.readouterr().err
 
 
-def test_a_rig_refuses_jobs(tmp_path, capsys):
-    from deepcharuco.calibrate import main
-
-    with pytest.raises(SystemExit) as stop:
-        main([str(tmp_path / "a.avi"), str(tmp_path / "b.avi"), "--out", str(tmp_path / "rig"), "--jobs", "2"])
-    assert stop.value.code == 2 and "--jobs is for one camera" in capsys.readouterr().err
-
-
 def test_undistort_points_inverts_the_projection(camera):
     K, dist = camera.K, np.array([-0.28, 0.09, 0.001, -0.002, 0.0])
     rays = np.random.default_rng(0).uniform(-0.5, 0.5, (40, 1, 2))

@@ -357,3 +357,16 @@ def test_timestamps_pair_frames_of_cameras_with_their_own_clocks(tmp_path, drawn
     for c, name in ((1, "cam1"), (2, "cam2")):
         storage = cv2.FileStorage(str(out / f"{name}.yaml"), cv2.FILE_STORAGE_READ)
         assert rotation_angle_deg(storage.getNode("rotation_matrix").mat() @ truth.rotations[c].T) < 0.5
+
+
+def test_jobs_detect_a_rig_on_worker_processes_and_write_the_same_files(tmp_path, drawn):
+    """``--jobs 2``: the three cameras' frames detected on two worker processes (`deepcharuco.parallel`) give the
+    camera files and the rig file one process gives."""
+    truth, folders, board = drawn
+    written = []
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        assert main([*map(str, folders), "--board", str(board), "--detector", "deep", "--out", str(out), "--quiet",
+                     "--no-report", "--jobs", str(jobs)]) == 0
+        written.append({path.name: path.read_text() for path in sorted(out.iterdir())})
+    assert written[0] == written[1] and len(written[0]) == 4
