@@ -22,6 +22,8 @@ from typing import Callable, ContextManager
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from deepcharuco.parallel import available_cpus
+
 
 @cache
 def _numpy_blas() -> ThreadpoolController:
@@ -51,7 +53,7 @@ def network_threads() -> int:
         return torch.get_num_threads()
     if os.environ.get("OMP_NUM_THREADS", "").isdigit() and int(os.environ["OMP_NUM_THREADS"]) > 0:
         return int(os.environ["OMP_NUM_THREADS"])
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return available_cpus()
 
 
 def _session(model: bytes, threads: int):

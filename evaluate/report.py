@@ -32,6 +32,7 @@ from deepcharuco.cli import describe_os_error, output_folder, pick_device
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import write_atomic
 from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.parallel import available_cpus
 from evaluate import captures as real_captures
 from evaluate import calibration_eval, corner_precision, documents, experiments, false_positives, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
@@ -168,7 +169,7 @@ def run_report(args: argparse.Namespace) -> dict:
     timing_frames = timing_pool[:: max(1, len(timing_pool) // 40)][:40]
     results["timing"] = experiments.timing_experiment(detectors, timing_frames, 1.0 if quick else args.timing_seconds,
                                                       args.quiet)
-    results["timing"]["machine"] = f"{cpu_description()}, {_cores()} cores"
+    results["timing"]["machine"] = f"{cpu_description()}, {available_cpus()} cores"
 
     if gallery_source is not None:
         names = [n for n in ("deep", "opencv") if n in gallery_source["_scores"]]
@@ -246,12 +247,6 @@ def _summary(results: dict) -> str:
         parts.append("Speed (detect + pose): " + ", ".join(f"{experiments.LABELS[n]} {v:.0f} fps" for n, v in fps.items()) + ".")
     parts.append(f"The report took {results['seconds']:.0f} s.")
     return " ".join(parts)
-
-
-def _cores() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _maybe_float(value):
