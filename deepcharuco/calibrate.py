@@ -17,21 +17,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibration import (
     MODELS, VIEW_WEIGHT_SPREAD, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, border_margin,
-    calibrate, sharpness,
+    calibrate,
 )
+from deepcharuco.calibration_frames import calibration_pool, detect_views
 from deepcharuco.camera import camera_file_text, is_camera_file
 from deepcharuco.cli import check_output_folder, run_command
-from deepcharuco.detect import CHUNK_FRAMES, make_detector, make_finders, open_source
+from deepcharuco.detect import make_detector, open_source
 from deepcharuco.errors import DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8
@@ -40,24 +39,13 @@ from deepcharuco.parallel import DetectorPool
 DETECTORS = ("opencv", "deep", "hybrid")
 
 
-def make_calibration_detector(name: str, board: BoardSpec, refine: str, weights: str | None = None):
-    """The detector called ``name``: "opencv", "deep", or "hybrid" (OpenCV's corners when they fit one view of
-    the board, the networks' otherwise: `Detector(mode="hybrid")`)."""
-    if name != "hybrid":
-        return make_detector(name, board, refine, weights)
-    from deepcharuco.deep_detector import Detector
-
-    return Detector(board=board, weights=weights, refine=refine, mode="hybrid")
-
-
 def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, quiet: bool = False,
-                  jobs: int = 1, make_finders=None) -> tuple[list[FrameDetection], tuple[int, int] | None]:
+                  pool: DetectorPool | None = None) -> tuple[list[FrameDetection], tuple[int, int] | None]:
     """Detect the board in every ``step``-th frame of the iterable of (name, image) ``frames``.
 
     Returns (one `FrameDetection` per frame looked at, (width, height)); each frame is dropped as soon
-    as it is detected. Frames of another size than the first raise CalibrationError. ``jobs`` > 1: the frames
-    are detected on that many worker processes (`deepcharuco.parallel`), each with the detector that the picklable
-    ``make_finders`` returns (a list of one)."""
+    as it is detected. Frames of another size than the first raise CalibrationError. ``pool``: worker processes
+    whose finders are this detector (`calibration_frames.calibration_pool`; default: ``detector`` here)."""
     size = None
 
     def wanted():
@@ -71,18 +59,10 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
             elif (gray.shape[1], gray.shape[0]) != size:
                 raise CalibrationError(f"frame {name} is {gray.shape[1]}x{gray.shape[0]} but the first was "
                                        f"{size[0]}x{size[1]}: calibrate frames of one camera at one resolution")
-            yield (index, str(name), gray), gray
+            yield (0, index, str(name), gray), gray
 
-    detections: list[FrameDetection] = []
-    pool = DetectorPool(lambda: [detector]) if jobs == 1 else DetectorPool(make_finders, jobs, chunk=CHUNK_FRAMES)
-    with pool:
-        bar = tqdm(pool.detect(wanted()), total=None if total is None else -(-total // step), unit="frame",
-                   desc="detecting", disable=quiet)
-        for (index, name, gray), (detection,) in bar:
-            detections.append(FrameDetection(index, name, detection.ids, detection.corners,
-                                             sharpness(gray, detection.corners), detection.covariances))
-            bar.set_postfix(boards=sum(len(d.ids) > 0 for d in detections), refresh=False)
-    return detections, size
+    detections = detect_views(wanted(), [detector], 1, pool, None if total is None else -(-total // step), quiet)
+    return detections[0][0], size
 
 
 def calibration_text(result: CalibrationResult, board: BoardSpec, detector: str, name: str = "camera.yaml") -> str:
@@ -156,11 +136,11 @@ def run(args: argparse.Namespace) -> CalibrationResult:
 
 def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
     board = BoardSpec.load(args.board[0]) if args.board else BoardSpec()
-    detector = make_calibration_detector(args.detector, board, args.refine, args.weights)
+    detector = make_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source[0], args.max_frames)
-    make = partial(make_finders, args.detector, [board], args.refine, args.weights, None, "auto", True, "cpu", 1)
+    pool = calibration_pool(args.detector, [board], args.refine, args.weights, args.jobs)
     frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet,
-                                 jobs=args.jobs, make_finders=make)
+                                 pool=pool)
     for line in source.problems():  # damaged stretches of a video, unreadable images: said, then calibrated without
         print(f"warning: {line}", file=sys.stderr)
     if size is None:
@@ -322,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
                 from deepcharuco.calibrate_rig import run_rig
 
                 boards = [BoardSpec.load(path) for path in args.board] if args.board else [BoardSpec()]
-                run_rig(args, boards, [make_calibration_detector(args.detector, board, args.refine, args.weights)
+                run_rig(args, boards, [make_detector(args.detector, board, args.refine, args.weights)
                                        for board in boards])
             else:
                 run(args)

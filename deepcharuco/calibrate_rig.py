@@ -15,19 +15,18 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from functools import partial
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.calibration import (
-    CalibrationError, FrameDetection, SelectionOptions, border_margin, calibrate, sharpness, within_border,
+    CalibrationError, FrameDetection, SelectionOptions, border_margin, calibrate, within_border,
 )
+from deepcharuco.calibration_frames import calibration_pool, detect_views
 from deepcharuco.camera import Camera, is_camera_file, read_camera
 from deepcharuco.cli import check_output_folder
-from deepcharuco.detect import CHUNK_FRAMES, Source, make_finders, open_source
+from deepcharuco.detect import Source, open_source
 from deepcharuco.errors import CameraFileError, DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8
@@ -84,7 +83,7 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
                     yield (c, instant, str(name), gray), gray
 
     total = len(sources) * -(-min(totals) // step) if totals else None
-    return _detect_all(wanted(), detectors, len(sources), pool, total, quiet), sizes
+    return detect_views(wanted(), detectors, len(sources), pool, total, quiet), sizes
 
 
 def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
@@ -98,23 +97,6 @@ def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
         raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
                                f"{sizes[camera][0]}x{sizes[camera][1]}: one camera, one resolution")
     return gray
-
-
-def _detect_all(items, detectors: list, cameras: int, pool: DetectorPool | None, total: int | None, quiet: bool
-                ) -> list[list[list[FrameDetection]]]:
-    """Every board found in each ((camera, instant, name, gray), gray) of ``items`` by ``detectors`` (or ``pool``),
-    as ``detections[camera][board]``, with a progress bar of frames."""
-    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in range(cameras)]
-    seen = [0] * cameras  # frames in which each camera found a board, for the progress bar
-    with pool or DetectorPool(lambda: detectors) as detecting:
-        bar = tqdm(detecting.detect(items), total=total, unit="frame", desc="detecting", disable=quiet)
-        for (camera, instant, name, gray), found in bar:
-            for b, detection in enumerate(found):
-                detections[camera][b].append(FrameDetection(instant, name, detection.ids, detection.corners,
-                                                            sharpness(gray, detection.corners), detection.covariances))
-            seen[camera] += any(len(d.ids) for d in found)
-            bar.set_postfix(boards="/".join(map(str, seen)), refresh=False)
-    return detections
 
 
 def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
@@ -183,7 +165,7 @@ def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[in
                     yield (c, instant, str(name), gray), gray
 
     total = sum(1 for c in range(len(sources)) for instant in mapping[c].values() if instant % step == 0) or None
-    return _detect_all(wanted(), detectors, len(sources), pool, total, quiet), sizes
+    return detect_views(wanted(), detectors, len(sources), pool, total, quiet), sizes
 
 
 def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
@@ -288,10 +270,7 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
               targets: list[Path], mapping: list[dict[int, int]] | None) -> RigResult:
-    pool = None
-    if args.jobs > 1:
-        pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights, None, "auto", True,
-                                    "cpu", 1), args.jobs, chunk=CHUNK_FRAMES)
+    pool = calibration_pool(args.detector, boards, args.refine, args.weights, args.jobs)
     if mapping is None:
         offsets = args.sync_offsets or [0] * len(sources)
         detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet, pool=pool)

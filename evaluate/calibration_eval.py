@@ -218,12 +218,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
               f"{args.data}", file=sys.stderr)
         return 2
-    from deepcharuco.calibrate import make_calibration_detector
+    from deepcharuco.detect import make_detector
 
     reader = ShardReader(list_shards(args.data)[0])
     board = reader.board
     reader.close()
-    detectors = {name: make_calibration_detector(name, board, "subpix" if name == "opencv" else "refinenet")
+    detectors = {name: make_detector(name, board, "subpix" if name == "opencv" else "refinenet")
                  for name in args.detectors}
     results = calibration_experiment(detectors, args.data, board, select_terms=not args.all_terms,
                                      weight_views=not args.equal_weights)

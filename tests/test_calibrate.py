@@ -274,9 +274,9 @@ def test_poor_coverage_is_said(detections):
 
 
 def test_hybrid_detector_is_offered(waved):
-    from deepcharuco.calibrate import make_calibration_detector
+    from deepcharuco.detect import make_detector
 
-    detector = make_calibration_detector("hybrid", BOARD, "refinenet")
+    detector = make_detector("hybrid", BOARD, "refinenet")
     assert detector.mode == "hybrid" and len(detector.detect(waved[0][0])) >= 8
 
 
