@@ -218,9 +218,10 @@ def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[in
             for frame in frames:
                 kept = within_border(frame, sizes[c], options.border_px)
                 if len(kept.ids):
-                    views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}", b))
+                    views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}", b,
+                                         kept.covariances))
     result = calibrate_rig(views, boards, cameras, names, terms, min_corners=options.min_corners, priors=priors,
-                           own_noise=noise)
+                           own_noise=noise, weigh_corners=options.weight_views and options.weight_corners)
     result.notes = notes + result.notes
     return result
 

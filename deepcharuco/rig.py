@@ -77,6 +77,9 @@ MAX_DISAGREEMENT = 2.5
 # least_squares' sparse trust-region steps come from LSMR; at its default tolerances (1e-6) a 3-camera problem took
 # 200+ steps and stopped short (fx 2 % off its start moved back only half way); at 1e-12 it converges in ~50.
 MAX_STEPS = 300
+# WEIGHT_NOTE: solves per round when the corners weigh by their covariances (`corner_weights`): the first with the
+# excess measured by the round before (or none), the next with the excess its own residuals show.
+WEIGHT_PASSES = 2
 
 
 class RigError(CalibrationError):
@@ -86,7 +89,9 @@ class RigError(CalibrationError):
 @dataclass
 class RigView:
     """One camera's detection of one board at one instant: ``ids`` (N,) int64, ``corners`` (N, 2) float64 pixels,
-    ``name`` the frame's name in its source, ``board`` the board's index (several boards: `calibrate_rig`)."""
+    ``name`` the frame's name in its source, ``board`` the board's index (several boards: `calibrate_rig`),
+    ``covariances`` (N, 2, 2) px^2 each corner's covariance from its detector (`Detection.covariances`; None: not
+    given, and the corners weigh alike)."""
 
     camera: int
     instant: int
@@ -94,6 +99,7 @@ class RigView:
     corners: np.ndarray
     name: str = ""
     board: int = 0
+    covariances: np.ndarray | None = None
 
     @property
     def key(self) -> tuple[int, int]:
@@ -103,6 +109,15 @@ class RigView:
     def __post_init__(self) -> None:
         self.ids = np.asarray(self.ids, np.int64).reshape(-1)
         self.corners = np.asarray(self.corners, np.float64).reshape(-1, 2)
+        if self.covariances is not None:
+            self.covariances = np.asarray(self.covariances, np.float64).reshape(-1, 2, 2)
+            if not np.all(np.isfinite(self.covariances)):
+                self.covariances = None  # a weight for some corners only would weigh the others by nothing
+
+    def subset(self, keep: np.ndarray) -> "RigView":
+        """The view with only the corners ``keep`` (a boolean mask or indices) selects."""
+        covariances = None if self.covariances is None else self.covariances[keep]
+        return RigView(self.camera, self.instant, self.ids[keep], self.corners[keep], self.name, self.board, covariances)
 
 
 @dataclass
@@ -414,6 +429,9 @@ class _Problem:
     observed: np.ndarray  # (M, 2)
     # (C, 12) each starting intrinsic's prior standard deviation per px of corner noise (inf: no prior; `PRIOR_NOTE`)
     prior: np.ndarray | None = None
+    # (M, 2, 2) each corner's weight's root L (its residual counts as L r; L^T L its information, `corner_weights`),
+    # None: every corner alike
+    roots: np.ndarray | None = None
 
     @property
     def prior_sigma(self) -> np.ndarray:
@@ -444,7 +462,10 @@ class _Problem:
         R_b, R_c = rotations_from_vectors(boards[:, :3]), rotations_from_vectors(cameras[:, :3])
         in_rig = np.einsum("mij,mj->mi", R_b[self.pose], self.points) + boards[self.pose, 3:]
         in_camera = np.einsum("mij,mj->mi", R_c[self.camera], in_rig) + cameras[self.camera, 3:]
-        pixels = (project(in_camera, intrinsics[self.camera]) - self.observed).ravel()
+        pixels = project(in_camera, intrinsics[self.camera]) - self.observed
+        if self.roots is not None:
+            pixels = np.einsum("mij,mj->mi", self.roots, pixels)
+        pixels = pixels.ravel()
         sigma = self.prior_sigma
         held = np.isfinite(sigma)
         if not held.any():
@@ -476,11 +497,12 @@ def _vectors(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.ndarray, free: np.ndarray,
                   rotations: np.ndarray, translations: np.ndarray,
                   board_poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], prior: np.ndarray | None = None,
-                  prior_start: np.ndarray | None = None):
+                  prior_start: np.ndarray | None = None, weights: list[np.ndarray] | None = None):
     """One robust solve from the given start (board poses {(instant, board): (R (3, 3), t)}); ``prior`` (C, 12): the
-    intrinsics' prior deviations per px of noise about ``prior_start`` (default: ``intrinsics``). Returns (intrinsics
-    (C, 12), rotations (C, 3, 3), translations (C, 3), board poses {(instant, board): (rvec, tvec)}, per-view
-    residuals, the global parameters' covariance (scaled) and the layout)."""
+    intrinsics' prior deviations per px of noise about ``prior_start`` (default: ``intrinsics``); ``weights``: per
+    view, (N, 2, 2) each corner's information (`corner_weights`; None: all alike). Returns (intrinsics (C, 12),
+    rotations (C, 3, 3), translations (C, 3), board poses {(instant, board): (rvec, tvec)}, per-view residuals (px,
+    unweighted), the global parameters' covariance (scaled) and the layout)."""
     instants = sorted(board_poses)
     index = {key: k for k, key in enumerate(instants)}
     objects = [board.object_points() for board in boards]
@@ -489,7 +511,8 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
         camera=np.concatenate([np.full(len(v.ids), v.camera) for v in views]),
         pose=np.concatenate([np.full(len(v.ids), index[v.key]) for v in views]),
         points=np.concatenate([objects[v.board][v.ids] for v in views]),
-        observed=np.concatenate([v.corners for v in views]), prior=prior)
+        observed=np.concatenate([v.corners for v in views]), prior=prior,
+        roots=None if weights is None else np.swapaxes(np.linalg.cholesky(np.concatenate(weights)), -1, -2))
     x0 = np.concatenate([intrinsics[free],
                          np.concatenate([_vectors(rotations[c], translations[c]) for c in range(1, len(intrinsics))])
                          if len(intrinsics) > 1 else np.zeros(0),
@@ -498,7 +521,9 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
                              f_scale=HUBER_PX, x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS,
                              tr_options={"atol": 1e-12, "btol": 1e-12})
     solved, cameras, boards = problem.unpack(solution.x)
-    flat = solution.fun[:2 * len(problem.camera)].reshape(-1, 2)  # the plain residuals (least_squares' fun)
+    flat = solution.fun[:2 * len(problem.camera)].reshape(-1, 2)  # least_squares' fun: not weighed by the loss
+    if problem.roots is not None:  # back to pixels: L r = f
+        flat = np.linalg.solve(problem.roots, flat[..., None])[..., 0]
     residuals, start = [], 0
     for v in views:
         residuals.append(flat[start:start + len(v.ids)])
@@ -574,6 +599,27 @@ def _deviations(problem: _Problem, covariance: np.ndarray, names: list[str]) -> 
     return std
 
 
+# ----------------------------------------------------------------------------------------- corner weights
+def corner_weights(views: list[RigView], residuals: list[np.ndarray] | None = None) -> list[np.ndarray]:
+    """Per view, (N, 2, 2) each corner's information for the bundle adjustment: the inverse of its detector's
+    covariance plus its view's excess, the part of the view's residual covariance (``residuals``: per view, (N, 2)
+    px from the last solve; None: no excess yet) that its corners' covariances do not explain (a motion the detector
+    did not see, a board's flex), as `calibration.weigh_views` weighs one camera's corners. All are scaled by one
+    number, the median corner's variance, so that a typical corner weighs ~1 and the solve's Huber scale
+    (`HUBER_PX`), the prior's unit and the outlier limits stay in pixels."""
+    totals = []
+    for k, view in enumerate(views):
+        covariances = view.covariances
+        if residuals is not None and len(residuals[k]) >= 4:
+            r = residuals[k]
+            observed = r.T @ r / max(len(r) - 3, 1)  # the board pose's degrees of freedom over the view's 2N residuals
+            variance, axes = np.linalg.eigh(observed - covariances.mean(axis=0))
+            covariances = covariances + (axes * np.maximum(variance, 0.0)) @ axes.T
+        totals.append(covariances)
+    scale = float(np.median(np.trace(np.concatenate(totals), axis1=1, axis2=2))) / 2
+    return [scale * np.linalg.inv(total) for total in totals]
+
+
 # ----------------------------------------------------------------------------------------- the whole solve
 def free_mask(terms: str | None, n_dist: int) -> np.ndarray:
     """(12,) which `INTRINSICS` are solved: fx fy cx cy and the named distortion ``terms`` (e.g. "k1 k2 k3");
@@ -586,13 +632,14 @@ def free_mask(terms: str | None, n_dist: int) -> np.ndarray:
 
 def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], cameras: list[Camera], names: list[str],
                   terms: list[str | None], *, min_corners: int = 6, priors: list[dict[str, float] | None] | None = None,
-                  own_noise: list[float | None] | None = None) -> RigResult:
+                  own_noise: list[float | None] | None = None, weigh_corners: bool = True) -> RigResult:
     """Calibrate the rig from ``views`` (module docstring), starting from each camera's intrinsics ``cameras``
     (a single-camera calibration, or a given file). ``terms[c]``: the distortion terms camera c solves
     ("k1 k2 p1 p2 k3", ...), or None to hold its intrinsics fixed. ``priors[c]``: {intrinsic name: standard
     deviation} of camera c's starting intrinsics (`PRIOR_NOTE`), or None: no prior. ``own_noise[c]``: camera
     c's corner noise in its own calibration (px per axis): a rig whose cameras disagree by more than
-    `MAX_DISAGREEMENT` x that holds every camera's intrinsics."""
+    `MAX_DISAGREEMENT` x that holds every camera's intrinsics. ``weigh_corners``: where every view carries its
+    corners' covariances, each corner weighs by them and its view's excess (`corner_weights`)."""
     n = len(cameras)
     if n < 2:
         raise ValueError("a rig has two cameras or more; calibrate one camera with deepcharuco.calibration")
@@ -623,12 +670,29 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
                 prior[c, p] = deviations[name]
     notes: list[str] = []
     disagreement = math.nan
+    weighing = weigh_corners and all(v.covariances is not None for v in kept)
+    last: dict[tuple[int, tuple[int, int]], dict[int, np.ndarray]] = {}  # each view's last residual per corner ID
+
+    def weights_for(views: list[RigView]) -> list[np.ndarray] | None:
+        if not weighing:
+            return None
+        known = [last.get((v.camera, v.key)) for v in views]
+        if any(k is None for k in known):
+            return corner_weights(views)
+        return corner_weights(views, [np.array([k[i] for i in v.ids.tolist()]) for v, k in zip(views, known)])
+
+    def remember(views: list[RigView], residuals: list[np.ndarray]) -> None:
+        for v, r in zip(views, residuals):
+            last[(v.camera, v.key)] = dict(zip(v.ids.tolist(), r))
+
     own = [v for v in (own_noise or []) if v is not None and v > 0]
     if (np.isfinite(prior).any() or own) and free.any():
         # The rig's corner noise, the intrinsics held: the unit the prior's deviations are scaled into, and what the
         # cameras' own noise is compared with.
         _, rotations, translations, held, residuals, _, _ = bundle_adjust(
-            kept, boards, intrinsics, np.zeros_like(free), rotations, translations, board_poses)
+            kept, boards, intrinsics, np.zeros_like(free), rotations, translations, board_poses,
+            weights=weights_for(kept))
+        remember(kept, residuals)
         board_poses.update({key: (cv2.Rodrigues(r)[0], t) for key, (r, t) in held.items()})
         stacked = np.concatenate(residuals)
         noise = math.sqrt(float(np.median(np.sum(stacked ** 2, axis=1))) / (2 * math.log(2)))  # robust, per axis
@@ -647,13 +711,17 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
     rounds = 0
     while True:
         rounds += 1
-        used = [RigView(v.camera, v.instant, v.ids[m], v.corners[m], v.name, v.board)
-                for v, m in zip(active, masks) if (v.camera, v.key) not in outliers]
+        used = [v.subset(m) for v, m in zip(active, masks) if (v.camera, v.key) not in outliers]
         poses_used = {key: board_poses[key] for key in sorted({v.key for v in used})}
-        solved, rotations, translations, board_poses_new, residuals, covariance, problem = bundle_adjust(
-            used, boards, intrinsics, free, rotations, translations, poses_used, prior, start)
-        board_poses.update({i: (cv2.Rodrigues(r)[0], t) for i, (r, t) in board_poses_new.items()})
-        intrinsics = solved
+        # Weighed by the corners' covariances, each round solves twice: the second time with the views' excess
+        # measured by the first (WEIGHT_NOTE).
+        for _ in range(WEIGHT_PASSES if weighing else 1):
+            solved, rotations, translations, board_poses_new, residuals, covariance, problem = bundle_adjust(
+                used, boards, intrinsics, free, rotations, translations, poses_used, prior, start, weights_for(used))
+            remember(used, residuals)
+            board_poses.update({i: (cv2.Rodrigues(r)[0], t) for i, (r, t) in board_poses_new.items()})
+            poses_used = {key: board_poses[key] for key in poses_used}
+            intrinsics = solved
         if rounds >= MAX_ROUNDS or not _reject(active, masks, outliers, used, residuals, dropped, min_corners):
             break
     result_cameras = [camera_from_vector(intrinsics[c], sizes[c], n_dist[c]) for c in range(n)]
@@ -666,7 +734,7 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
                 fewer = list(terms)
                 fewer[c] = " ".join(t for t in terms[c].split() if t != "k3")
                 result = calibrate_rig(views, boards, cameras, names, fewer, min_corners=min_corners, priors=priors,
-                                       own_noise=own_noise)
+                                       own_noise=own_noise, weigh_corners=weigh_corners)
                 result.notes.insert(0, f"{names[c]}: with k3 free its distortion folds back {100 * fold:.0f} % of the "
                                        f"way to the image's corner: solved again with k3 fixed at 0")
                 return result
