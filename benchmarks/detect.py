@@ -34,6 +34,7 @@ import numpy as np
 
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
+from deepcharuco.detect import CAMERA_SEARCH_EVERY
 from deepcharuco.stage_times import StageTimes, stage
 from deepcharuco.tracking import BoardTracker
 from evaluate.machine import cpu_description, gpu_name
@@ -133,19 +134,21 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
 
 def video_rows(realdata: Path, device: str = "cpu") -> None:
     """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
-    frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, and tracked."""
+    frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, tracked (as ``deepcharuco
+    detect`` tracks a video), tracked as it tracks a camera (every level every 3rd frame while no board is
+    tracked, `CAMERA_SEARCH_EVERY`), and the hybrid detector tracked."""
     videos = sorted(realdata.glob("*/*.mp4"))
     if not videos:
         print(f"\nno real videos under {realdata}: pass --realdata")
         return
     print(f"\nreal videos, every frame in order: fps (frames with >= 4 corners); {realdata}")
-    names = ["opencv", "deep", "deep tracked", "hybrid tracked"]
+    names = ["opencv", "deep", "deep tracked", f"deep, camera's ({CAMERA_SEARCH_EVERY})", "hybrid tracked"]
     print_row("video", names, 20)
     for path in videos:
         board = BoardSpec.load(path.parent / "board.yaml")
         deep, hybrid = Detector(board, device=device), Detector(board, mode="hybrid", device=device)
         runs = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep, "deep tracked": BoardTracker(deep),
-                "hybrid tracked": BoardTracker(hybrid)}
+                names[3]: BoardTracker(deep, search_every=CAMERA_SEARCH_EVERY), "hybrid tracked": BoardTracker(hybrid)}
         frames = video_frames(path)
         for label, clip in ((path.parent.name + "/" + path.name, frames),
                             (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):

@@ -442,7 +442,7 @@ class Detector:
         None: the corners do not come from OpenCV's marker detection, and in the dark there are none to give)."""
         return detect_board_result(self.detect(image))
 
-    def detect(self, image: np.ndarray, *, working_size: int | None = None) -> Detection:
+    def detect(self, image: np.ndarray, *, working_size: int | None = None, levels: int | None = None) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -452,16 +452,18 @@ class Detector:
         image costs little when the board is found at a coarse level; levels longer than
         `WHOLE_SEARCH_SIZE` are searched only around what a coarser level found or saw (`_search`). An image no longer than ``working_size``
         is previewed at half size first (``preview``). ``working_size`` overrides the first level's size for
-        this call (`BoardTracker` searches a crop at the scale its whole frame was searched at).
+        this call (`BoardTracker` searches a crop at the scale its whole frame was searched at); ``levels``
+        searches only the first (coarsest) that many levels (`BoardTracker`'s quick search while it has lost
+        the board: a board whose squares are too small there is not found).
 
         numpy's BLAS runs single-threaded for the call (`runtime.single_threaded_blas`) and is restored after."""
         if self._each:
             raise DeepCharucoError(f"this Detector finds {len(self._each)} boards: detect_boards(image) returns one "
                                    f"Detection per board")
         with single_threaded_blas():
-            return self._detect(image, working_size)
+            return self._detect(image, working_size, levels)
 
-    def _detect(self, image: np.ndarray, working_size: int | None) -> Detection:
+    def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None) -> Detection:
         if self._opencv is not None:
             with stage("opencv"):
                 found = self._opencv.detect(image)
@@ -471,14 +473,14 @@ class Detector:
             gray_u8 = to_gray_u8(image)
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
         working_size = working_size or self.working_size
-        found, board_like = self._search(full, working_size)
+        found, board_like = self._search(full, working_size, levels)
         if found is None and board_like and self.geometry == "markers" and self.board.inverted:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
             # Only where the first search saw board-like cells: a frame without a board was searched twice.
             with stage("canonical view"):
                 full = canonical_view_local_white(gray_u8, self.board)
-            found, _ = self._search(full, working_size)
+            found, _ = self._search(full, working_size, levels)
         if found is None:
             return Detection.empty()
         region = found.region
@@ -558,7 +560,8 @@ class Detector:
             return corners[placing]
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
-    def _search(self, full: np.ndarray, working_size: int | None) -> tuple[Found | None, bool]:
+    def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None
+                ) -> tuple[Found | None, bool]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
         that decided found, or None; whether any level saw board-like cells or a board).
 
@@ -567,7 +570,7 @@ class Detector:
         level before found the board with squares under `MIN_SQUARE_PX` (around it), or saw board-like cells
         (`search_regions.board_like_boxes`), and not at all where it saw neither: a frame without a board
         stops at the coarse levels. Regions that would cover more than `MAX_REGION_SHARE` of a level make it
-        searched whole."""
+        searched whole. ``levels``: at most that many levels, coarse first (None: all)."""
         height, width = full.shape
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
@@ -577,7 +580,7 @@ class Detector:
                 return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early), True
             # part of the board, or squares too small to trust: the full image decides alone
         found, board_like, boxes, dim = None, False, [whole], False
-        for level, scale in enumerate(self._level_scales(max(height, width), working_size)):
+        for level, scale in enumerate(self._level_scales(max(height, width), working_size)[:levels]):
             if level > 0:
                 if found is not None:  # squares too small where found: look again, closer, around it alone
                     corners = (found.pixels + 0.5) * found.ratio() - 0.5 + np.array(found.box[:2], np.float32)

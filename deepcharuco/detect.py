@@ -50,6 +50,10 @@ from deepcharuco.video import VideoFrames
 # they show when no frame has the board.
 HINT_FRAMES, HINT_STRIDE = 12, 5
 CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`deepcharuco.parallel`)
+# --search-every's default for a camera (`BoardTracker`'s search_every). Measured on caliscope's four 1280x720 webcam
+# videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.5-2x the frames a second of 1, and
+# found the same frames but 5 of cam_1's 50, each a board of squares 22-34 px wide found one or two frames late.
+CAMERA_SEARCH_EVERY = 3
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
               "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
@@ -167,13 +171,13 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
 
 
 def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights: str | None,
-                 refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int
-                 ) -> list:
+                 refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int,
+                 search_every: int = 1) -> list:
     """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.parallel`): the detector,
     wrapped in a `BoardTracker` where ``refresh_every`` > 1."""
     detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
                  for board in boards]
-    return [BoardTracker(d, refresh_every) if refresh_every > 1 else d for d in detectors]
+    return [BoardTracker(d, refresh_every, search_every) if refresh_every > 1 else d for d in detectors]
 
 
 def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
@@ -257,8 +261,11 @@ def run(args: argparse.Namespace) -> dict:
     # frames go to --jobs workers one at a time, as they come: each is searched whole.
     tracking = source.kind == "video" or (source.kind == "camera" and args.jobs == 1)
     tracking = tracking and args.refresh_every > 1
+    # While no board is tracked, every level of the pyramid every --search-every frames, the coarse one between: a
+    # live camera's stream outruns the detector, so it gets the quicker search unless told otherwise.
+    search_every = args.search_every or (CAMERA_SEARCH_EVERY if source.kind == "camera" else 1)
     out = output_folder(args.out)
-    runs = [_BoardRun(path, detector, BoardTracker(detector, args.refresh_every) if tracking else detector,
+    runs = [_BoardRun(path, detector, BoardTracker(detector, args.refresh_every, search_every) if tracking else detector,
                       out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
             for path, detector, suffix in zip(board_files, detectors, suffixes)]
     for board_run in runs:
@@ -290,7 +297,7 @@ def run(args: argparse.Namespace) -> dict:
             print(f"detecting on {jobs} worker processes", file=sys.stderr)
             pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
                                         args.refine_weights, args.backend, not args.no_corner_fit, args.device,
-                                        args.refresh_every if tracking else 1),
+                                        args.refresh_every if tracking else 1, search_every),
                                 jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
         files.callback(pool.close)
         try:
@@ -471,6 +478,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refresh-every", type=int, default=30,
                         help="video/camera: search the whole frame at least every N frames, in between only around "
                              "the last board found (1: whole frames always)")
+    parser.add_argument("--search-every", type=int, default=None,
+                        help="video/camera, deep/hybrid: while no board is tracked, search every level of the frame "
+                             "every N frames and only the coarse level (320 px) between, where a board of squares "
+                             "~12 px there is found at once and a smaller one up to N - 1 frames late; a frame "
+                             "without a board then costs ~4x less (default: %d for a camera, 1 for a video: every "
+                             "level of every frame)" % CAMERA_SEARCH_EVERY)
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid, as "
                              "calibrate and the Detector API)")
@@ -499,6 +512,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--refresh-every must be >= 1 (1: search whole frames always), got {args.refresh_every}")
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1 (1: detect in this process), got {args.jobs}")
+    if args.search_every is not None and args.search_every < 1:
+        parser.error(f"--search-every must be >= 1 (1: every level of every frame), got {args.search_every}")
     if args.max_frames is not None and args.max_frames < 1:
         parser.error(f"--max-frames must be >= 1 (leave it out for every frame), got {args.max_frames}")
     args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")

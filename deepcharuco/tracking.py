@@ -6,9 +6,18 @@ markers beyond the outermost corners) holds it again; the detector runs on that 
 1280x720 with the board covering a quarter of the frame costs a quarter of the pixels. A full-frame
 search runs when the crop finds nothing, when there was no board before, and every ``refresh_every``
 frames (a second board, or the board re-entering elsewhere, is never missed for long).
+
+While no board is tracked, ``search_every`` N > 1 searches the whole frame at every level only every N-th
+frame, and the frames between at the coarse level alone (`Detector.detect`'s ``levels``): a board large
+enough to be read there (squares of ~12 px or more at 320 px: a quarter of the width of a 1280x720 frame for a
+5x5-square board) is found at once, a smaller one up to N - 1 frames late. A frame without a board costs
+most (every level is searched, and twice for an inverted print); in a live camera's stream it is most of the
+frames while the board is away.
 """
 
 from __future__ import annotations
+
+import inspect
 
 import numpy as np
 
@@ -40,23 +49,31 @@ class BoardTracker:
     Args:
         detector: `Detector`, `OpenCVDetector`, ...
         refresh_every: a full-frame search at least every this many frames (1: always, no tracking).
+        search_every: while no board is tracked, every level of the pyramid is searched every this many
+            frames, the coarse level alone in the frames between (1: every level always; module docstring).
+            Only for detectors whose ``detect`` takes ``levels`` (`Detector`); others search whole frames.
 
     ``detect(image)`` returns corners in ``image``'s pixels, as the detector would; ``last_search`` says
-    whether the last call searched the "crop" or the "full" frame.
+    whether the last call searched the "crop", the "full" frame or the frame at the "coarse" level alone.
     """
 
-    def __init__(self, detector, refresh_every: int = 30):
+    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1):
         if refresh_every < 1:
             raise ValueError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
+        if search_every < 1:
+            raise ValueError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
         self.detector = detector
         self.refresh_every = refresh_every
+        self.search_every = search_every if "levels" in inspect.signature(detector.detect).parameters else 1
         self._region: tuple[int, int, int, int] | None = None
         self._since_full = 0
+        self._coarse_left = 0  # coarse-only searches before the next search of every level
         self.last_search = "full"
 
     def reset(self) -> None:
-        """Forget the board (a cut in the video): the next frame is searched whole."""
+        """Forget the board (a cut in the video): the next frame is searched whole, at every level."""
         self._region = None
+        self._coarse_left = 0
 
     def detect(self, image: np.ndarray) -> Detection:
         height, width = image.shape[:2]
@@ -70,9 +87,19 @@ class BoardTracker:
                 self._follow(detection, (width, height))
                 self.last_search = "crop"
                 return detection
+            self._coarse_left = 0  # the board was just lost: it may have shrunk or left by an edge
+        if self._region is None and self._coarse_left > 0:
+            self._coarse_left -= 1
+            detection = self.detector.detect(image, levels=1)
+            self._follow(detection, (width, height))
+            if self._region is not None:
+                self._since_full = 0
+            self.last_search = "coarse"
+            return detection
         detection = self.detector.detect(image)
         self._since_full = 0
         self._follow(detection, (width, height))
+        self._coarse_left = self.search_every - 1 if self._region is None else 0
         self.last_search = "full"
         return detection
 

@@ -167,6 +167,9 @@ def test_hybrid_detector_and_tracking_options(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([str(EXAMPLES / "board_320x240.png"), "--refresh-every", "0", "--out", str(tmp_path / "x")])
     assert "--refresh-every must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_code:
+        main([str(EXAMPLES / "board_320x240.png"), "--search-every", "0", "--out", str(tmp_path / "x")])
+    assert exit_code.value.code == 2 and "--search-every must be >= 1" in capsys.readouterr().err
 
 
 def test_a_fisheye_camera_gives_the_true_pose(camera):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import make_view
-from deepcharuco import BoardSpec, OpenCVDetector
+from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.camera import Camera
 from deepcharuco.detection import Detection
 from deepcharuco.tracking import BoardTracker, search_region
@@ -114,3 +114,73 @@ def test_a_coarse_to_fine_detector_searches_the_crop_at_the_whole_frames_scale()
     (_, whole), (crop_shape, crop_size) = detector.calls
     assert whole is None and tracker.last_search == "crop"
     assert crop_size == round(max(crop_shape) * 320 / 1280)
+
+
+class Levelled:
+    """A coarse-to-fine detector stand-in: finds the board (4 corners) only where ``board_at`` says, at the coarse
+    level only where ``coarse_sees`` says; records each call's levels."""
+
+    working_size = 320
+
+    def __init__(self, board_at, coarse_sees):
+        self.board_at, self.coarse_sees, self.calls, self.frame = board_at, coarse_sees, [], 0
+
+    def detect(self, image, working_size=None, levels=None):
+        self.calls.append("crop" if image.shape != (720, 1280) else "coarse" if levels == 1 else "full")
+        corners = np.array([[500, 200], [540, 200], [500, 240], [540, 240]], np.float32)
+        if not self.board_at(self.frame) or (levels == 1 and not self.coarse_sees):
+            return Detection(np.zeros(0, int), np.zeros((0, 2), np.float32), np.zeros(0))
+        if image.shape != (720, 1280):  # a crop: its own pixels
+            corners -= np.array(self.tracker._region[:2], np.float32)
+        return Detection(np.arange(4), corners, np.ones(4))
+
+
+def run(tracker, detector, frames):
+    detector.tracker = tracker
+    searches = []
+    for n in range(frames):
+        detector.frame = n
+        tracker.detect(np.zeros((720, 1280), np.uint8))
+        searches.append(tracker.last_search)
+    return searches
+
+
+def test_search_every_searches_every_level_only_every_nth_frame_while_no_board_is_tracked():
+    absent = Levelled(lambda n: False, coarse_sees=True)
+    assert run(BoardTracker(absent, search_every=3), absent, 7) == ["full", "coarse", "coarse"] * 2 + ["full"]
+    assert absent.calls == ["full", "coarse", "coarse"] * 2 + ["full"]
+    # A board the coarse level reads is tracked from the frame it appears in; one it cannot read waits for the
+    # next search of every level.
+    large = Levelled(lambda n: n >= 1, coarse_sees=True)
+    assert run(BoardTracker(large, search_every=3), large, 3) == ["full", "coarse", "crop"]
+    small = Levelled(lambda n: n >= 1, coarse_sees=False)
+    tracker = BoardTracker(small, search_every=3)
+    assert run(tracker, small, 5) == ["full", "coarse", "coarse", "full", "crop"]
+    # Every level, every frame: the default, and any detector without levels (OpenCV).
+    everything = Levelled(lambda n: False, coarse_sees=True)
+    assert run(BoardTracker(everything), everything, 3) == ["full"] * 3
+    assert BoardTracker(OpenCVDetector(BoardSpec()), search_every=3).search_every == 1
+    with pytest.raises(ValueError, match="search_every must be >= 1"):
+        BoardTracker(everything, search_every=0)
+
+
+def test_a_board_lost_by_the_crop_is_searched_for_at_every_level_at_once():
+    present = [True, True, False, False, False, False]
+    detector = Levelled(lambda n: present[n], coarse_sees=True)
+    tracker = BoardTracker(detector, search_every=3)
+    searches = run(tracker, detector, 6)
+    # frame 2: the crop finds nothing -> every level at once (the board may have shrunk); then coarse, coarse, full
+    assert searches == ["full", "crop", "full", "coarse", "coarse", "full"]
+
+
+def test_the_coarse_level_alone_finds_a_large_board_and_not_a_small_one():
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    detector = Detector(board=board)
+    near, _, _, truth = make_view(board, camera, distance=0.4)  # squares ~110 px: 28 px at the 320-px level
+    coarse, every = detector.detect(near, levels=1), detector.detect(near)
+    assert len(coarse) == 16 and np.array_equal(coarse.ids, every.ids)
+    np.testing.assert_allclose(coarse.corners, every.corners, atol=1e-3)
+    assert np.abs(coarse.corners - truth[coarse.ids]).max() < 0.1
+    far = make_view(board, camera, distance=1.6)[0]  # squares ~28 px: 7 px at 320, read at 640
+    assert len(detector.detect(far, levels=1)) == 0 and len(detector.detect(far)) == 16
