@@ -482,8 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="video/camera, deep/hybrid: while no board is tracked, search every level of the frame "
                              "every N frames and only the coarse level (320 px) between, where a board of squares "
                              "~12 px there is found at once and a smaller one up to N - 1 frames late; a frame "
-                             "without a board then costs ~4x less (default: %d for a camera, 1 for a video: every "
-                             "level of every frame)" % CAMERA_SEARCH_EVERY)
+                             "without a board searched so costs 5-15x less (default: %d for a camera, 1 for a video: "
+                             "every level of every frame)" % CAMERA_SEARCH_EVERY)
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid, as "
                              "calibrate and the Detector API)")

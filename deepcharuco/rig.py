@@ -80,6 +80,7 @@ MAX_STEPS = 300
 # WEIGHT_NOTE: solves per round when the corners weigh by their covariances (`corner_weights`): the first with the
 # excess measured by the round before (or none), the next with the excess its own residuals show.
 WEIGHT_PASSES = 2
+MIN_VARIANCE_PX2 = 1e-8  # added to every corner's covariance: a degenerate one must not weigh infinitely
 
 
 class RigError(CalibrationError):
@@ -169,6 +170,7 @@ class RigResult:
     rounds: int = 1
     # the cameras' disagreement: the rig's corner noise (intrinsics held) over the cameras' own (`MAX_DISAGREEMENT`)
     disagreement: float = math.nan
+    corners_weighed: bool = False  # each corner weighed by its detector's covariance and its view's excess
 
     def camera_rms(self, camera: int) -> float:
         """RMS reprojection error (px, per corner) of ``camera``'s views used."""
@@ -201,7 +203,7 @@ class RigResult:
             poses[key] = (cv2.Rodrigues(inverse_r @ R)[0].ravel(), inverse_r @ tvec + inverse_t)
         return RigResult(self.cameras, self.names, rotations, translations, poses, self.views, self.residuals,
                          self.std, self.shared, self.dropped, list(self.notes), list(self.terms), self.rounds,
-                         self.disagreement)
+                         self.disagreement, self.corners_weighed)
 
     def summary(self) -> dict:
         """JSON-ready numbers: per camera its intrinsics, pose, RMS, views and deviations; pairs; drops."""
@@ -218,7 +220,7 @@ class RigResult:
                 "board_poses": len(self.board_poses),
                 "shared_views": {f"{self.names[i]}-{self.names[j]}": n for (i, j), n in sorted(self.shared.items())},
                 "dropped": [d.to_dict() for d in self.dropped], "notes": self.notes, "rounds": self.rounds,
-                "disagreement": self.disagreement}
+                "disagreement": self.disagreement, "corners_weighed": self.corners_weighed}
 
 
 # ----------------------------------------------------------------------------------------- geometry
@@ -615,7 +617,7 @@ def corner_weights(views: list[RigView], residuals: list[np.ndarray] | None = No
             observed = r.T @ r / max(len(r) - 3, 1)  # the board pose's degrees of freedom over the view's 2N residuals
             variance, axes = np.linalg.eigh(observed - covariances.mean(axis=0))
             covariances = covariances + (axes * np.maximum(variance, 0.0)) @ axes.T
-        totals.append(covariances)
+        totals.append(covariances + MIN_VARIANCE_PX2 * np.eye(2))
     scale = float(np.median(np.trace(np.concatenate(totals), axis1=1, axis2=2))) / 2
     return [scale * np.linalg.inv(total) for total in totals]
 
@@ -767,7 +769,7 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
     final_poses = {i: (cv2.Rodrigues(board_poses[i][0])[0].ravel(), np.asarray(board_poses[i][1], np.float64))
                    for i in sorted(seen_at)}
     return RigResult(result_cameras, list(names), rotations, translations, final_poses, used, residuals, std,
-                     shared, dropped, notes, terms_used, rounds, disagreement)
+                     shared, dropped, notes, terms_used, rounds, disagreement, weighing)
 
 
 def _reject(active: list[RigView], masks: list[np.ndarray], outliers: set, used: list[RigView],

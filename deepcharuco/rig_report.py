@@ -93,7 +93,9 @@ def report_sections(result: RigResult, boards: list[BoardSpec], frame: str) -> l
                f"{len(result.views)} views at {len({i for i, _ in result.board_poses})} instants; the rig's frame is "
                f"{frame}. Bundle "
                f"adjustment (scipy least_squares, Huber loss) of every camera's intrinsics and pose and every instant's "
-               f"board pose, solved {result.rounds} time(s) with outliers dropped in between. "
+               f"board pose, solved {result.rounds} time(s) with outliers dropped in between; "
+               + ("each corner weighed by its detector's covariance and its view's spread beyond it. "
+                  if result.corners_weighed else "every corner weighed alike. ")
                + ("Board" if len(boards) == 1 else "Boards") + ": " + "; ".join(
                    f"{b.squares_x}x{b.squares_y} {b.dictionary}" + (f" from marker {b.first_marker_id}" if b.first_marker_id
                                                                     else "") + f", {b.square_length * 1000:g} mm squares"

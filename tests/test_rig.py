@@ -114,6 +114,7 @@ def test_weighing_corners_by_their_covariances_places_the_cameras_better():
         for weigh in (True, False):
             result = calibrate_rig(noisy, RIG_BOARD, perturbed(cameras), ["a", "b", "c"], ["k1 k2 k3"] * 3,
                                    weigh_corners=weigh)
+            assert result.corners_weighed == weigh
             errors[weigh].append(max(
                 [rotation_angle_deg(result.rotations[c] @ rotations[c].T) / 0.01 for c in (1, 2)]
                 + [np.linalg.norm(result.translations[c] - translations[c]) / 0.001 for c in (1, 2)]
@@ -185,6 +186,7 @@ def test_the_command_calibrates_a_rig_into_camera_files_a_toml_and_a_report(tmp_
         assert np.allclose(cv2.Rodrigues(np.array(entry["rotation"]))[0], R, atol=1e-9)
         assert np.allclose(entry["translation"], t) and np.allclose(entry["matrix"], camera.K)
     assert (out / "rig_report.html").read_bytes().startswith(b"<!doctype html><html><head><meta charset='utf-8'><title>Rig")
+    assert "every corner weighed alike" in (out / "rig_report.html").read_text()  # OpenCV's corners carry no covariance
     # --origin board: the rig in the board's frame; the cameras keep their relative poses.
     again = tmp_path / "board_frame"
     assert main([*map(str, folders), "--board", str(board), "--detector", "opencv", "--out", str(again), "--quiet",
