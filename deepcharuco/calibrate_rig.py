@@ -206,10 +206,11 @@ def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[t
 
 def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
               boards: list[BoardSpec], options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
-              given: list[str | None] | None = None) -> RigResult:
+              given: list[str | None] | None = None, weigh_rig_corners: bool = True) -> RigResult:
     """The rig from every camera's detections of every board (``detections[c][b]``: one `FrameDetection` per
     instant, its index the instant): starting intrinsics (`starting_cameras`), corners within
-    ``options.border_px`` of the border left out, then `calibrate_rig`."""
+    ``options.border_px`` of the border left out, then `calibrate_rig`, which weighs corners by their covariances
+    where ``options`` weighs one camera's and ``weigh_rig_corners``."""
     cameras, terms, notes, priors, noise = starting_cameras(detections, sizes, names, given or [None] * len(names), boards,
                                                      model, options, fix_k3)
     views = []
@@ -221,7 +222,8 @@ def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[in
                     views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}", b,
                                          kept.covariances))
     result = calibrate_rig(views, boards, cameras, names, terms, min_corners=options.min_corners, priors=priors,
-                           own_noise=noise, weigh_corners=options.weight_views and options.weight_corners)
+                           own_noise=noise,
+                           weigh_corners=options.weight_views and options.weight_corners and weigh_rig_corners)
     result.notes = notes + result.notes
     return result
 

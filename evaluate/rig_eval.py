@@ -64,11 +64,13 @@ def detect_all(frames: list[list[np.ndarray]], detector, quiet: bool = True, lab
 
 
 def calibrate(detections: list[list[FrameDetection]], sizes, names, board: BoardSpec, refine: str,
-              given: list[str] | None = None) -> tuple[RigResult | None, str]:
-    """The CLI's rig solve (``given``: camera files whose intrinsics are held, as --camera), or (None, why not)."""
+              given: list[str] | None = None, weigh_rig_corners: bool = True) -> tuple[RigResult | None, str]:
+    """The CLI's rig solve (``given``: camera files whose intrinsics are held, as --camera; ``weigh_rig_corners``
+    False: the bundle adjustment weighs every corner alike, as before 2026-11-26), or (None, why not)."""
     options = SelectionOptions(border_px=border_margin(refine))
     try:
-        return solve_rig([[frames] for frames in detections], sizes, names, [board], options, given=given), ""
+        return solve_rig([[frames] for frames in detections], sizes, names, [board], options, given=given,
+                         weigh_rig_corners=weigh_rig_corners), ""
     except CalibrationError as error:
         return None, str(error)
 
@@ -135,7 +137,8 @@ def triangulated_squares(result: RigResult, board: BoardSpec) -> dict:
             "p90_abs_error_pct": float(100 * np.percentile(np.abs(ratios - 1), 90))}
 
 
-def drawn_experiment(seeds: list[int], conditions: list[str], instants: int, detectors: list[str], quiet: bool) -> list[dict]:
+def drawn_experiment(seeds: list[int], conditions: list[str], instants: int, detectors: list[str], quiet: bool,
+                     weigh: bool = True) -> list[dict]:
     rows = []
     for seed in seeds:
         for condition in conditions:
@@ -146,7 +149,7 @@ def drawn_experiment(seeds: list[int], conditions: list[str], instants: int, det
                 detector, refine = make_detector(name, RIG_BOARD)
                 started = time.perf_counter()
                 detections = detect_all(truth.frames, detector, quiet, f"seed {seed} {condition} {name}")
-                result, why = calibrate(detections, sizes, names, RIG_BOARD, refine)
+                result, why = calibrate(detections, sizes, names, RIG_BOARD, refine, weigh_rig_corners=weigh)
                 row = {"seed": seed, "condition": condition, "detector": name,
                        "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections],
                        "seconds": time.perf_counter() - started}
@@ -167,7 +170,7 @@ def _drawn_line(row: dict) -> str:
             f"disagreement {row['disagreement']:.2f}{' (intrinsics held)' if row['intrinsics_held'] else ''}")
 
 
-def rendered_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dict]:
+def rendered_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool = True) -> list[dict]:
     """The Blender-rendered rig in ``folder`` (`evaluate.rig_renders`): each condition's views through both
     detectors and the same solve, against the truth."""
     record = json.loads((folder / "truth.json").read_text())
@@ -193,7 +196,8 @@ def rendered_experiment(folder: Path, detectors: list[str], quiet: bool) -> list
         for name in detectors:
             detector, refine = make_detector(name, board)
             detections = detect_all(frames, detector, quiet, f"{folder.name} {condition} {name}")
-            result, why = calibrate(detections, [c.image_size for c in truth.cameras], names, board, refine)
+            result, why = calibrate(detections, [c.image_size for c in truth.cameras], names, board, refine,
+                                    weigh_rig_corners=weigh)
             row = {"seed": record["seed"], "condition": f"rendered {condition}", "detector": name, "cameras_used": names,
                    "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
             row.update(truth_errors(result, truth) if result else {"failed": why})
@@ -203,7 +207,7 @@ def rendered_experiment(folder: Path, detectors: list[str], quiet: bool) -> list
     return rows
 
 
-def real_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dict]:
+def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool = True) -> list[dict]:
     """The caliscope rig (module docstring)."""
     from evaluate.realistic import video_frames
 
@@ -222,7 +226,7 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool) -> list[dic
         # As a user runs it (every camera's intrinsics solved), and with them held at caliscope's own calibration
         # (--camera per camera), where both detectors' corners go through the same extrinsic solve.
         for intrinsics, held in (("solved", None), ("caliscope's", given)):
-            result, why = calibrate(detections, sizes, names, board, refine, held)
+            result, why = calibrate(detections, sizes, names, board, refine, held, weigh_rig_corners=weigh)
             row = {"detector": name, "intrinsics": intrinsics,
                    "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
             if result is None:
@@ -253,18 +257,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--realdata", type=Path, default=None, help="folder holding caliscope_calibration/")
     parser.add_argument("--rendered", type=Path, nargs="*", default=[],
                         help="folders of Blender-rendered rigs (python -m evaluate.rig_renders)")
+    parser.add_argument("--rig-corners-alike", action="store_true",
+                        help="the rig's bundle adjustment weighs every corner alike (as before 2026-11-26), each "
+                             "camera's own calibration still by the corners' covariances")
     parser.add_argument("--out", type=Path, default=Path("report/rig_eval.json"))
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     if args.realdata is not None and not (args.realdata / "caliscope_calibration").is_dir():
         parser.error(f"--realdata {args.realdata} holds no caliscope_calibration/ folder")
-    results = {"drawn": drawn_experiment(args.seeds, args.conditions, args.instants, args.detectors, args.quiet)}
+    weigh = not args.rig_corners_alike
+    results = {"drawn": drawn_experiment(args.seeds, args.conditions, args.instants, args.detectors, args.quiet, weigh)}
     for folder in args.rendered:
         if not (folder / "truth.json").is_file():
             parser.error(f"--rendered {folder} holds no truth.json: render it with python -m evaluate.rig_renders")
-        results.setdefault("rendered", []).extend(rendered_experiment(folder, args.detectors, args.quiet))
+        results.setdefault("rendered", []).extend(rendered_experiment(folder, args.detectors, args.quiet, weigh))
     if args.realdata is not None:
-        results["caliscope"] = real_experiment(args.realdata, args.detectors, args.quiet)
+        results["caliscope"] = real_experiment(args.realdata, args.detectors, args.quiet, weigh)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1))
     print(f"-> {args.out}")
