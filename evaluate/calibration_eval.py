@@ -213,6 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--equal-weights", action="store_true",
                         help="weigh every view alike (calibrate --equal-weights: the pipeline before views were weighed "
                              "by their residuals' spread)")
+    parser.add_argument("--no-corner-fit", action="store_true",
+                        help="deep and hybrid without the printed-pattern corner fit (RefineNet's corners, no "
+                             "covariances: the detector before 2026-11-25)")
     args = parser.parse_args(argv)
     if not available(args.data):
         print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
@@ -223,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     reader = ShardReader(list_shards(args.data)[0])
     board = reader.board
     reader.close()
-    detectors = {name: make_detector(name, board, "subpix" if name == "opencv" else "refinenet")
+    detectors = {name: make_detector(name, board, "subpix" if name == "opencv" else "refinenet",
+                                     corner_fit=not args.no_corner_fit)
                  for name in args.detectors}
     results = calibration_experiment(detectors, args.data, board, select_terms=not args.all_terms,
                                      weight_views=not args.equal_weights)
