@@ -51,8 +51,9 @@ from deepcharuco.video import VideoFrames
 HINT_FRAMES, HINT_STRIDE = 12, 5
 CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`deepcharuco.parallel`)
 # --search-every's default for a camera (`BoardTracker`'s search_every). Measured on caliscope's four 1280x720 webcam
-# videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.5-2x the frames a second of 1, and
-# found the same frames but 5 of cam_1's 50, each a board of squares 22-34 px wide found one or two frames late.
+# videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.3-2.2x the frames a second of 1,
+# lit and dark, and found the same frames but 13 of the 684 with a board (cam_1's 5 lit and 5 dark, port_2's 3 dark):
+# boards of small squares (22-34 px on cam_1), found a frame or two later.
 CAMERA_SEARCH_EVERY = 3
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
@@ -482,7 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="video/camera, deep/hybrid: while no board is tracked, search every level of the frame "
                              "every N frames and only the coarse level (320 px) between, where a board of squares "
                              "~12 px there is found at once and a smaller one up to N - 1 frames late; a frame "
-                             "without a board searched so costs 5-15x less (default: %d for a camera, 1 for a video: "
+                             "without a board searched so costs 6-17x less (default: %d for a camera, 1 for a video: "
                              "every level of every frame)" % CAMERA_SEARCH_EVERY)
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid, as "
