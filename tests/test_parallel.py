@@ -49,6 +49,15 @@ def test_workers_give_one_process_detections_in_order(frames, name):
     assert all(np.array_equal(a.ids, b.ids) for a, b in zip(again, expected))
 
 
+def test_workers_track_with_the_search_they_are_given():
+    deep = make_finders("deep", [BoardSpec()], "refinenet", None, None, "auto", True, "cpu", 30, 3)[0]
+    assert deep.refresh_every == 30 and deep.search_every == 3
+    opencv = make_finders("opencv", [BoardSpec()], "subpix", None, None, "auto", True, "cpu", 30, 3)[0]
+    assert opencv.search_every == 1  # OpenCV's detector searches whole frames: nothing coarser to fall back on
+    assert not hasattr(make_finders("deep", [BoardSpec()], "refinenet", None, None, "auto", True, "cpu", 1, 3)[0],
+                       "search_every")  # --refresh-every 1: no tracker at all
+
+
 def test_pool_arguments_are_checked():
     with pytest.raises(ValueError, match="workers and chunk must be >= 1"):
         DetectorPool(list, workers=0)
