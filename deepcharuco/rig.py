@@ -17,7 +17,8 @@ The steps (`calibrate_rig` runs them in order):
 5. `bundle_adjust`: ``scipy.optimize.least_squares`` (trust region, sparse finite-difference Jacobian, Huber loss
    of scale `HUBER_PX`) over every camera's free intrinsics (fx fy cx cy and its distortion terms), every camera's
    pose but camera 0's, and every (instant, board)'s pose, minimising the corners' reprojection error in every
-   view, with each camera's own calibration as a prior on its intrinsics (`PRIOR_NOTE`); where the cameras
+   view (each corner weighed by its detector's covariance and its view's excess where the views carry covariances:
+   `corner_weights`), with each camera's own calibration as a prior on its intrinsics (`PRIOR_NOTE`); where the cameras
    disagree beyond their own noise (`MAX_DISAGREEMENT`) the intrinsics are held instead. Corners farther than
    `CORNER_OUTLIER` x the robust sigma (and 2 px) from their reprojection, then views whose RMS exceeds
    `VIEW_OUTLIER` x the median view's (and 1 px), are dropped and it is solved again (at most `MAX_ROUNDS` times);
