@@ -51,7 +51,7 @@ from deepcharuco.video import VideoFrames
 HINT_FRAMES, HINT_STRIDE = 12, 5
 CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`deepcharuco.parallel`)
 # --search-every's default for a camera (`BoardTracker`'s search_every). Measured on caliscope's four 1280x720 webcam
-# videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.3-2.2x the frames a second of 1,
+# videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.2-2.3x the frames a second of 1,
 # lit and dark, and found the same frames but 13 of the 684 with a board (cam_1's 5 lit and 5 dark, port_2's 3 dark):
 # boards of small squares (22-34 px on cam_1), found a frame or two later.
 CAMERA_SEARCH_EVERY = 3
