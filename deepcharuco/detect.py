@@ -462,7 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="which detector. hybrid (the default): OpenCV first, the networks only where OpenCV's "
                              "corners do not fit one view of the board; chosen by measurement "
                              "(benchmarks/detect.py, docs/detector.md): in good light OpenCV's corners, placed by the "
-                             "printed-pattern fit, at 0.45-0.78x its speed, in the dark (k = 7) the deep detector's "
+                             "printed-pattern fit, at 0.47-0.83x its speed, in the dark (k = 7) the deep detector's "
                              "0.97-1.00 of the corners where "
                              "OpenCV finds none. deep: the networks always; opencv: OpenCV + cornerSubPix alone")
     parser.add_argument("--backend", choices=list(BACKENDS), default="auto",
