@@ -43,6 +43,14 @@ def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int
     return x0, y0, x1, y1
 
 
+def _takes_levels(detector) -> bool:
+    """Whether ``detector.detect`` takes ``levels`` (a coarse-to-fine `Detector`'s does)."""
+    try:
+        return "levels" in inspect.signature(detector.detect).parameters
+    except (TypeError, ValueError):  # a detect without a readable signature (a compiled extension's)
+        return False
+
+
 class BoardTracker:
     """Wraps any detector (``detect(image) -> Detection``) for consecutive video frames.
 
@@ -64,7 +72,7 @@ class BoardTracker:
             raise ValueError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
         self.detector = detector
         self.refresh_every = refresh_every
-        self.search_every = search_every if "levels" in inspect.signature(detector.detect).parameters else 1
+        self.search_every = search_every if _takes_levels(detector) else 1
         self._region: tuple[int, int, int, int] | None = None
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
