@@ -79,6 +79,15 @@ class CalibrationError(DeepCharucoError):
     """Frames that cannot give a calibration; the message says what to capture instead."""
 
 
+def checked_covariances(covariances) -> np.ndarray | None:
+    """Corners' covariances as (N, 2, 2) float64 px^2, or None where none are given or any is not finite: a weight
+    for some corners only would weigh the others by nothing."""
+    if covariances is None:
+        return None
+    covariances = np.asarray(covariances, np.float64).reshape(-1, 2, 2)
+    return covariances if np.all(np.isfinite(covariances)) else None
+
+
 @dataclass
 class FrameDetection:
     """What calibration keeps of one frame (never the image).
@@ -101,10 +110,7 @@ class FrameDetection:
     def __post_init__(self) -> None:
         self.ids = np.asarray(self.ids, np.int64).reshape(-1)
         self.corners = np.asarray(self.corners, np.float64).reshape(-1, 2)
-        if self.covariances is not None:
-            self.covariances = np.asarray(self.covariances, np.float64).reshape(-1, 2, 2)
-            if not np.all(np.isfinite(self.covariances)):
-                self.covariances = None  # a weight for some corners only would weigh the others by nothing
+        self.covariances = checked_covariances(self.covariances)
 
     def subset(self, keep: np.ndarray) -> "FrameDetection":
         """This frame with only its corners ``keep`` (a bool mask or indices)."""
@@ -799,13 +805,19 @@ def _weigh_corners(object_points: list[np.ndarray], image_points: list[np.ndarra
         residuals = _residuals(object_points, image_points, current, model)[0]
         information = []
         for r, covariances in zip(residuals, corner_covariances):
-            observed = r.T @ r / max(len(r) - 3, 1)  # the pose's 6 degrees of freedom over the view's 2N residuals
-            variance, axes = np.linalg.eigh(observed - covariances.mean(axis=0))
-            excess = (axes * np.maximum(variance, 0.0)) @ axes.T
-            information.append(np.linalg.inv(covariances + excess))
+            information.append(np.linalg.inv(covariances + view_excess(r, covariances)))
         current = weighted_solve(object_points, image_points, current, free, information)
     strength = np.array([float(np.linalg.eigvalsh(w.mean(axis=0))[0]) for w in information])
     return current, np.minimum(strength / max(float(np.median(strength)), 1e-300), 1.0)
+
+
+def view_excess(residuals: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """(2, 2) px^2: the part of a view's residual covariance (``residuals`` (N, 2) px) that its corners' own
+    ``covariances`` (N, 2, 2) do not explain (a motion the detector did not see, a board that flexes), positive
+    semi-definite."""
+    observed = residuals.T @ residuals / max(len(residuals) - 3, 1)  # the pose's 6 degrees of freedom over 2N residuals
+    variance, axes = np.linalg.eigh(observed - covariances.mean(axis=0))
+    return (axes * np.maximum(variance, 0.0)) @ axes.T
 
 
 def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarray], start: _Solution, free: np.ndarray,

@@ -43,7 +43,9 @@ from scipy.sparse import coo_matrix
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.camera import Camera
-from deepcharuco.calibration import MAX_RELATIVE_STD, MIN_FOLD_SHARE, CalibrationError, fold_share
+from deepcharuco.calibration import (
+    MAX_RELATIVE_STD, MIN_FOLD_SHARE, CalibrationError, checked_covariances, fold_share, view_excess,
+)
 from deepcharuco.pose import MIN_SPREAD_RATIO
 
 # Intrinsic parameters of a camera in the bundle adjustment, in this order (OpenCV's pinhole and rational models).
@@ -111,10 +113,7 @@ class RigView:
     def __post_init__(self) -> None:
         self.ids = np.asarray(self.ids, np.int64).reshape(-1)
         self.corners = np.asarray(self.corners, np.float64).reshape(-1, 2)
-        if self.covariances is not None:
-            self.covariances = np.asarray(self.covariances, np.float64).reshape(-1, 2, 2)
-            if not np.all(np.isfinite(self.covariances)):
-                self.covariances = None  # a weight for some corners only would weigh the others by nothing
+        self.covariances = checked_covariances(self.covariances)
 
     def subset(self, keep: np.ndarray) -> "RigView":
         """The view with only the corners ``keep`` (a boolean mask or indices) selects."""
@@ -614,10 +613,7 @@ def corner_weights(views: list[RigView], residuals: list[np.ndarray] | None = No
     for k, view in enumerate(views):
         covariances = view.covariances
         if residuals is not None and len(residuals[k]) >= 4:
-            r = residuals[k]
-            observed = r.T @ r / max(len(r) - 3, 1)  # the board pose's degrees of freedom over the view's 2N residuals
-            variance, axes = np.linalg.eigh(observed - covariances.mean(axis=0))
-            covariances = covariances + (axes * np.maximum(variance, 0.0)) @ axes.T
+            covariances = covariances + view_excess(residuals[k], covariances)
         totals.append(covariances + MIN_VARIANCE_PX2 * np.eye(2))
     scale = float(np.median(np.trace(np.concatenate(totals), axis1=1, axis2=2))) / 2
     return [scale * np.linalg.inv(total) for total in totals]
