@@ -325,6 +325,8 @@ class Detector:
             False: ``refine``'s positions, no covariances.
     """
 
+    min_square_px = MIN_SQUARE_PX  # a board found with narrower squares is searched again at the next finer level
+
     def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,

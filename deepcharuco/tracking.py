@@ -74,6 +74,7 @@ class BoardTracker:
         self.refresh_every = refresh_every
         self.search_every = search_every if _takes_levels(detector) else 1
         self._region: tuple[int, int, int, int] | None = None
+        self._spacing = 0.0  # the tracked board's corner spacing, px
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
         self.last_search = "full"
@@ -88,7 +89,7 @@ class BoardTracker:
         self._since_full += 1
         if self._region is not None and self._since_full < self.refresh_every:
             x0, y0, x1, y1 = self._region
-            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width))
+            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), self._spacing)
             if len(found) >= MIN_CORNERS:
                 detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
                                       scores=found.scores, covariances=found.covariances)
@@ -111,15 +112,26 @@ class BoardTracker:
         self.last_search = "full"
         return detection
 
-    def _detect_crop(self, crop: np.ndarray, frame_longest: int) -> Detection:
-        """The detector on ``crop``; a coarse-to-fine `Detector` searches it first at the scale its whole frame
-        is searched at (its own choice, by the crop's size alone, would look at a nearly square crop of a
-        board that fills the frame in more pixels than the whole frame)."""
+    def _detect_crop(self, crop: np.ndarray, frame_longest: int, spacing: float) -> Detection:
+        """The detector on ``crop``; a coarse-to-fine `Detector` searches it from the scale its whole frame is searched
+        at (its own choice, by the crop's size alone, would look at a nearly square crop of a board that fills the
+        frame in more pixels than the whole frame), skipping the levels (twice that scale, four times ...) where the
+        board's squares, ``spacing`` px wide in the frame before, would be narrower than half ``min_square_px``:
+        there and at the next level they are too narrow to stop the search. The last level before they are wide
+        enough is kept: caliscope's webcams show blurred boards that it reads (squares ~11 px) and full resolution
+        (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark)."""
         working_size = getattr(self.detector, "working_size", None)
         if working_size is None:
             return self.detector.detect(crop)
-        scale = min(1.0, working_size / frame_longest)
-        return self.detector.detect(crop, working_size=max(1, round(scale * max(crop.shape[:2]))))
+        longest = max(crop.shape[:2])
+        size = max(1, round(min(1.0, working_size / frame_longest) * longest))
+        min_square = getattr(self.detector, "min_square_px", None)
+        if min_square is not None:
+            while size < longest and 2 * spacing * size / longest < min_square:
+                size = min(2 * size, longest)
+        return self.detector.detect(crop, working_size=size)
 
     def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
-        self._region = search_region(detection.corners, image_size) if len(detection) >= MIN_CORNERS else None
+        tracked = len(detection) >= MIN_CORNERS
+        self._region = search_region(detection.corners, image_size) if tracked else None
+        self._spacing = corner_spacing(detection.corners) if tracked else 0.0

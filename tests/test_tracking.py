@@ -116,6 +116,52 @@ def test_a_coarse_to_fine_detector_searches_the_crop_at_the_whole_frames_scale()
     assert crop_size == round(max(crop_shape) * 320 / 1280)
 
 
+@pytest.mark.parametrize("spacing, doublings", [(40.0, 0), (20.0, 1), (6.0, None)])
+def test_a_tracked_crop_starts_at_the_level_before_its_squares_are_wide_enough(spacing, doublings):
+    """Squares 40 px wide in a 1280x720 frame are 10 px at 320/1280 and 20 at the next level: the crop starts at the
+    frame's scale. At 20 px wide they are 5 px there, too narrow for that level and the next (10 px < 16): it starts
+    at half scale, where they are 10 px. At 6 px only full resolution comes near."""
+    class CoarseToFine:
+        working_size, min_square_px = 320, 16
+
+        def __init__(self):
+            self.calls = []
+
+        def detect(self, image, working_size=None):
+            self.calls.append((image.shape, working_size))
+            corners = np.array([[600, 300], [600 + spacing, 300], [600, 300 + spacing], [600 + spacing, 300 + spacing]],
+                               np.float32)
+            if image.shape != (720, 1280):
+                corners -= np.array(tracker._region[:2], np.float32)
+            return Detection(np.arange(4), corners, np.ones(4))
+
+    detector = CoarseToFine()
+    tracker = BoardTracker(detector)
+    tracker.detect(np.zeros((720, 1280), np.uint8))
+    tracker.detect(np.zeros((720, 1280), np.uint8))
+    (crop_shape, crop_size) = detector.calls[1]
+    longest = max(crop_shape)
+    expected = longest if doublings is None else round(longest * 320 / 1280) * 2 ** doublings  # None: full size
+    assert tracker.last_search == "crop" and crop_size == expected
+
+
+def test_a_tracked_crop_that_skips_coarse_levels_finds_the_same_corners():
+    """The real detector on a far board (squares ~28 px in 1280x720: 7 px at the 320-px level, which the crop now
+    skips): the same corners as the crop searched from the frame's own scale."""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    detector = Detector(board=board)
+    clip = [make_view(board, camera, distance=1.6, offset=(0.01 * i, 0.0))[0] for i in range(3)]
+    skipping, every_level = BoardTracker(detector), BoardTracker(detector)
+    found = [skipping.detect(frame) for frame in clip]
+    detector.min_square_px = None  # this instance: every level of the crop, from the frame's scale
+    reference = [every_level.detect(frame) for frame in clip]
+    assert skipping.last_search == every_level.last_search == "crop"
+    for a, b in zip(found, reference):
+        assert len(a) == 16 and np.array_equal(a.ids, b.ids)
+        np.testing.assert_allclose(a.corners, b.corners, atol=1e-3)
+
+
 class Levelled:
     """A coarse-to-fine detector stand-in: finds the board (4 corners) only where ``board_at`` says, at the coarse
     level only where ``coarse_sees`` says; records each call's levels."""
