@@ -197,6 +197,18 @@ class Found:
                         np.float32)
 
 
+def _to_level(view: np.ndarray | None, box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]
+              ) -> np.ndarray | None:
+    """``view`` (3x3, board -> a full image's pixels) -> board -> the pixels of the search level that reduced the
+    full image's ``box`` (its (H, W) ``region_shape``) to ``level_shape`` (pixel centres to centres); None stays None."""
+    if view is None:
+        return None
+    rx, ry = level_shape[1] / region_shape[1], level_shape[0] / region_shape[0]
+    x0, y0 = box[:2]
+    to_level = np.array([[rx, 0.0, 0.5 * rx - 0.5 - rx * x0], [0.0, ry, 0.5 * ry - 0.5 - ry * y0], [0.0, 0.0, 1.0]])
+    return to_level @ view
+
+
 def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
     """The candidates inside the (width, height) image, not in the padding the network saw."""
     width, height = image_size
@@ -444,7 +456,8 @@ class Detector:
         None: the corners do not come from OpenCV's marker detection, and in the dark there are none to give)."""
         return detect_board_result(self.detect(image))
 
-    def detect(self, image: np.ndarray, *, working_size: int | None = None, levels: int | None = None) -> Detection:
+    def detect(self, image: np.ndarray, *, working_size: int | None = None, levels: int | None = None,
+               expected: Detection | None = None) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -456,16 +469,20 @@ class Detector:
         is previewed at half size first (``preview``). ``working_size`` overrides the first level's size for
         this call (`BoardTracker` searches a crop at the scale its whole frame was searched at); ``levels``
         searches only the first (coarsest) that many levels (`BoardTracker`'s quick search while it has lost
-        the board: a board whose squares are too small there is not found).
+        the board: a board whose squares are too small there is not found). ``expected``: where the board's corners
+        are expected in ``image`` (`BoardTracker`: the frame before's); a board found by its markers is first looked
+        for in that view, moved onto the point head's corners and verified by its markers as any view is
+        (`placement.view_near`), and searched for through its cells only where that fails.
 
         numpy's BLAS runs single-threaded for the call (`runtime.single_threaded_blas`) and is restored after."""
         if self._each:
             raise DeepCharucoError(f"this Detector finds {len(self._each)} boards: detect_boards(image) returns one "
                                    f"Detection per board")
         with single_threaded_blas():
-            return self._detect(image, working_size, levels)
+            return self._detect(image, working_size, levels, expected)
 
-    def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None) -> Detection:
+    def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
+                expected: Detection | None = None) -> Detection:
         if self._opencv is not None:
             with stage("opencv"):
                 found = self._opencv.detect(image)
@@ -475,14 +492,15 @@ class Detector:
             gray_u8 = to_gray_u8(image)
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
         working_size = working_size or self.working_size
-        found, board_like = self._search(full, working_size, levels)
+        prior = self._expected_view(expected, full.shape[1])
+        found, board_like = self._search(full, working_size, levels, prior)
         if found is None and board_like and self.geometry == "markers" and self.board.inverted:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
             # Only where the first search saw board-like cells: a frame without a board was searched twice.
             with stage("canonical view"):
                 full = canonical_view_local_white(gray_u8, self.board)
-            found, _ = self._search(full, working_size, levels)
+            found, _ = self._search(full, working_size, levels, prior)
         if found is None:
             return Detection.empty()
         region = found.region
@@ -513,6 +531,15 @@ class Detector:
         corners = corners + np.array(found.box[:2], np.float32)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
                          covariances=covariances_from_canonical(covariances, self.board))
+
+    def _expected_view(self, expected: Detection | None, width: int) -> np.ndarray | None:
+        """(3, 3) board metres -> the canonical image's pixels fitted to ``expected``'s corners (an image ``width`` px
+        wide), or None: no expectation, fewer than `MIN_CONSENSUS` corners, or a board not found by its markers."""
+        if expected is None or len(expected) < MIN_CONSENSUS or self.geometry != "markers":
+            return None
+        corners = corners_from_canonical(expected.corners, self.board, width).astype(np.float64)
+        homography, _ = cv2.findHomography(self._board_xy[expected.ids].astype(np.float64), corners, 0)
+        return homography
 
     def _opencv_fitted(self, image: np.ndarray, found: Detection) -> Detection:
         """OpenCV's verified corners placed by the printed-pattern fit, with their covariances (hybrid mode)."""
@@ -562,8 +589,8 @@ class Detector:
             return corners[placing]
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
-    def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None
-                ) -> tuple[Found | None, bool]:
+    def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None,
+                prior: np.ndarray | None = None) -> tuple[Found | None, bool]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
         that decided found, or None; whether any level saw board-like cells or a board).
 
@@ -572,7 +599,8 @@ class Detector:
         level before found the board with squares under `MIN_SQUARE_PX` (around it), or saw board-like cells
         (`search_regions.board_like_boxes`), and not at all where it saw neither: a frame without a board
         stops at the coarse levels. Regions that would cover more than `MAX_REGION_SHARE` of a level make it
-        searched whole. ``levels``: at most that many levels, coarse first (None: all)."""
+        searched whole. ``levels``: at most that many levels, coarse first (None: all). ``prior``: (3, 3) board
+        metres -> ``full``'s pixels, where the board is expected (`_expected_view`)."""
         height, width = full.shape
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
@@ -602,7 +630,8 @@ class Detector:
                 gray = region if scale == 1.0 else _reduced(region, scale)
                 if level == 0:
                     dim = is_dim(gray)  # the whole frame at the coarse level
-                ids, pixels, scores, early, confidence = self._find(gray, region, level)
+                ids, pixels, scores, early, confidence = self._find(gray, region, level,
+                                                                    _to_level(prior, box, gray.shape, region.shape))
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
                                to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,
@@ -664,12 +693,13 @@ class Detector:
         scales.append(1.0 if longest <= MAX_SEARCH_SIZE else MAX_SEARCH_SIZE / longest)
         return scales
 
-    def _find(self, gray: np.ndarray, full: np.ndarray, level: int | str = 0
+    def _find(self, gray: np.ndarray, full: np.ndarray, level: int | str = 0, prior: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None, np.ndarray]:
         """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``, the
         `EarlyRefinement` started for them (or None), and the (Hc, Wc) cell confidences; markers are read in
         ``full``, the same image at full resolution; ``level`` names the search level in stage times
-        (`deepcharuco.stage_times`)."""
+        (`deepcharuco.stage_times`); ``prior``: where the board is expected, board metres -> ``gray``'s pixels
+        (boards found by their markers)."""
         height, width = gray.shape
         with stage(f"network {level}"):
             point_logits, id_logits = self.runner.charuconet(network_input(gray))
@@ -684,7 +714,7 @@ class Detector:
             early = self._refine_early(gray, candidates.pixels[candidates.confidence >= self.threshold])
             with stage("markers"):
                 found = corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
-                                             threshold=self.threshold)[0]
+                                             threshold=self.threshold, expected=prior)[0]
             return (*found, early, confidence)
         return (*self.decode(point_logits, id_logits, (width, height), gray, full, confidence), None, confidence)
 

@@ -70,6 +70,14 @@ MIN_RANK_Z = 5.0
 # bits off.
 BITS_PER_ERROR = 12
 MIN_CODE_SHARE = 0.5
+# A video's board where the frame before put it (`view_near`): the view is moved by the median offset of the corners
+# that have a candidate within NEAR_FRACTION of the corner spacing, at least MIN_NEAR of them (a board that moved
+# farther is found by the search through the cells, as in any frame).
+NEAR_FRACTION = 0.4
+MIN_NEAR = 4
+# ... and stands when it names NEAR_SHARE of the corners it puts in the image; else the cells are searched too, and the
+# view naming more corners kept (a blurred board's view moved by the median offset may claim only some of them).
+NEAR_SHARE = 0.9
 # Corners the verified view predicts where no candidate reaches the detector's threshold may take a weaker one
 # (point confidence >= WEAK_CONFIDENCE, within WEAK_REACH_PX of the prediction): the markers already name the
 # corner, the point head need only say that one is there.
@@ -364,9 +372,27 @@ def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return mapped[:, :2] / mapped[:, 2:]
 
 
+def view_near(expected: np.ndarray, board_xy: np.ndarray, pixels: np.ndarray) -> BoardView | None:
+    """The view ``expected`` (3x3, board metres -> pixels: where the board was a frame ago) moved by the median offset
+    from its predicted corners to their nearest ``pixels`` (N, 2) candidates, or None where fewer than `MIN_NEAR`
+    corners have a candidate within `NEAR_FRACTION` of the corner spacing (the board moved too far, or is gone)."""
+    predicted, w = apply_homography(expected, np.asarray(board_xy, np.float64))
+    if len(pixels) < MIN_NEAR or not (w > 0).all():
+        return None
+    distance = pairwise_distances(predicted, pixels.astype(np.float64))  # (C, N)
+    nearest = distance.argmin(axis=1)
+    reach = NEAR_FRACTION * corner_spacing(predicted)
+    close = distance[np.arange(len(predicted)), nearest] <= reach
+    if close.sum() < MIN_NEAR:
+        return None
+    offset = np.median(pixels[nearest[close]] - predicted[close], axis=0)
+    moved = np.array([[1.0, 0.0, offset[0]], [0.0, 1.0, offset[1]], [0.0, 0.0, 1.0]]) @ expected
+    return BoardView(homography=moved, inliers=np.ones(len(board_xy), bool))
+
+
 def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCandidates, refits: int = 2,
                          read_gray: np.ndarray | None = None, reader: str | None = None,
-                         threshold: float | None = None
+                         threshold: float | None = None, expected: np.ndarray | None = None
                          ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView | None]:
     """The board's corners among ``candidates``, identified by the markers around them, in a view whose
     markers read as the board's own (`view_is_verified`).
@@ -379,7 +405,12 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
 
     Returns ((ids (K,), pixels (K, 2) float32, scores (K,) float32) strongest first, the marker view or
     None). The view's homography is refitted ``refits`` times on the corners it claimed (RANSAC), which
-    follows a mildly distorted lens better than the markers' squares alone."""
+    follows a mildly distorted lens better than the markers' squares alone.
+
+    ``expected``: (3, 3) board metres -> ``gray``'s pixels, where the board is expected (a video's frame before,
+    `BoardTracker`): that view, moved onto the candidates (`view_near`), is tried first and stands when its markers
+    read as the board's own, with every marker counted (none chose it); the search through the cells runs only
+    where it does not."""
     weak = None
     if threshold is not None:
         confident = candidates.confidence >= threshold
@@ -387,11 +418,39 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     # The view is searched among the most confident corners only (an untrained or confused point head must
     # not cost seconds); every candidate may then take a corner the view predicts.
     strongest = candidates.pixels[np.argsort(-candidates.confidence, kind="stable")[:SEARCH_CANDIDATES]]
+    board_xy = board.corner_points()[:, :2]
+    near = None if expected is None else view_near(expected, board_xy, strongest)
+    nearby = None
+    if near is not None:
+        found = MarkerView(view=near, marker_ids=np.zeros(0, np.int64), reads=0)
+        verified = _verified_corners(gray, board, board_xy, candidates, found, refits, read_gray, reader)
+        if verified is not None:
+            nearby = _filled_in(gray, board, board_xy, verified, weak, found)
+            in_image = _in_image(nearby[1].view.homography, board_xy, gray.shape)
+            if len(nearby[0][0]) >= NEAR_SHARE * in_image:
+                return nearby
+    searched = _searched(gray, board, board_xy, candidates, strongest, weak, refits, read_gray, reader)
+    if nearby is not None and (searched[1] is None or len(searched[0][0]) < len(nearby[0][0])):
+        return nearby
+    return searched
+
+
+def _in_image(homography: np.ndarray, board_xy: np.ndarray, shape: tuple[int, int]) -> int:
+    """How many of the board's corners ``homography`` (board -> pixels) puts inside an image of ``shape`` (H, W)."""
+    predicted, w = apply_homography(homography, board_xy)
+    height, width = shape
+    return int(((w > 0) & (predicted >= -0.5).all(axis=1) & (predicted[:, 0] < width - 0.5)
+                & (predicted[:, 1] < height - 0.5)).sum())
+
+
+def _searched(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray, candidates: CellCandidates,
+              strongest: np.ndarray, weak: CellCandidates | None, refits: int, read_gray: np.ndarray | None,
+              reader: str | None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView | None]:
+    """`corners_from_markers`' search through the cells between the ``strongest`` candidates."""
     # The squarest cells first: about a quarter of the reads where the view is not steep (`lattice.squarest_cells`); every
     # cell where those find no verified view.
     every = find_cells(strongest)
     squarest = squarest_cells(strongest, every)
-    board_xy = board.corner_points()[:, :2]
     for quads in (squarest, every) if len(squarest) < len(every) else (every,):
         found = find_marker_view(gray, board, strongest, quads, read_gray, reader)
         verified = None if found is None else \
@@ -400,6 +459,14 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
             break
     else:
         return no_corners(), None
+    return _filled_in(gray, board, board_xy, verified, weak, found)
+
+
+def _filled_in(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray,
+               verified: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], BoardView], weak: CellCandidates | None,
+               found: MarkerView) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MarkerView]:
+    """`corners_from_markers`' result from its verified corners and view: the corners the view predicts where no
+    confident candidate lies filled in from the ``weak`` ones and the printed pattern (None: none were set apart)."""
     (ids, pixels, scores), view = verified
     if weak is not None:
         height, width = gray.shape

@@ -43,10 +43,11 @@ def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int
     return x0, y0, x1, y1
 
 
-def _takes_levels(detector) -> bool:
-    """Whether ``detector.detect`` takes ``levels`` (a coarse-to-fine `Detector`'s does)."""
+def _takes(detector, option: str) -> bool:
+    """Whether ``detector.detect`` takes the keyword ``option`` (a coarse-to-fine `Detector`'s takes ``levels`` and
+    ``expected``)."""
     try:
-        return "levels" in inspect.signature(detector.detect).parameters
+        return option in inspect.signature(detector.detect).parameters
     except (TypeError, ValueError):  # a detect without a readable signature (a compiled extension's)
         return False
 
@@ -72,9 +73,10 @@ class BoardTracker:
             raise ValueError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
         self.detector = detector
         self.refresh_every = refresh_every
-        self.search_every = search_every if _takes_levels(detector) else 1
+        self.search_every = search_every if _takes(detector, "levels") else 1
         self._region: tuple[int, int, int, int] | None = None
-        self._spacing = 0.0  # the tracked board's corner spacing, px
+        self._last = Detection.empty()  # the board found in the frame before
+        self._takes_expected = _takes(detector, "expected")
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
         self.last_search = "full"
@@ -82,6 +84,7 @@ class BoardTracker:
     def reset(self) -> None:
         """Forget the board (a cut in the video): the next frame is searched whole, at every level."""
         self._region = None
+        self._last = Detection.empty()
         self._coarse_left = 0
 
     def detect(self, image: np.ndarray) -> Detection:
@@ -89,7 +92,7 @@ class BoardTracker:
         self._since_full += 1
         if self._region is not None and self._since_full < self.refresh_every:
             x0, y0, x1, y1 = self._region
-            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), self._spacing)
+            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0))
             if len(found) >= MIN_CORNERS:
                 detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
                                       scores=found.scores, covariances=found.covariances)
@@ -112,26 +115,33 @@ class BoardTracker:
         self.last_search = "full"
         return detection
 
-    def _detect_crop(self, crop: np.ndarray, frame_longest: int, spacing: float) -> Detection:
+    def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int]) -> Detection:
         """The detector on ``crop``; a coarse-to-fine `Detector` searches it from the scale its whole frame is searched
         at (its own choice, by the crop's size alone, would look at a nearly square crop of a board that fills the
         frame in more pixels than the whole frame), skipping the levels (twice that scale, four times ...) where the
-        board's squares, ``spacing`` px wide in the frame before, would be narrower than half ``min_square_px``:
+        board's squares, as wide as in the frame before, would be narrower than half ``min_square_px``:
         there and at the next level they are too narrow to stop the search. The last level before they are wide
         enough is kept: caliscope's webcams show blurred boards that it reads (squares ~11 px) and full resolution
-        (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark)."""
+        (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark).
+        A detector whose ``detect`` takes ``expected`` is told where the board was (the crop's origin at ``origin``
+        in the frame)."""
+        options = {}
+        if self._takes_expected:
+            options["expected"] = Detection(ids=self._last.ids, corners=self._last.corners - np.array(origin, np.float32),
+                                            scores=self._last.scores)
         working_size = getattr(self.detector, "working_size", None)
         if working_size is None:
-            return self.detector.detect(crop)
+            return self.detector.detect(crop, **options)
+        spacing = corner_spacing(self._last.corners)
         longest = max(crop.shape[:2])
         size = max(1, round(min(1.0, working_size / frame_longest) * longest))
         min_square = getattr(self.detector, "min_square_px", None)
         if min_square is not None:
             while size < longest and 2 * spacing * size / longest < min_square:
                 size = min(2 * size, longest)
-        return self.detector.detect(crop, working_size=size)
+        return self.detector.detect(crop, working_size=size, **options)
 
     def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
         tracked = len(detection) >= MIN_CORNERS
         self._region = search_region(detection.corners, image_size) if tracked else None
-        self._spacing = corner_spacing(detection.corners) if tracked else 0.0
+        self._last = detection

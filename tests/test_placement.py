@@ -271,3 +271,45 @@ def test_a_3x3_board_in_a_5_megapixel_frame_is_found_by_its_codes():
 @pytest.mark.parametrize("name", ["other marker IDs", "mirrored", "other dictionary DICT_6X6_250"])
 def test_a_3x3_look_alike_is_refused(name):
     assert_look_alike_refused(TINY, name, (lambda image: image,), fill=0.5)
+
+
+def _board_to_pixels(board: BoardSpec, homography: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
+    """``homography`` (board metres -> pixels) followed by a shift of the image by ``shift`` px."""
+    return np.array([[1.0, 0, shift[0]], [0, 1.0, shift[1]], [0, 0, 1.0]]) @ homography
+
+
+def test_an_expected_view_names_the_corners_without_the_search_through_the_cells(monkeypatch):
+    """A video's board a few pixels from where the frame before put it: the view moved onto the candidates names
+    the same corners the search finds, and the cells are never searched."""
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    image, truth, homography = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
+    pixels = np.round(truth).astype(np.float32)
+    candidates = CellCandidates(pixels, np.full(len(truth), 0.9, np.float32), np.zeros((len(truth), 0), np.float32))
+    searched = placement.corners_from_markers(image, board, candidates)[0]
+    board_xy = board.corner_points()[:, :2]
+    moved = placement.view_near(_board_to_pixels(board, homography, (4.0, -3.0)), board_xy, pixels)
+    assert np.abs(placement.apply_homography(moved.homography, board_xy)[0] - truth).max() < 1.0
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("the cells were searched")
+    monkeypatch.setattr(placement, "find_cells", no_search)
+    (ids, found, _), marker_view = placement.corners_from_markers(
+        image, board, candidates, expected=_board_to_pixels(board, homography, (4.0, -3.0)))
+    assert marker_view is not None and np.array_equal(ids, searched[0]) and np.array_equal(found, searched[1])
+
+
+def test_a_wrong_expected_view_is_refused_by_the_markers_and_the_cells_searched():
+    """An expected view two squares off (its corners land on other corners of the board, its markers on other
+    markers): the markers refuse it, the search through the cells finds the board as without it."""
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    image, truth, homography = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
+    pixels = np.round(truth).astype(np.float32)
+    candidates = CellCandidates(pixels, np.full(len(truth), 0.9, np.float32), np.zeros((len(truth), 0), np.float32))
+    two_squares = np.array([[1.0, 0, 2 * board.square_length], [0, 1.0, 0], [0, 0, 1.0]])
+    wrong = homography @ two_squares
+    board_xy = board.corner_points()[:, :2]
+    assert placement.view_near(wrong, board_xy, pixels) is not None  # it does land on candidates
+    (ids, found, _), marker_view = placement.corners_from_markers(image, board, candidates, expected=wrong)
+    searched = placement.corners_from_markers(image, board, candidates)[0]
+    assert marker_view is not None and np.array_equal(ids, searched[0]) and np.array_equal(found, searched[1])
+    assert np.abs(found - truth[ids]).max() < 1.0

@@ -162,6 +162,28 @@ def test_a_tracked_crop_that_skips_coarse_levels_finds_the_same_corners():
         np.testing.assert_allclose(a.corners, b.corners, atol=1e-3)
 
 
+def test_a_detector_that_takes_expected_is_told_where_the_board_was_in_the_crop():
+    class Expecting:
+        def __init__(self):
+            self.expected = []
+
+        def detect(self, image, expected=None):
+            self.expected.append(expected)
+            corners = np.array([[500, 200], [540, 200], [500, 240], [540, 240], [580, 240]], np.float32)
+            if image.shape != (720, 1280):
+                corners -= np.array(tracker._region[:2], np.float32)
+            return Detection(np.arange(5), corners, np.ones(5))
+
+    detector = Expecting()
+    tracker = BoardTracker(detector)
+    first = tracker.detect(np.zeros((720, 1280), np.uint8))
+    region = tracker._region
+    tracker.detect(np.zeros((720, 1280), np.uint8))
+    assert detector.expected[0] is None and tracker.last_search == "crop"
+    np.testing.assert_array_equal(detector.expected[1].ids, first.ids)
+    np.testing.assert_allclose(detector.expected[1].corners, first.corners - np.array(region[:2], np.float32))
+
+
 class Levelled:
     """A coarse-to-fine detector stand-in: finds the board (4 corners) only where ``board_at`` says, at the coarse
     level only where ``coarse_sees`` says; records each call's levels."""
