@@ -252,3 +252,25 @@ def test_the_coarse_level_alone_finds_a_large_board_and_not_a_small_one():
     assert np.abs(coarse.corners - truth[coarse.ids]).max() < 0.1
     far = make_view(board, camera, distance=1.6)[0]  # squares ~28 px: 7 px at 320, read at 640
     assert len(detector.detect(far, levels=1)) == 0 and len(detector.detect(far)) == 16
+
+
+def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
+    """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
+    away: the same corners as the search through the cells, which does not run."""
+    import deepcharuco.placement as placement
+
+    board = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
+                      dictionary="DICT_4X4_1000", inverted=True)
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    image = make_view(board, camera, distance=0.9, tilt_x_deg=20)[0]
+    detector = Detector(board=board)
+    searched = detector.detect(image)
+    assert len(searched) == board.num_corners
+    before = Detection(searched.ids, searched.corners + np.array([3.0, -2.0], np.float32), searched.scores)
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("the cells were searched")
+    monkeypatch.setattr(placement, "find_cells", no_search)
+    found = detector.detect(image, expected=before)
+    assert np.array_equal(found.ids, searched.ids)
+    np.testing.assert_allclose(found.corners, searched.corners, atol=1e-3)
