@@ -5,7 +5,9 @@ A board moves little between frames, so the region around the previous frame's c
 markers beyond the outermost corners) holds it again; the detector runs on that crop, which at
 1280x720 with the board covering a quarter of the frame costs a quarter of the pixels. A full-frame
 search runs when the crop finds nothing, when there was no board before, and every ``refresh_every``
-frames (a second board, or the board re-entering elsewhere, is never missed for long).
+frames (a second board, or the board re-entering elsewhere, is never missed for long). A detector that takes
+``expected`` (`Detector`) is told where the board was: a board read by its markers is looked for first in that
+view, verified by its markers as any view is.
 
 While no board is tracked, ``search_every`` N > 1 searches the whole frame at every level only every N-th
 frame, and the frames between at the coarse level alone (`Detector.detect`'s ``levels``): a board large
