@@ -469,7 +469,8 @@ class Detector:
         is previewed at half size first (``preview``). ``working_size`` overrides the first level's size for
         this call (`BoardTracker` searches a crop at the scale its whole frame was searched at); ``levels``
         searches only the first (coarsest) that many levels (`BoardTracker`'s quick search while it has lost
-        the board: a board whose squares are too small there is not found). ``expected``: where the board's corners
+        the board: a board whose squares are too small there is not found, nor an inverted print that only its
+        local white shows, `print_face.canonical_view_local_white`). ``expected``: where the board's corners
         are expected in ``image`` (`BoardTracker`: the frame before's); a board found by its markers is first looked
         for in that view, moved onto the point head's corners and verified by its markers as any view is
         (`placement.view_near`), and searched for through its cells only where that fails.
@@ -494,10 +495,11 @@ class Detector:
         working_size = working_size or self.working_size
         prior = self._expected_view(expected, full.shape[1])
         found, board_like = self._search(full, working_size, levels, prior)
-        if found is None and board_like and self.geometry == "markers" and self.board.inverted:
+        if found is None and board_like and self.geometry == "markers" and self.board.inverted and levels is None:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
-            # Only where the first search saw board-like cells: a frame without a board was searched twice.
+            # Only where the first search saw board-like cells: a frame without a board was searched twice. Not in a
+            # quick look at the first levels (`BoardTracker` while the board is away): the next full search does it.
             with stage("canonical view"):
                 full = canonical_view_local_white(gray_u8, self.board)
             found, _ = self._search(full, working_size, levels, prior)

@@ -274,3 +274,23 @@ def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_sear
     found = detector.detect(image, expected=before)
     assert np.array_equal(found.ids, searched.ids)
     np.testing.assert_allclose(found.corners, searched.corners, atol=1e-3)
+
+
+def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_search(monkeypatch):
+    """A frame with board-like cells and no board of ours (another dictionary's board): the full search searches it
+    again negated about its local white, a quick look at the coarse level does not."""
+    import deepcharuco.deep_detector as deep_detector
+
+    ours = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
+                     dictionary="DICT_4X4_1000", inverted=True)
+    other = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
+                      dictionary="DICT_6X6_250", inverted=True)
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    image = make_view(other, camera, distance=1.6)[0]  # squares ~35 px, ~9 at 320 px: a dense patch of corner-like cells
+    calls = []
+    local_white = deep_detector.canonical_view_local_white
+    monkeypatch.setattr(deep_detector, "canonical_view_local_white",
+                        lambda gray, board: calls.append(1) or local_white(gray, board))
+    detector = Detector(board=ours)
+    assert len(detector.detect(image)) == 0 and len(calls) == 1
+    assert len(detector.detect(image, levels=1)) == 0 and len(calls) == 1
