@@ -615,6 +615,20 @@ def settle_corners(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray, s
     return ids[keep], corners[keep], scores[keep]
 
 
+def neighbour_distances(board_xy: np.ndarray, ids: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(N,) px: how far each of a detection's (N, 2) ``corners`` (IDs ``ids`` (N,); ``board_xy`` (C, 2) the board's
+    corners) lies from where the others within `LOCAL_SQUARES` squares of it put it (`local_predictions`); NaN where
+    they are fewer than 4 or on one line."""
+    offsets, weight, slots = _neighbourhoods(board_xy, ids, ids)
+    distance = np.full(len(ids), np.nan)
+    fittable = _fittable(offsets, weight)
+    if fittable.any():
+        predicted, _ = local_predictions(offsets[fittable], weight[fittable],
+                                         np.asarray(corners, np.float64)[slots[fittable]])
+        distance[fittable] = lengths(predicted - corners[fittable])
+    return distance
+
+
 def _neighbourhoods(board_xy: np.ndarray, targets: np.ndarray, ids: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each target corner's neighbours among ``ids`` ((N,) corner IDs): the others within `LOCAL_SQUARES` squares
