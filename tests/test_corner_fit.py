@@ -10,6 +10,7 @@ from deepcharuco.calibration import FrameDetection, SelectionOptions, calibrate
 from deepcharuco.corner_fit import FALLBACK_SIGMA_PX, _quadrant_signs, board_axes, fit_corners, view_homography
 from deepcharuco.detection import Detection
 from deepcharuco.junction import printed_pattern
+from deepcharuco.placement import neighbour_distances
 from deepcharuco.print_face import canonical_view
 from deepcharuco.synthetic import look_at_pose, render_board_view
 
@@ -233,3 +234,35 @@ def test_hybrid_mode_fits_opencvs_corners_too(name):
     assert np.all(np.isnan(plain.covariances)) and np.all(np.isfinite(hybrid.covariances))
     fitted_error = np.median(np.linalg.norm(hybrid.corners - truth[hybrid.ids], axis=1))
     assert fitted_error < 0.5 * np.median(np.linalg.norm(plain.corners - truth[plain.ids], axis=1))
+
+
+def test_neighbour_distances_find_the_corner_its_neighbours_disagree_with():
+    board = BOARDS["6x6"]
+    _, truth = view(board)
+    ids = np.arange(board.num_corners)
+    board_xy = board.corner_points()[:, :2]
+    assert np.nanmax(neighbour_distances(board_xy, ids, truth)) < 0.05
+    moved = truth.copy()
+    moved[8] += [3.0, 4.0]  # an inner corner, 5 px off
+    distance = neighbour_distances(board_xy, ids, moved)
+    assert distance[8] == pytest.approx(5.0, abs=0.3)
+    assert np.nanmax(np.delete(distance, 8)) < distance[8]
+
+
+def test_a_corner_the_fit_cannot_place_carries_its_neighbours_disagreement_as_sigma():
+    """Corners left where they are (the fit does not place them): one 4 px off where its neighbours put it gets a
+    sigma of ~4 px, one where they put it the 0.5 px floor."""
+    board = BOARDS["6x6"]
+    image, truth = view(board)
+    detector = Detector(board=board)
+    ids = np.arange(board.num_corners)
+    corners = truth.astype(np.float32).copy()
+    corners[8] += [0.0, 4.0]
+    keep = np.zeros(len(ids), bool)
+    keep[[8, 9]] = True
+    fitted, covariances = detector._fitted(canonical_view(image, board), ids, corners, keep=keep)
+    sigmas = np.sqrt(np.linalg.eigvalsh(covariances)[:, -1])
+    assert np.allclose(fitted[keep], corners[keep])
+    assert sigmas[8] == pytest.approx(4.0, abs=0.4)
+    assert sigmas[9] == pytest.approx(FALLBACK_SIGMA_PX)
+    assert np.all(sigmas[~keep] < FALLBACK_SIGMA_PX)  # the fitted corners keep the fit's own
