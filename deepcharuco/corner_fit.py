@@ -61,7 +61,9 @@ MAX_MOVE_PX = 1.5  # a corner the fit moves farther than this from its start kee
 NOISE_GAIN = 1.5
 MISFIT_GAIN = 0.5
 FLOOR_PX = 0.003
-FALLBACK_SIGMA_PX = 0.5  # given a corner the fit cannot place: RefineNet's RMS error there (validation, small squares)
+# The least sigma of a corner the fit cannot place: RefineNet's RMS error there (validation, small squares). The
+# detector gives such a corner its distance from where its neighbours put it where that is larger (`Detector._fitted`).
+FALLBACK_SIGMA_PX = 0.5
 
 
 @dataclass(frozen=True)
