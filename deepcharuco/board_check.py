@@ -98,6 +98,17 @@ def fit_board_homography(board_xy: np.ndarray, pixels: np.ndarray, tolerance_px:
     return BoardView(homography=homography, inliers=inliers)
 
 
+def in_image(homography: np.ndarray, board_xy: np.ndarray, image_size: tuple[int, int]
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 2) board points -> (their (P, 2) pixels under ``homography``, (P,) bool: in front of the camera and inside
+    an image of ``image_size`` (width, height), pixel centres from 0)."""
+    predicted, w = apply_homography(homography, np.asarray(board_xy, np.float64))
+    width, height = image_size
+    inside = (w > 0) & (predicted[:, 0] > -0.5) & (predicted[:, 1] > -0.5) \
+        & (predicted[:, 0] < width - 0.5) & (predicted[:, 1] < height - 0.5)
+    return predicted, inside
+
+
 def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates, image_size: tuple[int, int],
                tolerance_px: float = TOLERANCE_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Corners of a verified view matched to candidates: mutual nearest pairs no farther apart than
@@ -111,10 +122,7 @@ def assign_ids(view: BoardView, board_xy: np.ndarray, candidates: CellCandidates
         (ids (K,), pixels (K, 2) float32, scores (K,) float32), strongest first. A corner's score is
         its cell's point confidence: its ID comes from the board's geometry, not the ID head.
     """
-    predicted, w = apply_homography(view.homography, np.asarray(board_xy, np.float64))
-    width, height = image_size
-    in_view = (w > 0) & (predicted[:, 0] > -0.5) & (predicted[:, 1] > -0.5) \
-        & (predicted[:, 0] < width - 0.5) & (predicted[:, 1] < height - 0.5)
+    predicted, in_view = in_image(view.homography, board_xy, image_size)
     if len(candidates) == 0 or not in_view.any():
         return no_corners()
     spacing = pairwise_distances(predicted, predicted)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.board import BoardSpec
-from deepcharuco.board_check import BoardView, apply_homography, assign_ids
+from deepcharuco.board_check import BoardView, apply_homography, assign_ids, in_image
 from deepcharuco.detection import corner_spacing, no_corners
 from deepcharuco.junction import pattern_evidence
 from deepcharuco.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
@@ -426,21 +426,13 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
         verified = _verified_corners(gray, board, board_xy, candidates, found, refits, read_gray, reader)
         if verified is not None:
             nearby = _filled_in(gray, board, board_xy, verified, weak, found)
-            in_image = _in_image(nearby[1].view.homography, board_xy, gray.shape)
-            if len(nearby[0][0]) >= NEAR_SHARE * in_image:
+            in_view = in_image(nearby[1].view.homography, board_xy, gray.shape[::-1])[1].sum()
+            if len(nearby[0][0]) >= NEAR_SHARE * in_view:
                 return nearby
     searched = _searched(gray, board, board_xy, candidates, strongest, weak, refits, read_gray, reader)
     if nearby is not None and (searched[1] is None or len(searched[0][0]) < len(nearby[0][0])):
         return nearby
     return searched
-
-
-def _in_image(homography: np.ndarray, board_xy: np.ndarray, shape: tuple[int, int]) -> int:
-    """How many of the board's corners ``homography`` (board -> pixels) puts inside an image of ``shape`` (H, W)."""
-    predicted, w = apply_homography(homography, board_xy)
-    height, width = shape
-    return int(((w > 0) & (predicted >= -0.5).all(axis=1) & (predicted[:, 0] < width - 0.5)
-                & (predicted[:, 1] < height - 0.5)).sum())
 
 
 def _searched(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray, candidates: CellCandidates,
