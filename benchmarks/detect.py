@@ -34,7 +34,7 @@ import numpy as np
 
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
-from deepcharuco.detect import CAMERA_SEARCH_EVERY
+from deepcharuco.detect import CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY
 from deepcharuco.stage_times import StageTimes, stage
 from deepcharuco.tracking import BoardTracker
 from evaluate.machine import cpu_description, gpu_name
@@ -134,21 +134,26 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
 
 def video_rows(realdata: Path, device: str = "cpu") -> None:
     """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
-    frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, tracked (as ``deepcharuco
-    detect`` tracks a video), tracked as it tracks a camera (every level every 3rd frame while no board is
-    tracked, `CAMERA_SEARCH_EVERY`), and the hybrid detector tracked."""
+    frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, tracked with every level of
+    every frame searched while no board is tracked, tracked as ``deepcharuco detect`` tracks a video (every level
+    every `VIDEO_SEARCH_EVERY`-th frame while no board is tracked, looking back: `BoardTracker.push`) and as it
+    tracks a camera (every `CAMERA_SEARCH_EVERY`-th frame, no looking back), and the hybrid detector tracked as a
+    video."""
     videos = sorted(realdata.glob("*/*.mp4"))
     if not videos:
         print(f"\nno real videos under {realdata}: pass --realdata")
         return
     print(f"\nreal videos, every frame in order: fps (frames with >= 4 corners); {realdata}")
-    names = ["opencv", "deep", "deep tracked", f"deep, camera's ({CAMERA_SEARCH_EVERY})", "hybrid tracked"]
+    names = ["opencv", "deep", "deep tracked (1)", f"deep, video's ({VIDEO_SEARCH_EVERY})",
+             f"deep, camera's ({CAMERA_SEARCH_EVERY})", "hybrid, video's"]
     print_row("video", names, 20)
     for path in videos:
         board = BoardSpec.load(path.parent / "board.yaml")
         deep, hybrid = Detector(board, device=device), Detector(board, mode="hybrid", device=device)
-        runs = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep, "deep tracked": BoardTracker(deep),
-                names[3]: BoardTracker(deep, search_every=CAMERA_SEARCH_EVERY), "hybrid tracked": BoardTracker(hybrid)}
+        runs = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep, names[2]: BoardTracker(deep),
+                names[3]: BoardTracker(deep, search_every=VIDEO_SEARCH_EVERY),
+                names[4]: BoardTracker(deep, search_every=CAMERA_SEARCH_EVERY, look_back=False),
+                names[5]: BoardTracker(hybrid, search_every=VIDEO_SEARCH_EVERY)}
         frames = video_frames(path)
         for label, clip in ((path.parent.name + "/" + path.name, frames),
                             (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):
@@ -158,7 +163,11 @@ def video_rows(realdata: Path, device: str = "cpu") -> None:
                 if isinstance(detector, BoardTracker):
                     detector.reset()
                 started = time.perf_counter()
-                found = sum(len(detector.detect(image)) >= 4 for image in clip)
+                if isinstance(detector, BoardTracker):  # as a video or a camera: `push`, looking back or not
+                    detections = [d for image in clip for d in detector.push(image)] + detector.flush()
+                else:
+                    detections = [detector.detect(image) for image in clip]
+                found = sum(len(detection) >= 4 for detection in detections)
                 cells.append(f"{len(clip) / (time.perf_counter() - started):6.1f} ({found:3d}/{len(clip)})")
             print_row(label, cells, 20)
 

@@ -55,6 +55,11 @@ CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`de
 # lit and dark, and found the same frames but 13 of the 684 with a board (cam_1's 5 lit and 5 dark, port_2's 3 dark):
 # boards of small squares (22-34 px on cam_1), found a frame or two later.
 CAMERA_SEARCH_EVERY = 3
+# --search-every's default for a video. A video looks back (`BoardTracker.push`): the frames searched at the coarse
+# level alone wait for the next frame that finds the board, which finds it in them, so the quicker search loses no
+# frame. The camera's 3, not tuned again; on the same five videos (docs/detector.md, 2026-11-26), against every level
+# of every frame: 1.2-3.0x the frames a second, lit and dark, every frame found again and 7 more.
+VIDEO_SEARCH_EVERY = 3
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
               "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
@@ -173,12 +178,12 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
 
 def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights: str | None,
                  refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int,
-                 search_every: int = 1) -> list:
+                 search_every: int = 1, look_back: bool = True) -> list:
     """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.parallel`): the detector,
     wrapped in a `BoardTracker` where ``refresh_every`` > 1."""
     detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
                  for board in boards]
-    return [BoardTracker(d, refresh_every, search_every) if refresh_every > 1 else d for d in detectors]
+    return [BoardTracker(d, refresh_every, search_every, look_back) if refresh_every > 1 else d for d in detectors]
 
 
 def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
@@ -264,9 +269,13 @@ def run(args: argparse.Namespace) -> dict:
     tracking = tracking and args.refresh_every > 1
     # While no board is tracked, every level of the pyramid every --search-every frames, the coarse one between: a
     # live camera's stream outruns the detector, so it gets the quicker search unless told otherwise.
-    search_every = args.search_every or (CAMERA_SEARCH_EVERY if source.kind == "camera" else 1)
+    search_every = args.search_every or (CAMERA_SEARCH_EVERY if source.kind == "camera" else VIDEO_SEARCH_EVERY)
+    # A video is not watched live: frames the quick search found nothing in wait for the next that finds the board,
+    # which looks back through them (`BoardTracker.push`).
+    look_back = source.kind == "video"
     out = output_folder(args.out)
-    runs = [_BoardRun(path, detector, BoardTracker(detector, args.refresh_every, search_every) if tracking else detector,
+    runs = [_BoardRun(path, detector,
+                      BoardTracker(detector, args.refresh_every, search_every, look_back) if tracking else detector,
                       out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
             for path, detector, suffix in zip(board_files, detectors, suffixes)]
     for board_run in runs:
@@ -298,7 +307,7 @@ def run(args: argparse.Namespace) -> dict:
             print(f"detecting on {jobs} worker processes", file=sys.stderr)
             pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
                                         args.refine_weights, args.backend, not args.no_corner_fit, args.device,
-                                        args.refresh_every if tracking else 1, search_every),
+                                        args.refresh_every if tracking else 1, search_every, look_back),
                                 jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
         files.callback(pool.close)
         try:
@@ -482,9 +491,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--search-every", type=int, default=None,
                         help="video/camera, deep/hybrid: while no board is tracked, search every level of the frame "
                              "every N frames and only the coarse level (320 px) between, where a board of squares "
-                             "~12 px there is found at once and a smaller one up to N - 1 frames late; a frame "
-                             "without a board searched so costs 6-17x less (default: %d for a camera, 1 for a video: "
-                             "every level of every frame)" % CAMERA_SEARCH_EVERY)
+                             "~12 px there is found at once and a smaller one up to N - 1 frames late (a video: "
+                             "found there too, by looking back from the frame that finds it); a frame without a "
+                             "board searched so costs 6-17x less (default: %d for a camera, %d for a video; 1: "
+                             "every level of every frame)" % (CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY))
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid, as "
                              "calibrate and the Detector API)")

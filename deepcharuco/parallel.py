@@ -55,7 +55,18 @@ def _detect_chunk(frames: list[np.ndarray]) -> list[list[Detection]]:
     for finder in _finders:
         if hasattr(finder, "reset"):  # a tracker: this chunk does not follow the last one this worker saw
             finder.reset()
-    return [[finder.detect(frame) for finder in _finders] for frame in frames]
+    each = [[*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)] for finder in _finders]
+    return [list(row) for row in zip(*each)]
+
+
+def _settled(finder, image: np.ndarray) -> list[Detection]:
+    """The detections ``image`` settles: a tracker's `push` (it may hold frames back to look back through them), or
+    the finder's detection of it."""
+    return finder.push(image) if hasattr(finder, "push") else [finder.detect(image)]
+
+
+def _flushed(finder) -> list[Detection]:
+    return finder.flush() if hasattr(finder, "flush") else []
 
 
 class DetectorPool:
@@ -89,8 +100,7 @@ class DetectorPool:
         """(key, image) pairs -> (key, [each finder's `Detection`]) in the same order. The keys stay in this
         process (a frame's name, the colour frame to draw on); only the images travel to the workers."""
         if self._local is not None:
-            for key, image in items:
-                yield key, [finder.detect(image) for finder in self._local]
+            yield from self._detect_here(items)
             return
         pending: deque[tuple[list[Any], Future]] = deque()
         items = iter(items)
@@ -109,6 +119,22 @@ class DetectorPool:
         finally:
             for _, future in pending:
                 future.cancel()
+
+    def _detect_here(self, items: Iterable[tuple[Any, np.ndarray]]) -> Iterator[tuple[Any, list[Detection]]]:
+        """`detect` in this process: a frame is answered once every finder has settled it (a tracker looking back
+        holds a few frames)."""
+        keys: deque[Any] = deque()
+        settled: list[deque[Detection]] = [deque() for _ in self._local]
+        for key, image in items:
+            keys.append(key)
+            for finder, done in zip(self._local, settled):
+                done.extend(_settled(finder, image))
+            while keys and all(settled):
+                yield keys.popleft(), [done.popleft() for done in settled]
+        for finder, done in zip(self._local, settled):
+            done.extend(_flushed(finder))
+        while keys:
+            yield keys.popleft(), [done.popleft() for done in settled]
 
     def close(self) -> None:
         if self._executor is not None:

@@ -15,6 +15,11 @@ enough to be read there (squares of ~12 px or more at 320 px: a 5x5-square board
 frame's width) is found at once, a smaller one up to N - 1 frames late. A frame without a board costs
 most (every level is searched, and twice for an inverted print); in a live camera's stream it is most of the
 frames while the board is away.
+
+A whole video need not answer frame by frame: `BoardTracker.push` holds back the frames searched at the coarse level
+alone that found nothing, and when a later frame finds the board, looks back through them, newest first, around the
+board as if tracking it backwards, until one shows it no more. A small board is then found in the frames a quicker
+search reached late too.
 """
 
 from __future__ import annotations
@@ -63,12 +68,16 @@ class BoardTracker:
         search_every: while no board is tracked, every level of the pyramid is searched every this many
             frames, the coarse level alone in the frames between (1: every level always; module docstring).
             Only for detectors whose ``detect`` takes ``levels`` (`Detector`); others search whole frames.
+        look_back: `push` holds back the frames the coarse level alone found nothing in, and looks back through
+            them when a later frame finds the board (a whole video); False: `push` answers each frame at once
+            (a live camera).
 
     ``detect(image)`` returns corners in ``image``'s pixels, as the detector would; ``last_search`` says
     whether the last call searched the "crop", the "full" frame or the frame at the "coarse" level alone.
+    ``push(image)`` / ``flush()`` do the same for a whole video, looking back (module docstring).
     """
 
-    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1):
+    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True):
         if refresh_every < 1:
             raise ValueError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
         if search_every < 1:
@@ -76,25 +85,67 @@ class BoardTracker:
         self.detector = detector
         self.refresh_every = refresh_every
         self.search_every = search_every if _takes(detector, "levels") else 1
+        self.look_back = look_back
         self._region: tuple[int, int, int, int] | None = None
         self._last = Detection.empty()  # the board found in the frame before
         self._takes_expected = _takes(detector, "expected")
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
+        self._held: list[tuple[np.ndarray, Detection]] = []  # `push`: coarse-only frames that found nothing
         self.last_search = "full"
+        self.looked_back = 0  # frames `push` found the board in by looking back
 
     def reset(self) -> None:
-        """Forget the board (a cut in the video): the next frame is searched whole, at every level."""
+        """Forget the board (a cut in the video): the next frame is searched whole, at every level. Frames `push`
+        holds back are dropped: `flush` them first."""
         self._region = None
         self._last = Detection.empty()
         self._coarse_left = 0
+        self._held.clear()
+
+    def push(self, image: np.ndarray) -> list[Detection]:
+        """The next frame of a whole video -> the detections it settles, oldest first: none while it is held back,
+        else those of the frames held before it and its own. A frame is held back when it was searched at the
+        coarse level alone (``search_every`` > 1) and found nothing; when a later frame finds the board, the held
+        frames are searched again, newest first, in the region around the board in the frame after each (as
+        `detect` tracks forwards), until one finds it no more; those before it keep their empty detections."""
+        detection = self.detect(image)
+        if self.look_back and self.last_search == "coarse" and len(detection) < MIN_CORNERS:
+            self._held.append((image, detection))
+            return []
+        settled = self._looked_back(detection) if len(detection) >= MIN_CORNERS else [d for _, d in self._held]
+        self._held.clear()
+        return [*settled, detection]
+
+    def flush(self) -> list[Detection]:
+        """The detections of the frames still held back (the video has ended), oldest first."""
+        settled = [detection for _, detection in self._held]
+        self._held.clear()
+        return settled
+
+    def _looked_back(self, found: Detection) -> list[Detection]:
+        """The held frames' detections, oldest first, each held frame searched again from the newest back around
+        the board in the frame after it, until one finds too few corners."""
+        later, revised = found, []
+        for image, _ in reversed(self._held):
+            height, width = image.shape[:2]
+            x0, y0, x1, y1 = search_region(later.corners, (width, height))
+            crop = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), later)
+            if len(crop) < MIN_CORNERS:
+                break
+            later = Detection(ids=crop.ids, corners=crop.corners + np.array([x0, y0], np.float32), scores=crop.scores,
+                              covariances=crop.covariances)
+            revised.append(later)
+        self.looked_back += len(revised)
+        kept = [detection for _, detection in self._held[:len(self._held) - len(revised)]]
+        return [*kept, *reversed(revised)]
 
     def detect(self, image: np.ndarray) -> Detection:
         height, width = image.shape[:2]
         self._since_full += 1
         if self._region is not None and self._since_full < self.refresh_every:
             x0, y0, x1, y1 = self._region
-            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0))
+            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), self._last)
             if len(found) >= MIN_CORNERS:
                 detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
                                       scores=found.scores, covariances=found.covariances)
@@ -117,9 +168,10 @@ class BoardTracker:
         self.last_search = "full"
         return detection
 
-    def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int]) -> Detection:
-        """The detector on ``crop``; a coarse-to-fine `Detector` searches it from the scale its whole frame is searched
-        at (its own choice, by the crop's size alone, would look at a nearly square crop of a board that fills the
+    def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int], last: Detection
+                     ) -> Detection:
+        """The detector on ``crop``, around ``last`` (the board in the frame before, in frame pixels); a coarse-to-fine
+        `Detector` searches it from the scale its whole frame is searched at (its own choice, by the crop's size alone, would look at a nearly square crop of a board that fills the
         frame in more pixels than the whole frame), skipping the levels (twice that scale, four times ...) where the
         board's squares, as wide as in the frame before, would be narrower than half ``min_square_px``:
         there and at the next level they are too narrow to stop the search. The last level before they are wide
@@ -129,12 +181,12 @@ class BoardTracker:
         in the frame)."""
         options = {}
         if self._takes_expected:
-            options["expected"] = Detection(ids=self._last.ids, corners=self._last.corners - np.array(origin, np.float32),
-                                            scores=self._last.scores)
+            options["expected"] = Detection(ids=last.ids, corners=last.corners - np.array(origin, np.float32),
+                                            scores=last.scores)
         working_size = getattr(self.detector, "working_size", None)
         if working_size is None:
             return self.detector.detect(crop, **options)
-        spacing = corner_spacing(self._last.corners)
+        spacing = corner_spacing(last.corners)
         longest = max(crop.shape[:2])
         size = max(1, round(min(1.0, working_size / frame_longest) * longest))
         min_square = getattr(self.detector, "min_square_px", None)

@@ -111,3 +111,24 @@ def test_fisheye_flags_recompute_the_poses_and_fix_the_skew():
         assert flags == cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
     else:
         assert flags == cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+
+
+def test_a_pool_answers_every_frame_in_order_when_a_tracker_looks_back(monkeypatch):
+    from test_tracking import Numbered, video
+
+    from deepcharuco import parallel
+    from deepcharuco.tracking import BoardTracker
+
+    frames = video(10)
+    present = {4, 5, 6, 7}
+    # In this process: a tracker that holds frames back beside a detector that answers each at once.
+    with DetectorPool(lambda: [BoardTracker(Numbered(present), search_every=3), Numbered(present)]) as pool:
+        results = list(pool.detect((n, frame) for n, frame in enumerate(frames)))
+    assert [key for key, _ in results] == list(range(10))
+    assert [n for n, (tracked, _) in results if len(tracked) >= 4] == [4, 5, 6, 7]
+    assert [n for n, (_, whole) in results if len(whole) >= 4] == [4, 5, 6, 7]
+    # A worker's chunk: the same, the held frames flushed at the chunk's end.
+    monkeypatch.setattr(parallel, "_finders", [BoardTracker(Numbered(present), search_every=3)])
+    chunk = parallel._detect_chunk(frames[:5])  # frame 4 is held at the chunk's end: flushed, not lost
+    assert len(chunk) == 5 and all(len(row) == 1 for row in chunk)
+    assert [n for n, (d,) in enumerate(chunk) if len(d) >= 4] == []

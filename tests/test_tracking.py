@@ -294,3 +294,99 @@ def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_searc
     detector = Detector(board=ours)
     assert len(detector.detect(image)) == 0 and len(calls) == 1
     assert len(detector.detect(image, levels=1)) == 0 and len(calls) == 1
+
+
+class Numbered:
+    """A coarse-to-fine detector's stand-in for a whole video: frame n is an image filled with n (so are its crops);
+    the board is in the frames ``present`` and the coarse level alone never reads it (a small board)."""
+
+    CORNERS = np.array([[500, 200], [540, 200], [500, 240], [540, 240]], np.float32)
+
+    def __init__(self, present):
+        self.present, self.calls = set(present), []
+
+    def detect(self, image, working_size=None, levels=None):
+        n, whole = int(image.flat[0]), image.shape == (720, 1280)
+        self.calls.append((n, "coarse" if whole and levels == 1 else "full" if whole else "crop"))
+        if n not in self.present or levels == 1:
+            return Detection.empty()
+        corners = self.CORNERS if whole else self.CORNERS - np.array(search_region(self.CORNERS, (1280, 720))[:2],
+                                                                     np.float32)
+        return Detection(np.arange(4), corners, np.ones(4))
+
+
+def video(count):
+    return [np.full((720, 1280), n, np.uint8) for n in range(count)]
+
+
+def pushed(tracker, frames):
+    settled = [d for frame in frames for d in tracker.push(frame)]
+    return settled + tracker.flush()
+
+
+def test_a_whole_video_looks_back_for_the_board_the_quick_search_reached_late():
+    frames = video(10)
+    present = {4, 5, 6, 7}
+    found = lambda detections: [n for n, d in enumerate(detections) if len(d) >= 4]  # noqa: E731
+    every = BoardTracker(Numbered(present))  # every level of every frame: the reference
+    assert found([every.detect(f) for f in frames]) == [4, 5, 6, 7]
+    quick = BoardTracker(Numbered(present), search_every=3)  # a camera's: frames 4 and 5 only at the coarse level
+    assert found([quick.detect(f) for f in frames]) == [6, 7]
+    detector = Numbered(present)
+    tracker = BoardTracker(detector, search_every=3)
+    answers = [len(tracker.push(f)) for f in frames]
+    # frames 1-2 and 4-5 are held back (coarse, nothing); frame 3's full search releases 1-2, frame 6's found
+    # board settles 4-5; frame 9 (coarse, nothing) waits for the end of the video
+    assert answers == [1, 0, 0, 3, 0, 0, 3, 1, 1, 0]
+    assert len(tracker.flush()) == 1 and tracker.flush() == []
+    # looking back: frame 6 found the board, so frame 5 is searched around it, then frame 4; nothing before
+    assert detector.calls[detector.calls.index((6, "full")):][:3] == [(6, "full"), (5, "crop"), (4, "crop")]
+    assert tracker.looked_back == 2
+    tracker = BoardTracker(Numbered(present), search_every=3)
+    detections = pushed(tracker, frames)
+    assert len(detections) == 10 and found(detections) == [4, 5, 6, 7]
+    np.testing.assert_array_equal(detections[4].corners, Numbered.CORNERS)  # in frame pixels, as forwards
+
+
+def test_looking_back_stops_at_the_first_frame_without_the_board():
+    detector = Numbered({5, 6})  # frame 4 (held, like 5) has no board: the look back stops there
+    tracker = BoardTracker(detector, search_every=3)
+    detections = pushed(tracker, video(8))
+    assert [n for n, d in enumerate(detections) if len(d) >= 4] == [5, 6]
+    assert (4, "crop") in detector.calls and (3, "crop") not in detector.calls  # 3 was searched whole: not held
+
+
+def test_a_live_camera_is_answered_frame_by_frame_without_looking_back():
+    tracker = BoardTracker(Numbered({4, 5, 6, 7}), search_every=3, look_back=False)
+    answers = [tracker.push(f) for f in video(10)]
+    assert [len(a) for a in answers] == [1] * 10
+    assert [n for n, a in enumerate(answers) if len(a[0]) >= 4] == [6, 7]
+    assert tracker.flush() == []
+
+
+def test_reset_drops_the_frames_held_back():
+    tracker = BoardTracker(Numbered(set()), search_every=3)
+    assert [len(tracker.push(f)) for f in video(3)] == [1, 0, 0]
+    tracker.reset()
+    assert tracker.flush() == []
+
+
+def test_the_real_detector_finds_a_small_board_in_a_whole_video_where_every_frame_searched_finds_it():
+    """A board too small for the coarse level (squares 7 px there) appears in a frame searched at the coarse level
+    alone: looking back finds it there, with at least the corners a search of every level gives, on the truth."""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    empty = np.full((720, 1280), 120, np.uint8)
+    views = [make_view(board, camera, distance=1.6, offset=(0.01 * i, 0.0)) for i in range(3)]
+    frames, truths = [empty, empty] + [v[0] for v in views], [None, None] + [v[3] for v in views]
+    detector = Detector(board=board)
+    every = [detector.detect(f) for f in frames]
+    tracker = BoardTracker(detector, search_every=3)
+    detections = pushed(tracker, frames)
+    assert tracker.looked_back == 1  # frame 2: searched at the coarse level alone, found from frame 3 backwards
+    for found, reference, truth in zip(detections, every, truths):
+        if truth is None:
+            assert len(found) == 0
+            continue
+        assert len(found) >= 15 and set(reference.ids) <= set(found.ids)
+        assert np.abs(found.corners - truth[found.ids]).max() < 0.3
