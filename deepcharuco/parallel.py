@@ -8,7 +8,10 @@ detector, go through ``workers`` times as many frames a second where the cores a
 throughput.py` measures it).
 
 Consecutive frames go to a worker in chunks of ``chunk``; where the finders track (`BoardTracker`), each chunk
-is tracked from its first frame, which is searched whole. A worker's network runs on cpu_count / workers
+is tracked from its first frame, which is searched whole. Where that loses a board the chunk before ended on (a
+tracker had it in the chunk before's last frame and has none in this chunk's first), the chunk is tracked again
+from that board before it is answered, as one process tracks it (the whole-frame refreshes then come at other
+frames). A worker's network runs on cpu_count / workers
 threads, so that the workers do not fight over the cores.
 """
 
@@ -27,6 +30,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.detection import Detection
+from deepcharuco.tracking import MIN_CORNERS
 
 # Chunks given out ahead per worker: enough to keep each one busy while the caller reads frames, few enough that
 # a long video is never held in memory.
@@ -57,6 +61,20 @@ def _detect_chunk(frames: list[np.ndarray]) -> list[list[Detection]]:
             finder.reset()
     each = [[*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)] for finder in _finders]
     return [list(row) for row in zip(*each)]
+
+
+def _continue_chunk(frames: list[np.ndarray], before: list[Detection]) -> list[list[Detection] | None]:
+    """Each finder's detections of ``frames`` tracked on from ``before`` (its board in the frame before the chunk),
+    as one process tracks them; None for a finder that does not track or had no board there."""
+    columns: list[list[Detection] | None] = []
+    for finder, last in zip(_finders, before):
+        if not hasattr(finder, "follow_from") or len(last) < MIN_CORNERS:
+            columns.append(None)
+            continue
+        finder.reset()
+        finder.follow_from(last, frames[0].shape[1::-1])
+        columns.append([*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)])
+    return columns
 
 
 def _settled(finder, image: np.ndarray) -> list[Detection]:
@@ -102,8 +120,9 @@ class DetectorPool:
         if self._local is not None:
             yield from self._detect_here(items)
             return
-        pending: deque[tuple[list[Any], Future]] = deque()
+        pending: deque[tuple[list[Any], list[np.ndarray], Future]] = deque()
         items = iter(items)
+        before: list[Detection] | None = None  # each finder's detection in the last frame answered
         try:
             while True:
                 while len(pending) < AHEAD_PER_WORKER * self.workers:
@@ -111,14 +130,30 @@ class DetectorPool:
                     if not chunk:
                         break
                     keys, images = zip(*chunk)
-                    pending.append((list(keys), self._executor.submit(_detect_chunk, list(images))))
+                    pending.append((list(keys), list(images), self._executor.submit(_detect_chunk, list(images))))
                 if not pending:
                     return
-                keys, future = pending.popleft()
-                yield from zip(keys, future.result())
+                keys, images, future = pending.popleft()
+                rows = future.result()
+                if before is not None:
+                    rows = self._stitched(images, rows, before)
+                before = rows[-1]
+                yield from zip(keys, rows)
         finally:
-            for _, future in pending:
+            for *_, future in pending:
                 future.cancel()
+
+    def _stitched(self, images: list[np.ndarray], rows: list[list[Detection]], before: list[Detection]
+                  ) -> list[list[Detection]]:
+        """``rows`` (a chunk's detections, frame by frame) with each tracker's tracked again from ``before`` where it
+        had a board in the frame before the chunk and none in the chunk's first frame."""
+        lost = [len(last) >= MIN_CORNERS and len(first) < MIN_CORNERS for last, first in zip(before, rows[0])]
+        if not any(lost):
+            return rows
+        again = [last if redo else Detection.empty() for last, redo in zip(before, lost)]
+        columns = self._executor.submit(_continue_chunk, images, again).result()
+        return [[row[f] if column is None else column[i] for f, column in enumerate(columns)]
+                for i, row in enumerate(rows)]
 
     def _detect_here(self, items: Iterable[tuple[Any, np.ndarray]]) -> Iterator[tuple[Any, list[Detection]]]:
         """`detect` in this process: a frame is answered once every finder has settled it (a tracker looking back

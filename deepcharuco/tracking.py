@@ -5,7 +5,8 @@ A board moves little between frames, so the region around the previous frame's c
 markers beyond the outermost corners) holds it again; the detector runs on that crop, which at
 1280x720 with the board covering a quarter of the frame costs a quarter of the pixels. A full-frame
 search runs when the crop finds nothing, when there was no board before, and every ``refresh_every``
-frames (a second board, or the board re-entering elsewhere, is never missed for long). A detector that takes
+frames (a second board, or the board re-entering elsewhere, is never missed for long); a refresh that finds
+nothing keeps the board the crop still finds. A detector that takes
 ``expected`` (`Detector`) is told where the board was: a board read by its markers is looked for first in that
 view, verified by its markers as any view is.
 
@@ -103,6 +104,13 @@ class BoardTracker:
         self._coarse_left = 0
         self._held.clear()
 
+    def follow_from(self, detection: Detection, image_size: tuple[int, int]) -> None:
+        """Track on from ``detection``, the board in the frame before the next one given (found by another tracker:
+        a worker process's chunk continues the chunk before it) in an image of ``image_size`` (W, H)."""
+        self._follow(detection, image_size)
+        self._since_full = 0
+        self._coarse_left = 0
+
     def push(self, image: np.ndarray) -> list[Detection]:
         """The next frame of a whole video -> the detections it settles, oldest first: none while it is held back,
         else those of the frames held before it and its own. A frame is held back when it was searched at the
@@ -128,13 +136,10 @@ class BoardTracker:
         the board in the frame after it, until one finds too few corners."""
         later, revised = found, []
         for image, _ in reversed(self._held):
-            height, width = image.shape[:2]
-            x0, y0, x1, y1 = search_region(later.corners, (width, height))
-            crop = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), later)
-            if len(crop) < MIN_CORNERS:
+            around = self._around(image, later)
+            if len(around) < MIN_CORNERS:
                 break
-            later = Detection(ids=crop.ids, corners=crop.corners + np.array([x0, y0], np.float32), scores=crop.scores,
-                              covariances=crop.covariances)
+            later = around
             revised.append(later)
         self.looked_back += len(revised)
         kept = [detection for _, detection in self._held[:len(self._held) - len(revised)]]
@@ -143,12 +148,10 @@ class BoardTracker:
     def detect(self, image: np.ndarray) -> Detection:
         height, width = image.shape[:2]
         self._since_full += 1
+        refreshing = self._region is not None and self._since_full >= self.refresh_every
         if self._region is not None and self._since_full < self.refresh_every:
-            x0, y0, x1, y1 = self._region
-            found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), self._last)
-            if len(found) >= MIN_CORNERS:
-                detection = Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32),
-                                      scores=found.scores, covariances=found.covariances)
+            detection = self._around(image, self._last)
+            if len(detection) >= MIN_CORNERS:
                 self._follow(detection, (width, height))
                 self.last_search = "crop"
                 return detection
@@ -163,16 +166,35 @@ class BoardTracker:
             return detection
         detection = self.detector.detect(image)
         self._since_full = 0
+        if refreshing and len(detection) < MIN_CORNERS:
+            # A refresh that finds nothing keeps the board the crop still finds: a still board half out of the frame,
+            # which only tracking reads (cam_1's, caliscope), was dropped every refresh_every frames.
+            around = self._around(image, self._last)
+            if len(around) >= MIN_CORNERS:
+                detection = around
+                self._follow(detection, (width, height))
+                self.last_search = "crop"
+                return detection
         self._follow(detection, (width, height))
         self._coarse_left = self.search_every - 1 if self._region is None else 0
         self.last_search = "full"
         return detection
 
+    def _around(self, image: np.ndarray, last: Detection) -> Detection:
+        """The board in ``image`` (its pixels) found in the region around ``last``, the board in the frame next to it
+        (`search_region`)."""
+        height, width = image.shape[:2]
+        x0, y0, x1, y1 = search_region(last.corners, (width, height))
+        found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), last)
+        return Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32), scores=found.scores,
+                         covariances=found.covariances)
+
     def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int], last: Detection
                      ) -> Detection:
-        """The detector on ``crop``, around ``last`` (the board in the frame before, in frame pixels); a coarse-to-fine
-        `Detector` searches it from the scale its whole frame is searched at (its own choice, by the crop's size alone, would look at a nearly square crop of a board that fills the
-        frame in more pixels than the whole frame), skipping the levels (twice that scale, four times ...) where the
+        """The detector on ``crop``, around ``last`` (the board in the frame next to it, in frame pixels); a
+        coarse-to-fine `Detector` searches it from the scale its whole frame is searched at (its own choice, by the
+        crop's size alone, would look at a nearly square crop of a board that fills the frame in more pixels than the
+        whole frame), skipping the levels (twice that scale, four times ...) where the
         board's squares, as wide as in the frame before, would be narrower than half ``min_square_px``:
         there and at the next level they are too narrow to stop the search. The last level before they are wide
         enough is kept: caliscope's webcams show blurred boards that it reads (squares ~11 px) and full resolution

@@ -4,7 +4,9 @@ import pytest
 import torch
 
 from deepcharuco import BoardSpec, Camera, project_corners
+from deepcharuco.detection import Detection
 from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.tracking import search_region
 
 # Moderate, varied views: fronto-parallel, tilted both ways, rolled, off-centre.
 VIEW_POSES = [
@@ -93,3 +95,17 @@ def torch_threads():
     before = torch.get_num_threads()
     yield torch.set_num_threads
     torch.set_num_threads(before)
+
+
+class TrackedOnly:
+    """A detector stand-in for a board that only tracking keeps: frame n is an image filled with n; the whole-frame
+    search finds the board in frame 1 alone, a crop around it (the frame before's board) in frames 1-20."""
+
+    CORNERS = np.array([[500, 200], [540, 200], [500, 240], [540, 240]], np.float32)
+
+    def detect(self, image, working_size=None, levels=None):
+        n, whole = int(image.flat[0]), image.shape == (720, 1280)
+        if not 1 <= n <= 20 or (whole and n != 1):
+            return Detection.empty()
+        origin = np.zeros(2, np.float32) if whole else np.array(search_region(self.CORNERS, (1280, 720))[:2], np.float32)
+        return Detection(np.arange(4), self.CORNERS - origin, np.ones(4))

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, make_view
+from conftest import VIEW_POSES, TrackedOnly, make_view
 from deepcharuco import BoardSpec
 from deepcharuco.detect import main as detect_main
 from deepcharuco.detect import make_finders
@@ -132,3 +132,26 @@ def test_a_pool_answers_every_frame_in_order_when_a_tracker_looks_back(monkeypat
     chunk = parallel._detect_chunk(frames[:5])  # frame 4 is held at the chunk's end: flushed, not lost
     assert len(chunk) == 5 and all(len(row) == 1 for row in chunk)
     assert [n for n, (d,) in enumerate(chunk) if len(d) >= 4] == []
+
+
+def tracked_only_finders():
+    from deepcharuco.tracking import BoardTracker
+
+    return [BoardTracker(TrackedOnly(), search_every=3), TrackedOnly()]
+
+
+def test_workers_carry_a_tracked_board_from_one_chunk_into_the_next():
+    frames = [np.full((720, 1280), n, np.uint8) for n in range(25)]
+    with DetectorPool(tracked_only_finders) as pool:
+        one = list(pool.detect(enumerate(frames)))
+    assert [n for n, (tracked, _) in one if len(tracked) >= 4] == list(range(1, 21))
+    assert [n for n, (_, whole) in one if len(whole) >= 4] == [1]
+    with DetectorPool(tracked_only_finders, workers=2, chunk=4) as pool:
+        chunked = list(pool.detect(enumerate(frames)))
+    # each chunk of 4 starts with a whole-frame search, which finds nothing after frame 1: the chunk is tracked
+    # again from the board the chunk before ended on, as one process tracks it
+    assert [n for n, _ in chunked] == list(range(25))
+    assert [n for n, (tracked, _) in chunked if len(tracked) >= 4] == list(range(1, 21))
+    assert [n for n, (_, whole) in chunked if len(whole) >= 4] == [1]  # a detector that does not track: as it was
+    for (_, a), (_, b) in zip(one, chunked):
+        np.testing.assert_array_equal(a[0].corners, b[0].corners)

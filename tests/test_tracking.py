@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import make_view
+from conftest import TrackedOnly, make_view
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.camera import Camera
 from deepcharuco.detection import Detection
@@ -390,3 +390,13 @@ def test_the_real_detector_finds_a_small_board_in_a_whole_video_where_every_fram
             continue
         assert len(found) >= 15 and set(reference.ids) <= set(found.ids)
         assert np.abs(found.corners - truth[found.ids]).max() < 0.3
+
+
+def test_a_refresh_that_finds_nothing_keeps_the_board_the_crop_still_finds():
+    tracker = BoardTracker(TrackedOnly(), refresh_every=5)  # whole frames find the board in frame 1 alone
+    found, searches = [], []
+    for n in range(25):
+        found.append(len(tracker.detect(np.full((720, 1280), n, np.uint8))) >= 4)
+        searches.append(tracker.last_search)
+    assert [n for n, f in enumerate(found) if f] == list(range(1, 21))
+    assert searches[1:7] == ["full", "crop", "crop", "crop", "crop", "crop"]  # frame 6: the refresh, then the crop
