@@ -58,7 +58,7 @@ CAMERA_SEARCH_EVERY = 3
 # --search-every's default for a video. A video looks back (`BoardTracker.push`): the frames searched at the coarse
 # level alone wait for the next frame that finds the board, which finds it in them, so the quicker search loses no
 # frame. The camera's 3, not tuned again; on the same five videos (docs/detector.md, 2026-11-26), against every level
-# of every frame: 1.2-3.0x the frames a second, lit and dark, every frame found again and 7 more.
+# of every frame: 1.2-2.5x the frames a second, lit and dark, every frame found again and 3 more.
 VIDEO_SEARCH_EVERY = 3
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",

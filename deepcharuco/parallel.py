@@ -135,7 +135,7 @@ class DetectorPool:
                     return
                 keys, images, future = pending.popleft()
                 rows = future.result()
-                if before is not None:
+                if before is not None and self.chunk > 1:  # chunks of one frame (a camera's) are not tracked
                     rows = self._stitched(images, rows, before)
                 before = rows[-1]
                 yield from zip(keys, rows)
