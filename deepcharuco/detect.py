@@ -481,7 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="worker processes that detect frames side by side (a folder, a video, a camera; each "
                              "worker's network gets CPUs / jobs threads): up to ~jobs x the frames a second where the "
                              "cores are there. A video's frames go to them in chunks of %d, each tracked from its "
-                             "first frame; a camera's one at a time, each searched whole" % CHUNK_FRAMES)
+                             "first frame, or from the chunk before's board where that frame lost it; a camera's one "
+                             "at a time, each searched whole" % CHUNK_FRAMES)
     parser.add_argument("--device", default="cpu",
                         help="deep/hybrid: where the networks run: cpu, or a PyTorch device such as cuda (needs "
                              "PyTorch with CUDA; the decoding stays on the CPU, so --jobs helps there too)")
