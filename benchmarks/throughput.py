@@ -7,8 +7,8 @@ processes, in one run.
 Frames: the paper's board drawn into procedural clutter at 320x240 (30-95 % of the width) and at 1280x720
 (10-30 %), each lit and darkened (k = 7); with ``--realdata``, every frame of caliscope's four 1280x720 webcam
 videos (`caliscope_calibration/*.mp4`, their own board). A video's frames go to the workers in chunks of 16
-consecutive frames, each tracked from its first frame (`BoardTracker`), as ``detect`` does; the drawn frames
-are independent and searched whole. Workers are started and warmed up before the clock runs; the frames are
+consecutive frames, each tracked from its first frame (`BoardTracker`, looking back) or from the chunk before's
+board where that frame lost it, as ``detect`` does; the drawn frames are independent and searched whole. Workers are started and warmed up before the clock runs; the frames are
 read into memory first, so neither decoding the video nor starting processes is counted.
 """
 
@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from deepcharuco import BoardSpec
-from deepcharuco.detect import CHUNK_FRAMES, make_finders
+from deepcharuco.detect import CHUNK_FRAMES, VIDEO_SEARCH_EVERY, make_finders
 from deepcharuco.parallel import DetectorPool, available_cpus
 from evaluate.machine import cpu_description, gpu_name
 from evaluate.protocols import darken
@@ -97,8 +97,11 @@ def main() -> None:
             # one pool for the rows of one board and chunk: starting processes is not what is measured
             for key in dict.fromkeys((spec, chunk) for _, spec, _, chunk in rows):
                 spec, chunk = key
+                # a video's chunks as `detect VIDEO --jobs N` tracks them (every level every VIDEO_SEARCH_EVERY-th frame
+                # while no board is tracked, looking back); drawn frames searched whole
                 make = partial(make_finders, name, [spec], "subpix" if name == "opencv" else "refinenet", None, None,
-                               "auto", True, args.device if name == "deep" else "cpu", 30 if chunk > 1 else 1)
+                               "auto", True, args.device if name == "deep" else "cpu", 30 if chunk > 1 else 1,
+                               VIDEO_SEARCH_EVERY if chunk > 1 else 1)
                 with DetectorPool(make, workers, chunk=chunk) as pool:
                     for label, _, frames, _ in (row for row in rows if (row[1], row[3]) == key):
                         results[label, workers, name] = frames_per_second(pool, frames)
