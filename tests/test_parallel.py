@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, TrackedOnly, make_view
+from conftest import VIEW_POSES, Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec
 from deepcharuco.detect import main as detect_main
 from deepcharuco.detect import make_finders
@@ -114,8 +114,6 @@ def test_fisheye_flags_recompute_the_poses_and_fix_the_skew():
 
 
 def test_a_pool_answers_every_frame_in_order_when_a_tracker_looks_back(monkeypatch):
-    from test_tracking import Numbered, video
-
     from deepcharuco import parallel
     from deepcharuco.tracking import BoardTracker
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import TrackedOnly, make_view
+from conftest import Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.camera import Camera
 from deepcharuco.detection import Detection
@@ -294,29 +294,6 @@ def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_searc
     detector = Detector(board=ours)
     assert len(detector.detect(image)) == 0 and len(calls) == 1
     assert len(detector.detect(image, levels=1)) == 0 and len(calls) == 1
-
-
-class Numbered:
-    """A coarse-to-fine detector's stand-in for a whole video: frame n is an image filled with n (so are its crops);
-    the board is in the frames ``present`` and the coarse level alone never reads it (a small board)."""
-
-    CORNERS = np.array([[500, 200], [540, 200], [500, 240], [540, 240]], np.float32)
-
-    def __init__(self, present):
-        self.present, self.calls = set(present), []
-
-    def detect(self, image, working_size=None, levels=None):
-        n, whole = int(image.flat[0]), image.shape == (720, 1280)
-        self.calls.append((n, "coarse" if whole and levels == 1 else "full" if whole else "crop"))
-        if n not in self.present or levels == 1:
-            return Detection.empty()
-        corners = self.CORNERS if whole else self.CORNERS - np.array(search_region(self.CORNERS, (1280, 720))[:2],
-                                                                     np.float32)
-        return Detection(np.arange(4), corners, np.ones(4))
-
-
-def video(count):
-    return [np.full((720, 1280), n, np.uint8) for n in range(count)]
 
 
 def pushed(tracker, frames):
