@@ -59,7 +59,7 @@ def _detect_chunk(frames: list[np.ndarray]) -> list[list[Detection]]:
     for finder in _finders:
         if hasattr(finder, "reset"):  # a tracker: this chunk does not follow the last one this worker saw
             finder.reset()
-    each = [[*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)] for finder in _finders]
+    each = [_through(finder, frames) for finder in _finders]
     return [list(row) for row in zip(*each)]
 
 
@@ -73,8 +73,13 @@ def _continue_chunk(frames: list[np.ndarray], before: list[Detection]) -> list[l
             continue
         finder.reset()
         finder.follow_from(last, frames[0].shape[1::-1])
-        columns.append([*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)])
+        columns.append(_through(finder, frames))
     return columns
+
+
+def _through(finder, frames: list[np.ndarray]) -> list[Detection]:
+    """``finder``'s detection of each of ``frames``, in order, every frame it holds back flushed at the end."""
+    return [*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)]
 
 
 def _settled(finder, image: np.ndarray) -> list[Detection]:

@@ -149,7 +149,7 @@ class BoardTracker:
         height, width = image.shape[:2]
         self._since_full += 1
         refreshing = self._region is not None and self._since_full >= self.refresh_every
-        if self._region is not None and self._since_full < self.refresh_every:
+        if self._region is not None and not refreshing:
             detection = self._around(image, self._last)
             if len(detection) >= MIN_CORNERS:
                 self._follow(detection, (width, height))
