@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, make_view
+from conftest import VIEW_POSES, make_view, needs_bpy
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.deep_detector import Detector
@@ -57,6 +57,7 @@ def wait_for(condition, process: subprocess.Popen, timeout: float = 240.0) -> No
 
 # ------------------------------------------------------------------------------------------- end to end
 
+@needs_bpy
 def test_pipeline_end_to_end_survives_kills(tmp_path):
     """A tiny --board run: killed hard mid-render, stopped by SIGTERM mid-training, each time rerun with the
     same command; it finishes with a bundle Detector loads, a card with the evaluation's numbers, and a
@@ -209,6 +210,7 @@ def test_resuming_with_other_settings_is_refused(tmp_path, capsys):
     assert code == 2 and "other settings (shadow_edges)" in err  # its patches and RefineNet were made without
 
 
+@needs_bpy
 def test_plan_only_writes_nothing_and_damaged_records_are_said(tmp_path, capsys):
     """--plan-only measures and prints, and leaves the folder as it was: none made for a new --out, nothing
     added to an existing one. A cut-off plan.json is planned again (no --budget: the same sizes), a cut-off

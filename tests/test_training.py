@@ -97,6 +97,7 @@ def test_init_warm_starts_and_id_positive_weight_weighs_corner_cells(frames, tmp
         ChArUcoNetTask(config(frames, tmp_path / "d", label_sigma=0.5))
     # The ID term: corner cells count 10 times, the mean is over the weights (PyTorch's weighted mean).
     batch = {k: torch.stack([task.train_set[i][k] for i in range(2)]) for k in ("image", "points", "ids")}
+    task.model.cpu()  # `train` leaves it on a GPU where there is one
     points, ids = task.model(batch["image"])
     per_cell = torch.nn.functional.cross_entropy(ids, batch["ids"], reduction="none")
     weights = torch.where(batch["ids"] < 16, 10.0, 1.0)
