@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import make_view, same_but_rounding
+from conftest import make_view, assert_same_but_rounding
 from datagen.lens import distort_image, distortion_maps, pixels_to_rays, wide_camera
 from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera, write_camera
 from deepcharuco.calibrate import detect_frames, main
@@ -70,7 +70,7 @@ def test_calibration_recovers_the_true_camera(waved, detections):
 
 def test_cli_with_jobs_writes_the_same_camera_file(tmp_path, waved):
     """Frames detected on 2 worker processes (`deepcharuco.parallel`) calibrate the camera one process does (to
-    rounding: `same_but_rounding`)."""
+    rounding: `assert_same_but_rounding`)."""
     images, _, _ = waved
     video = _video(tmp_path / "wave.avi", images[:12])
     texts = []
@@ -79,7 +79,7 @@ def test_cli_with_jobs_writes_the_same_camera_file(tmp_path, waved):
         assert main([str(video), "--out", str(out), "--quiet", "--no-report", "--min-views", "4",
                      "--jobs", str(jobs)]) == 0
         texts.append(out.read_text())
-    assert same_but_rounding(*texts)
+    assert_same_but_rounding(*texts)
 
 
 def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import needs_bpy, same_but_rounding
+from conftest import needs_bpy, assert_same_but_rounding
 from deepcharuco import BoardSpec, Camera, read_camera
 from deepcharuco.calibrate import main
 from deepcharuco.rig import (
@@ -401,7 +401,7 @@ def test_timestamps_pair_frames_of_cameras_with_their_own_clocks(tmp_path, drawn
 
 def test_jobs_detect_a_rig_on_worker_processes_and_write_the_same_files(tmp_path, drawn):
     """``--jobs 2``: the three cameras' frames detected on two worker processes (`deepcharuco.parallel`) give the
-    camera files and the rig file one process gives (to rounding: `same_but_rounding`)."""
+    camera files and the rig file one process gives (to rounding: `assert_same_but_rounding`)."""
     truth, folders, board = drawn
     written = []
     for jobs in (1, 2):
@@ -410,4 +410,5 @@ def test_jobs_detect_a_rig_on_worker_processes_and_write_the_same_files(tmp_path
                      "--no-report", "--jobs", str(jobs)]) == 0
         written.append({path.name: path.read_text() for path in sorted(out.iterdir())})
     assert sorted(written[0]) == sorted(written[1]) and len(written[0]) == 4
-    assert all(same_but_rounding(written[0][name], written[1][name]) for name in written[0])
+    for name in written[0]:
+        assert_same_but_rounding(written[0][name], written[1][name])
