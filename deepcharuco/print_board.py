@@ -84,7 +84,14 @@ def run(args: argparse.Namespace) -> list[Path]:
             refuse_foreign(path, lambda p: BoardSpec.load(p) is not None, "board file", args.force)
     sheet = board_sheet(board, args.paper)
     render = {".pdf": pdf_bytes, ".svg": svg_text, ".png": lambda s: png_bytes(s, args.dpi)}
-    files = {path: render[path.suffix](sheet) for path in sheets}
+    files = {}
+    for path in sheets:
+        try:
+            files[path] = render[path.suffix](sheet)
+        except ImportError as error:  # a runtime dependency missing from a broken or --no-deps install
+            package = PACKAGES.get(error.name, error.name)
+            raise DeepCharucoError(f"a {path.suffix[1:].upper()} sheet needs {package}, which is not installed: pip "
+                                   f"install {package}, or write another format (--out board.svg)") from error
     if board_file is not None:
         files[board_file] = board.file_text(board_file.suffix)
     sheets[0].parent.mkdir(parents=True, exist_ok=True)
@@ -95,6 +102,10 @@ def run(args: argparse.Namespace) -> list[Path]:
           f"{'portrait' if h >= w else 'landscape'}): {', '.join(str(p) for p in written)}. Print at 100 % (actual "
           f"size) and check the ruler.")
     return written
+
+
+# The import name of each package a sheet format needs -> what pip installs.
+PACKAGES = {"reportlab": "reportlab", "PIL": "pillow"}
 
 
 def build_parser(prog: str = "deepcharuco board") -> argparse.ArgumentParser:

@@ -23,8 +23,8 @@ def assert_same_but_rounding(first: str, second: str, rtol: float = 1e-4, atol: 
 
     Why: work split over worker processes runs ONNX Runtime on fewer threads than one process does, and its
     convolutions' sums then add in another order. On a 16-core machine (2026-11-26) a calibration from `--jobs 2`
-    differed from one process's in the 9th significant digit of fx, and in the 5th of 2 of its 769 numbers, where
-    a solver stops a step sooner or later (a view less would move fx by ~1e-3)."""
+    differed from one process's in fx's 9th significant digit, and 2 of its 769 numbers in their 5th, where a
+    solver stops a step sooner or later (one view less would move fx by ~1e-3)."""
     words = NUMBER.split(first), NUMBER.split(second)
     assert words[0] == words[1], f"the texts differ beyond their numbers: {set(words[0]) ^ set(words[1])}"
     a, b = (np.array([float(x) for x in NUMBER.findall(t)]) for t in (first, second))

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import make_view, assert_same_but_rounding
+from conftest import assert_same_but_rounding, make_view
 from datagen.lens import distort_image, distortion_maps, pixels_to_rays, wide_camera
 from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera, write_camera
 from deepcharuco.calibrate import detect_frames, main

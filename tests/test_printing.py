@@ -2,6 +2,7 @@
 
 import io
 import re
+import sys
 from xml.etree import ElementTree
 
 import cv2
@@ -91,6 +92,19 @@ def test_board_command_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and message in err[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_missing_sheet_library_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    """A PDF without ReportLab (an install made with --no-deps, a distribution's packages) is refused in one line
+    naming the package and another format; no sheet and no board file are written, and SVG still works."""
+    monkeypatch.setitem(sys.modules, "reportlab.pdfgen", None)  # import of it raises ImportError
+    args = ["--squares", "5x7", "--dictionary", "DICT_4X4_50", "--square", "30mm", "--marker", "22mm"]
+    assert board_main([*args, "--out", str(tmp_path / "new")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "a PDF sheet needs reportlab" in err and "pip install reportlab" in err
+    assert list(tmp_path.iterdir()) == []
+    assert board_main([*args, "--out", str(tmp_path / "new.svg")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.svg", "new.yaml"]
 
 
 def test_board_command_keeps_foreign_files_and_unwritable_outputs_are_errors(tmp_path, capsys, unwritable_dir):

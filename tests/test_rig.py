@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import needs_bpy, assert_same_but_rounding
+from conftest import assert_same_but_rounding, needs_bpy
 from deepcharuco import BoardSpec, Camera, read_camera
 from deepcharuco.calibrate import main
 from deepcharuco.rig import (
