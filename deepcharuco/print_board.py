@@ -89,7 +89,8 @@ def run(args: argparse.Namespace) -> list[Path]:
         try:
             files[path] = render[path.suffix](sheet)
         except ImportError as error:  # a runtime dependency missing from a broken or --no-deps install
-            package = PACKAGES.get(error.name, error.name)
+            top = (error.name or "a library").split(".")[0]
+            package = PACKAGES.get(top, top)
             raise DeepCharucoError(f"a {path.suffix[1:].upper()} sheet needs {package}, which is not installed: pip "
                                    f"install {package}, or write another format (--out board.svg)") from error
     if board_file is not None:
