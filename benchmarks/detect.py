@@ -35,6 +35,7 @@ import numpy as np
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.deep_detector import Detector
 from deepcharuco.detect import CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY
+from deepcharuco.parallel import detect_all
 from deepcharuco.stage_times import StageTimes, stage
 from deepcharuco.tracking import BoardTracker
 from evaluate.machine import cpu_description, gpu_name
@@ -163,10 +164,7 @@ def video_rows(realdata: Path, device: str = "cpu") -> None:
                 if isinstance(detector, BoardTracker):
                     detector.reset()
                 started = time.perf_counter()
-                if isinstance(detector, BoardTracker):  # as a video or a camera: `push`, looking back or not
-                    detections = [d for image in clip for d in detector.push(image)] + detector.flush()
-                else:
-                    detections = [detector.detect(image) for image in clip]
+                detections = detect_all(detector, clip)  # a tracker as a video or a camera: `push`, looking back or not
                 found = sum(len(detection) >= 4 for detection in detections)
                 cells.append(f"{len(clip) / (time.perf_counter() - started):6.1f} ({found:3d}/{len(clip)})")
             print_row(label, cells, 20)

@@ -59,7 +59,7 @@ def _detect_chunk(frames: list[np.ndarray]) -> list[list[Detection]]:
     for finder in _finders:
         if hasattr(finder, "reset"):  # a tracker: this chunk does not follow the last one this worker saw
             finder.reset()
-    each = [_through(finder, frames) for finder in _finders]
+    each = [detect_all(finder, frames) for finder in _finders]
     return [list(row) for row in zip(*each)]
 
 
@@ -73,12 +73,13 @@ def _continue_chunk(frames: list[np.ndarray], before: list[Detection]) -> list[l
             continue
         finder.reset()
         finder.follow_from(last, frames[0].shape[1::-1])
-        columns.append(_through(finder, frames))
+        columns.append(detect_all(finder, frames))
     return columns
 
 
-def _through(finder, frames: list[np.ndarray]) -> list[Detection]:
-    """``finder``'s detection of each of ``frames``, in order, every frame it holds back flushed at the end."""
+def detect_all(finder, frames: Iterable[np.ndarray]) -> list[Detection]:
+    """``finder``'s detection of each of ``frames``, in order, as a whole video is detected: a tracker's `push`
+    (every frame it holds back flushed at the end), another finder's ``detect``."""
     return [*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)]
 
 

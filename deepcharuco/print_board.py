@@ -105,8 +105,8 @@ def run(args: argparse.Namespace) -> list[Path]:
     return written
 
 
-# The import name of each package a sheet format needs -> what pip installs.
-PACKAGES = {"reportlab": "reportlab", "PIL": "pillow"}
+# A sheet format's package whose import name is not what pip installs (ReportLab's is).
+PACKAGES = {"PIL": "pillow"}
 
 
 def build_parser(prog: str = "deepcharuco board") -> argparse.ArgumentParser:
