@@ -139,7 +139,7 @@ def tracked_only_finders():
 
 
 def test_workers_carry_a_tracked_board_from_one_chunk_into_the_next():
-    frames = [np.full((720, 1280), n, np.uint8) for n in range(25)]
+    frames = video(25)
     with DetectorPool(tracked_only_finders) as pool:
         one = list(pool.detect(enumerate(frames)))
     assert [n for n, (tracked, _) in one if len(tracked) >= 4] == list(range(1, 21))

@@ -7,6 +7,7 @@ from conftest import Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.camera import Camera
 from deepcharuco.detection import Detection
+from deepcharuco.parallel import detect_all
 from deepcharuco.tracking import BoardTracker, search_region
 
 
@@ -296,11 +297,6 @@ def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_searc
     assert len(detector.detect(image, levels=1)) == 0 and len(calls) == 1
 
 
-def pushed(tracker, frames):
-    settled = [d for frame in frames for d in tracker.push(frame)]
-    return settled + tracker.flush()
-
-
 def test_a_whole_video_looks_back_for_the_board_the_quick_search_reached_late():
     frames = video(10)
     present = {4, 5, 6, 7}
@@ -320,7 +316,7 @@ def test_a_whole_video_looks_back_for_the_board_the_quick_search_reached_late():
     assert detector.calls[detector.calls.index((6, "full")):][:3] == [(6, "full"), (5, "crop"), (4, "crop")]
     assert tracker.looked_back == 2
     tracker = BoardTracker(Numbered(present), search_every=3)
-    detections = pushed(tracker, frames)
+    detections = detect_all(tracker, frames)
     assert len(detections) == 10 and found(detections) == [4, 5, 6, 7]
     np.testing.assert_array_equal(detections[4].corners, Numbered.CORNERS)  # in frame pixels, as forwards
 
@@ -328,7 +324,7 @@ def test_a_whole_video_looks_back_for_the_board_the_quick_search_reached_late():
 def test_looking_back_stops_at_the_first_frame_without_the_board():
     detector = Numbered({5, 6})  # frame 4 (held, like 5) has no board: the look back stops there
     tracker = BoardTracker(detector, search_every=3)
-    detections = pushed(tracker, video(8))
+    detections = detect_all(tracker, video(8))
     assert [n for n, d in enumerate(detections) if len(d) >= 4] == [5, 6]
     assert (4, "crop") in detector.calls and (3, "crop") not in detector.calls  # 3 was searched whole: not held
 
@@ -359,7 +355,7 @@ def test_the_real_detector_finds_a_small_board_in_a_whole_video_where_every_fram
     detector = Detector(board=board)
     every = [detector.detect(f) for f in frames]
     tracker = BoardTracker(detector, search_every=3)
-    detections = pushed(tracker, frames)
+    detections = detect_all(tracker, frames)
     assert tracker.looked_back == 1  # frame 2: searched at the coarse level alone, found from frame 3 backwards
     for found, reference, truth in zip(detections, every, truths):
         if truth is None:
@@ -372,8 +368,8 @@ def test_the_real_detector_finds_a_small_board_in_a_whole_video_where_every_fram
 def test_a_refresh_that_finds_nothing_keeps_the_board_the_crop_still_finds():
     tracker = BoardTracker(TrackedOnly(), refresh_every=5)  # whole frames find the board in frame 1 alone
     found, searches = [], []
-    for n in range(25):
-        found.append(len(tracker.detect(np.full((720, 1280), n, np.uint8))) >= 4)
+    for frame in video(25):
+        found.append(len(tracker.detect(frame)) >= 4)
         searches.append(tracker.last_search)
     assert [n for n, f in enumerate(found) if f] == list(range(1, 21))
     assert searches[1:7] == ["full", "crop", "crop", "crop", "crop", "crop"]  # frame 6: the refresh, then the crop
