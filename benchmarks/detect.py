@@ -19,7 +19,7 @@ Each detector runs what a user runs (detect + estimate_pose with the frame's K);
 `evaluate.protocols.time_pipelines` interleaves them (A B C A B C ...) so that load on the machine hits all
 alike. Per row: fps, the ratio to OpenCV (+ cornerSubPix) in the same run, the share of true corners found
 within 3 px, the corners reported that are wrong (frames without a board: every corner is), and where the
-deep detector's time goes (ms a frame per stage, `deepcharuco.stage_times`).
+deep detector's time goes (ms a frame per stage, `deepcharuco.core.stage_times`).
 """
 
 from __future__ import annotations
@@ -33,11 +33,11 @@ import cv2
 import numpy as np
 
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.deep_detector import Detector
-from deepcharuco.detect import CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY
-from deepcharuco.parallel import detect_all
-from deepcharuco.stage_times import StageTimes, stage
-from deepcharuco.tracking import BoardTracker
+from deepcharuco.cli.detect import CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY
+from deepcharuco.core.stage_times import StageTimes, stage
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.parallel import detect_all
+from deepcharuco.detection.tracking import BoardTracker
 from evaluate.machine import cpu_description, gpu_name
 from evaluate.protocols import TestFrame, darken, score_corners, time_pipelines
 from evaluate.realistic import Placement, clutter, fit, real_backgrounds, video_frames, with_board, without_board

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from deepcharuco.deep_detector import Detector
+from deepcharuco.detection.deep_detector import Detector
 from evaluate.machine import cpu_description, gpu_name
 
 

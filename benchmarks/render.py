@@ -14,7 +14,7 @@ import tempfile
 import time
 
 from datagen.render import RenderJob, run
-from deepcharuco.board import BoardSpec
+from deepcharuco.boards.board import BoardSpec
 
 
 def seconds_per_frame(frames: int, workers: int, samples: int | None, seed: int) -> float:

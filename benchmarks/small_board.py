@@ -6,7 +6,7 @@ A 3x3 DICT_5X5_100 board (4 corners, 4 markers) drawn at 8-15 % of the width of 
 clutter (`evaluate.realistic`, as `benchmarks/detect.py`'s 5 MP row draws them), then the same frames darkened
 (k = 7). For OpenCV + cornerSubPix, the deep detector and hybrid, in one run: frames found, frames whose every corner
 lies within 3 px of the truth, and ms a frame. Seed 0 drew the frames the small-board rules were chosen on
-(`deepcharuco.placement.code_errors`, `deepcharuco.search_regions.board_like_boxes`); other seeds measure.
+(`deepcharuco.detection.placement.code_errors`, `deepcharuco.detection.search_regions.board_like_boxes`); other seeds measure.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.deep_detector import Detector
-from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.opencv_detector import OpenCVDetector
 from evaluate.protocols import darken
 from evaluate.realistic import Placement, clutter, with_board
 

@@ -1,4 +1,4 @@
-"""Offline throughput: frames a second through `deepcharuco.parallel.DetectorPool` (what ``deepcharuco detect
+"""Offline throughput: frames a second through `deepcharuco.detection.parallel.DetectorPool` (what ``deepcharuco detect
 --jobs N`` and ``calibrate --jobs N`` run), deep detector and OpenCV + cornerSubPix with the same number of worker
 processes, in one run.
 
@@ -23,8 +23,9 @@ import cv2
 import numpy as np
 
 from deepcharuco import BoardSpec
-from deepcharuco.detect import CHUNK_FRAMES, VIDEO_SEARCH_EVERY, make_finders
-from deepcharuco.parallel import DetectorPool, available_cpus
+from deepcharuco.cli.detect import CHUNK_FRAMES, VIDEO_SEARCH_EVERY, make_finders
+from deepcharuco.core.platform import available_cpus
+from deepcharuco.detection.parallel import DetectorPool
 from evaluate.machine import cpu_description, gpu_name
 from evaluate.protocols import darken
 from evaluate.realistic import Placement, clutter, video_frames, with_board

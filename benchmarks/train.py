@@ -23,8 +23,8 @@ sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).re
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
-from deepcharuco.models.charuconet import CELL, ChArUcoNet, ChArUcoNetConfig  # noqa: E402
-from deepcharuco.models.refinenet import GRID, PATCH, RefineNet, RefineNetConfig  # noqa: E402
+from deepcharuco.networks.charuconet import CELL, ChArUcoNet, ChArUcoNetConfig  # noqa: E402
+from deepcharuco.networks.refinenet import GRID, PATCH, RefineNet, RefineNetConfig  # noqa: E402
 from train.loop import TrainConfig  # noqa: E402
 
 

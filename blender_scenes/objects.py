@@ -20,7 +20,7 @@ from blender_scenes.conversions import blender_camera_from_K, blender_camera_mat
 from blender_scenes.textures import board_texture, distractor_texture, poster_texture
 from datagen.scene import BoardLook, Distractor, Light, SceneSpec, Shape, Surface, World, bend_profile
 from datagen.sensor import REC709_LUMA
-from deepcharuco.board import BoardSpec
+from deepcharuco.boards.board import BoardSpec
 
 HDRI_DIR = Path(bpy.utils.system_resource("DATAFILES")) / "studiolights" / "world"
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.core.errors import DeepCharucoError
 
 
 def reset() -> bpy.types.Scene:

@@ -12,7 +12,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from deepcharuco.board import BoardSpec, BoardTexture
+from deepcharuco.boards.board import BoardSpec, BoardTexture
 
 # Board textures are drawn area-exact at this density: ~5x the finest image sampling of a
 # 0.2 m board filling a 320 px frame, so texture filtering never limits label accuracy.

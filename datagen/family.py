@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from deepcharuco.board import MARKER_FAMILIES, BoardSpec
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec
+from deepcharuco.core.errors import DeepCharucoError
 
 # Family name -> its dictionaries, smallest first (each a prefix of the next): the runtime's table, which
 # `Detector` picks a board's family model by.

@@ -41,9 +41,9 @@ from datagen.lens import distort_image, distortion_maps, sample_distortion, wide
 from datagen.scene import SceneConfig, SceneSpec, fitted_diag_frac, sample_scene
 from datagen.sensor import REC709_LUMA, Exposure, SensorParams, auto_gain, capture, sensor_record
 from datagen.shards import FrameLabels, MarkerLabels
-from deepcharuco.board import BoardSpec
-from deepcharuco.pose import project_corners
-from deepcharuco.synthetic import texture_homography
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.synthetic import texture_homography
+from deepcharuco.geometry.pose import project_corners
 
 MONITOR_EQUIVALENT_ALBEDO = 0.8
 BOARD_STREAM, LENS_STREAM = 1, 2

@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 
 from datagen.shards import ShardReader, list_shards
-from deepcharuco.cli import output_folder, run_command
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.core.errors import DeepCharucoError
 
 NUMERIC = ("lux", "blur_px", "visible_count", "exposure_s", "gain", "dist_k1", "bend", "squares_x", "squares_y")
 CATEGORICAL = ("has_board", "board_kind", "hdri", "shake", "spot", "shadow_caster", "occluder", "distractors", "lamps",

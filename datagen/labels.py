@@ -15,7 +15,7 @@ import numpy as np
 
 from datagen.scene import SceneSpec, bent_points
 from datagen.shards import MarkerLabels
-from deepcharuco.board import BoardSpec
+from deepcharuco.boards.board import BoardSpec
 
 
 def marker_points(board: BoardSpec) -> tuple[np.ndarray, np.ndarray]:

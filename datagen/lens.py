@@ -1,6 +1,6 @@
 """Lens distortion for rendered frames: OpenCV's distortion model applied to an undistorted render.
 
-A renderer (Blender, or `deepcharuco.synthetic.render_board_view`) draws a pinhole image. A
+A renderer (Blender, or `deepcharuco.boards.synthetic.render_board_view`) draws a pinhole image. A
 distorted camera (K, dist) at W x H is made from one by rendering a *wider* pinhole view
 (`wide_camera`: square pixels, covering every ray the distorted image sees) and resampling it
 (`distort_image`): the output pixel p shows what the pinhole render shows at the ray

@@ -42,11 +42,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-import deepcharuco
 from datagen.shadow_edge import PENUMBRA_PX, SHADOW_EDGE_REACH_PX, SHADOW_LEVELS, shadow_edge_gain
 from datagen.shards import PATCH_SIZE, ShardReader, list_shards, write_patch_shard
-from deepcharuco.cli import output_folder, run_command
-from deepcharuco.errors import DeepCharucoError
+import deepcharuco
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.core.errors import DeepCharucoError
 
 CENTRE_LOW, CENTRE_HIGH = 7.5, 15.5  # the central 8x8 pixels, as an interval of positions
 SYNTHETIC_SHARD_BASE = 10**6

@@ -22,15 +22,16 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import deepcharuco
 from datagen.family import FamilySampling, check_prefixes, parse_families
 from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
 from datagen.shards import INDEX_NAME, ShardReader, list_shards, temporary_prefix, update_index, write_shard
 from datagen.workers import TaskError, death_cause, report_progress, run_tasks
-from deepcharuco.board import BoardSpec
-from deepcharuco.cli import describe_os_error, output_folder, run_command
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.opencv_api import log_errors_only
+import deepcharuco
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.opencv_api import log_errors_only
+from deepcharuco.core.platform import describe_os_error
 
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
 CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean", "family",

@@ -22,8 +22,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.errors import DeepCharucoError
 
 SCHEMA_VERSION = 1
 INDEX_NAME = "index.json"

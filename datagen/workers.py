@@ -26,7 +26,7 @@ from typing import Any, Callable
 
 from tqdm import tqdm
 
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.core.errors import DeepCharucoError
 
 _CONNECTION: "mp.connection.Connection | None" = None
 _POLL_S = 1.0  # how often the parent looks at its workers when none has anything to say

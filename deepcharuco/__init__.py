@@ -4,31 +4,45 @@
     det = Detector(weights="detector.pt")     # or OpenCVDetector(BoardSpec(), refine="subpix")
     d = det.detect(gray_u8)                   # Detection: ids, corners, scores
     pose = det.estimate_pose(d, K, dist)      # Pose or None
+
+The subpackages, bottom to top (each imports only those below it; docs/architecture.md):
+`core`, `boards`, `geometry`, `networks`, `detection`, `calibration`, `cli`.
 """
 
-from deepcharuco.board import BoardSpec, BoardTexture, dictionary_names
-from deepcharuco.camera import Camera, read_camera, write_camera
-from deepcharuco.detection import Detection
-from deepcharuco.errors import BoardSpecError, CameraFileError, DeepCharucoError, ImageError
-from deepcharuco.metrics import CornerMatch, match_corners
-from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.pose import Pose, estimate_pose, project_corners
-from deepcharuco.tracking import BoardTracker
+from typing import TYPE_CHECKING
+
+from deepcharuco.boards.board import BoardSpec, BoardTexture, dictionary_names
+from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import BoardSpecError, CameraFileError, DeepCharucoError, ImageError, OptionError
+from deepcharuco.detection.metrics import CornerMatch, match_corners
+from deepcharuco.detection.opencv_detector import OpenCVDetector
+from deepcharuco.detection.parallel import detect_all
+from deepcharuco.detection.tracking import BoardTracker
+from deepcharuco.geometry.camera import Camera, read_camera, write_camera
+from deepcharuco.geometry.pose import Pose, estimate_pose, project_corners
 
 __version__ = "0.1.0"
 
 __all__ = [
     "BoardSpec", "BoardTexture", "dictionary_names", "Camera", "read_camera", "write_camera",
-    "Detection", "Detector", "BoardSpecError", "CameraFileError", "DeepCharucoError", "ImageError",
+    "Detection", "Detector", "BoardSpecError", "CameraFileError", "DeepCharucoError", "ImageError", "OptionError",
     "CornerMatch", "match_corners", "OpenCVDetector", "Pose", "estimate_pose", "project_corners", "BoardTracker",
+    "detect_all",
 ]
+
+if TYPE_CHECKING:
+    from deepcharuco.detection.deep_detector import Detector
 
 
 def __getattr__(name: str):
-    # The deep detector imports torch: loaded on first use, so `import deepcharuco` stays light
-    # (the Blender render workers import the board geometry and must not pull torch in).
+    # The deep detector loads its networks' runtime (ONNX Runtime, or PyTorch where asked): on first use, so that
+    # `import deepcharuco` stays light (the Blender render workers import the board geometry through it).
     if name == "Detector":
-        from deepcharuco.deep_detector import Detector
+        from deepcharuco.detection.deep_detector import Detector
 
         return Detector
     raise AttributeError(f"module 'deepcharuco' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | {"Detector"})

@@ -1,7 +1,7 @@
-"""``python -m deepcharuco``: the ``deepcharuco`` command (`deepcharuco.command`)."""
+"""``python -m deepcharuco``: the ``deepcharuco`` command (`deepcharuco.cli.main`)."""
 
 import sys
 
-from deepcharuco.command import main
+from deepcharuco.cli.main import main
 
 sys.exit(main())

@@ -28,17 +28,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-import deepcharuco
 from datagen.shards import FrameLabels, ShardReader, list_shards, write_shard
-from deepcharuco.cli import output_folder, run_command
-from deepcharuco.board import BoardSpec
-from deepcharuco.camera import read_camera
-from deepcharuco.detect import open_source
-from deepcharuco.detection import Detection
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.image import to_gray_u8
-from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.pose import estimate_pose
+import deepcharuco
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.cli.detect import open_source
+from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.image import to_gray_u8
+from deepcharuco.detection.opencv_detector import OpenCVDetector
+from deepcharuco.geometry.camera import read_camera
+from deepcharuco.geometry.pose import estimate_pose
 from evaluate.protocols import rotation_error_deg
 
 AVERAGE_FRAMES = 30

@@ -1,5 +1,5 @@
 """The evaluation report's calibration section: each detector calibrates each rendered calibration
-sequence (`evaluate.calibration_sequences`) with `deepcharuco.calibration`, against the known camera.
+sequence (`evaluate.calibration_sequences`) with `deepcharuco.calibration.calibration`, against the known camera.
 
 Errors per detector per sequence: fx and fy in % of the truth, cx and cy in px, the distortion's
 effect at the image corners (how far the solved distortion moves each of the four corner pixels,
@@ -24,10 +24,10 @@ import numpy as np
 
 from datagen.lens import pixels_to_rays
 from datagen.shards import ShardReader, list_shards
-from deepcharuco.board import BoardSpec
-from deepcharuco.calibrate import detect_frames
-from deepcharuco.calibration import CalibrationError, CalibrationResult, SelectionOptions, border_margin, calibrate
-from deepcharuco.files import write_atomic
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.calibration.calibration import CalibrationError, CalibrationResult, SelectionOptions, border_margin, calibrate
+from deepcharuco.cli.calibrate import detect_frames
+from deepcharuco.core.files import write_atomic
 from evaluate.calibration_sequences import read_truth
 
 GOOD_FOCAL_PCT, GOOD_CENTRE_PX, RMS_RATIO = 0.3, 1.0, 1.1
@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
               f"{args.data}", file=sys.stderr)
         return 2
-    from deepcharuco.detect import make_detector
+    from deepcharuco.cli.detect import make_detector
 
     reader = ShardReader(list_shards(args.data)[0])
     board = reader.board

@@ -1,6 +1,6 @@
 """Rendered calibration videos with a known distorted camera: ``python -m evaluate.calibration_sequences``.
 
-Truth for `deepcharuco.calibrate`: a board waved by hand in front of a still camera whose lens
+Truth for `deepcharuco.cli.calibrate`: a board waved by hand in front of a still camera whose lens
 distortion is known. One camera per k1 in `K1_VALUES` (k2 = k1^2, which keeps the lens one to one,
 small tangential terms, square pixels, a principal point a few pixels off centre, 55-70 degrees
 of horizontal field of view), and three videos of it, one shard each (shard index = number):
@@ -45,11 +45,11 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-import deepcharuco
 from datagen.lens import monotonic_k2, pixels_to_rays
-from deepcharuco.board import BoardSpec
-from deepcharuco.cli import output_folder
-from deepcharuco.errors import DeepCharucoError
+import deepcharuco
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder
+from deepcharuco.core.errors import DeepCharucoError
 from evaluate.sequences import SceneJob
 
 K1_VALUES = (-0.4, -0.15, 0.1)

@@ -1,7 +1,7 @@
 """Camera files side by side: ``python -m evaluate.compare_cameras REFERENCE.yaml OTHER.yaml ...``.
 
 For real captures there is no true camera, only calibrations to compare (e.g. this project's
-`deepcharuco.calibrate` with each detector against another tool's file). Each row: the intrinsics,
+`deepcharuco.cli.calibrate` with each detector against another tool's file). Each row: the intrinsics,
 the RMS the file states (``avg_reprojection_error``, or a "reproj error X" in its ``note``), the
 views used, and how far the file's camera puts the REFERENCE camera's rays: at the image's four
 corners (worst) and at its centre, in pixels. OpenCV's standard model (4-14 coefficients) and its fisheye
@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 
 from datagen.lens import LensError, pixels_to_rays
-from deepcharuco.camera import Camera, read_camera
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.geometry.camera import Camera, read_camera
 
 
 def stated_rms(path: str | Path) -> float | None:

@@ -13,7 +13,7 @@ sensor noise of 2 grey levels, exact truth) at 640x480, then put through one of 
 Placers, all on the same frames: OpenCV's ``CharucoDetector`` as it is and with cornerSubPix (the paper's
 baseline, `OpenCVDetector`, without OpenCV 4.11's half-pixel shift), the deep detector's RefineNet
 (``corner_fit=False``), `junction.locate_by_pattern` started from RefineNet's corners, and the deep detector as
-shipped (RefineNet, then `deepcharuco.corner_fit`). Errors are compared on the corners every placer found
+shipped (RefineNet, then `deepcharuco.detection.corner_fit`). Errors are compared on the corners every placer found
 (same frame, same ID, within 3 px of the truth), so no placer is scored on easier corners than another; each
 placer's own corners are counted too. The deep detector's covariances are checked against the errors: the
 spread of error / predicted sigma, sqrt(mean(e^T C^-1 e) / 2), should be 1.
@@ -37,15 +37,15 @@ from scipy.special import ndtr
 from tqdm import tqdm
 
 from datagen.lens import distort_image, wide_camera
-from deepcharuco.board import BoardSpec
-from deepcharuco.corner_fit import view_homography
-from deepcharuco.deep_detector import Detector
-from deepcharuco.detection import Detection
-from deepcharuco.junction import locate_by_pattern
-from deepcharuco.metrics import CORRECT_RADIUS_PX
-from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.print_face import canonical_view
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.print_face import canonical_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.core.detection import Detection
+from deepcharuco.detection.corner_fit import view_homography
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.junction import locate_by_pattern
+from deepcharuco.detection.metrics import CORRECT_RADIUS_PX
+from deepcharuco.detection.opencv_detector import OpenCVDetector
 from evaluate.protocols import TestFrame, darken, motion_blur
 from evaluate.realistic import Placement, clutter, with_board
 from evaluate.unseen_boards import UNSEEN_BOARDS
@@ -265,7 +265,7 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]], list[str]]]
             f"(evaluate.corner_precision, seed {results['seed']}, {results['frames_per_cell']} frames per board and "
             f"condition, boards: {', '.join(results['boards'])}), on the corners every placer found. OpenCV's "
             "corners are without OpenCV 4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the "
-            "printed-pattern fit (deepcharuco/corner_fit.py), with the shipped weights for each board whatever "
+            "printed-pattern fit (deepcharuco/detection/corner_fit.py), with the shipped weights for each board whatever "
             "--weights says. Spread: sqrt(mean(e^T C^-1 e) / 2) of the shipped detector's errors e and covariances C "
             "(1: the covariances are right).")
     return [("Sub-pixel corner error", text, rows, ["corner_sigma"])]
@@ -273,7 +273,7 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]], list[str]]]
 
 def sigma_figure(results: dict) -> bytes:
     """Observed against predicted error per axis (RMS, px), corners grouped by predicted sigma, one line a condition."""
-    from deepcharuco.html_page import png, pyplot
+    from deepcharuco.calibration.html_page import png, pyplot
 
     plt = pyplot()
     figure, axis = plt.subplots(figsize=(5.2, 4.0))
@@ -310,7 +310,7 @@ def calibration_check(seed: int, conditions: list[str], instants: int = 40, quie
     """Each camera of a drawn two-camera rig (`evaluate.rig_views`, exact intrinsics) calibrated on its own from the
     shipped detector's corners weighed by their covariances and not, RefineNet's corners alone, and OpenCV +
     cornerSubPix's: fx / fy error (%), cx / cy error (px), RMS (px) per camera, or why there is no calibration."""
-    from deepcharuco.calibration import CalibrationError, SelectionOptions, border_margin, calibrate
+    from deepcharuco.calibration.calibration import CalibrationError, SelectionOptions, border_margin, calibrate
     from evaluate.rig_eval import detect_all
     from evaluate.rig_views import RIG_BOARD, drawn_rig
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from datagen.shards import ShardReader, list_shards
-from deepcharuco.board import BoardSpec
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.errors import DeepCharucoError
 from evaluate.protocols import TestFrame
 
 WELL_LIT_LUX = 100.0  # the paper's "good lighting" (its normal-light videos are 3..700 lux)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deepcharuco.files import write_atomic
-from deepcharuco.html_page import html_page, image_format
+from deepcharuco.calibration.html_page import html_page, image_format
+from deepcharuco.core.files import write_atomic
 from evaluate.experiments import LABELS
 
 PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}

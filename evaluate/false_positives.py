@@ -9,7 +9,7 @@ same grid and marker/square ratio):
     mirrored             the target printed mirrored (its back face through a mirror print)
     plain chessboard     the target's squares, no markers
 
-are drawn exactly (`deepcharuco.synthetic`, random poses from a seed, random exposure and sensor
+are drawn exactly (`deepcharuco.boards.synthetic`, random poses from a seed, random exposure and sensor
 noise), and scikit-image's bundled photos (posters, people, textures, a checkerboard) stand in
 for frames with no board at all. Counted per detector: frames with any corner, frames with a pose.
 """
@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.camera import Camera
-from deepcharuco.synthetic import look_at_pose, paint_markers, render_board_view
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.synthetic import look_at_pose, paint_markers, render_board_view
+from deepcharuco.geometry.camera import Camera
 from evaluate.protocols import DetectorLike
 
 OTHER_DICTIONARIES = ("DICT_4X4_250", "DICT_5X5_250", "DICT_6X6_250", "DICT_7X7_250", "DICT_APRILTAG_36h11")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from deepcharuco.draw import draw_detection
-from deepcharuco.html_page import png, pyplot
+from deepcharuco.calibration.html_page import png, pyplot
+from deepcharuco.cli.draw import draw_detection
 from evaluate.experiments import LABELS
 from evaluate.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
 

@@ -6,7 +6,7 @@ A detector is anything with the runtime API's interface (docs/conventions.md): `
 
 - corner detection accuracy: a corner is correct when its ID is right and it lies < 3 px
   from the truth; accuracy = correct / all board corners, averaged over images
-  (`deepcharuco.metrics.match_corners`); plus the sub-pixel error of the correct ones;
+  (`deepcharuco.detection.metrics.match_corners`); plus the sub-pixel error of the correct ones;
 - synthetic motion blur: horizontal box kernel of size k = 0..10 (`motion_blur`);
 - synthetic darkness: image x 0.6^k, k = 0..10 (`darken`);
 - pose: solvePnPRansac with the known K; eps_re = mean reprojection error of the detected
@@ -25,9 +25,9 @@ from typing import Callable, Iterable, Protocol
 import cv2
 import numpy as np
 
-from deepcharuco.detection import Detection
-from deepcharuco.metrics import CORRECT_RADIUS_PX, match_corners
-from deepcharuco.pose import Pose
+from deepcharuco.core.detection import Detection
+from deepcharuco.detection.metrics import CORRECT_RADIUS_PX, match_corners
+from deepcharuco.geometry.pose import Pose
 
 LEVELS = tuple(range(11))  # k = 0..10 for both synthetic protocols
 DARKNESS_BASE = 0.6

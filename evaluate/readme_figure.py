@@ -17,10 +17,10 @@ import cv2
 import numpy as np
 
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector
-from deepcharuco.cli import run_command
-from deepcharuco.draw import draw_detection
-from deepcharuco.files import write_atomic
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.cli.common import run_command
+from deepcharuco.cli.draw import draw_detection
+from deepcharuco.core.files import write_atomic
 from evaluate.protocols import darken
 
 BOARD = BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250")

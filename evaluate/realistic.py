@@ -4,7 +4,7 @@ frame of real videos.
 
 Backgrounds are procedural clutter (`clutter`: shapes, lines, text, tiled grids that look like corners,
 an uneven light, sensor noise) or real frames with no board in them (`real_backgrounds`: the caliscope
-webcams' frames marked "no" in their review). Boards are drawn by `deepcharuco.synthetic` (exact
+webcams' frames marked "no" in their review). Boards are drawn by `deepcharuco.boards.synthetic` (exact
 to well under 0.1 px) and laid into the background by their own coverage, so the board's edge blends as
 a sensor would see it. Every random choice comes from the ``rng`` passed in.
 """
@@ -17,9 +17,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.pose import project_corners
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.geometry.pose import project_corners
 from evaluate.captures.reader import REVIEW_FILE, VIDEO_SUFFIXES, Medium, read_review
 from evaluate.captures.reader import video_frames as capture_video_frames
 from evaluate.protocols import TestFrame

@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.cli import describe_os_error, output_folder, pick_device
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.files import write_atomic
-from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.parallel import available_cpus
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder, pick_device
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.files import write_atomic
+from deepcharuco.core.platform import available_cpus, describe_os_error
+from deepcharuco.detection.opencv_detector import OpenCVDetector
 from evaluate import captures as real_captures
 from evaluate import calibration_eval, corner_precision, documents, experiments, false_positives, figures, unseen_boards
 from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
@@ -75,7 +75,7 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
     """The five configurations of the paper's timing table (the three deep ones when weights exist), and the
     deep detector without its board-geometry check (the paper's decoding), to show what the check adds."""
     detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "opencv_norefine": OpenCVDetector(board, refine="none")}
-    from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
+    from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
     if weights is None and not DEFAULT_WEIGHTS.is_file():
         notes.append("**No deep detector**: this version ships no weights (deepcharuco/weights/detector.pt) and none "

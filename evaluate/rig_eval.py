@@ -11,7 +11,7 @@ Two kinds of data:
   (every corner seen by two cameras or more at one instant, triangulated from all of them; neighbouring corners'
   distances against the printed 54 mm), and fx/fy against caliscope's own calibration of each camera.
 
-Both detectors go through the same solver (`deepcharuco.calibrate_rig.solve_rig`, the CLI's defaults). Nothing
+Both detectors go through the same solver (`deepcharuco.cli.calibrate_rig.solve_rig`, the CLI's defaults). Nothing
 here was tuned on: the solver's constants were set on `tests/test_rig.py`'s exact projections and seed 0's drawn
 rig (good light); these seeds, the dark and shake conditions and the real videos only measure.
 """
@@ -29,12 +29,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.calibrate_rig import solve_rig
-from deepcharuco.calibration import CalibrationError, FrameDetection, SelectionOptions, border_margin, sharpness
-from deepcharuco.camera import Camera, read_camera
-from deepcharuco.opencv_api import undistort_points
-from deepcharuco.rig import RigResult, rotation_angle_deg
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.calibration.calibration import CalibrationError, FrameDetection, SelectionOptions, border_margin, sharpness
+from deepcharuco.calibration.rig import RigResult, rotation_angle_deg
+from deepcharuco.cli.calibrate_rig import solve_rig
+from deepcharuco.core.opencv_api import undistort_points
+from deepcharuco.geometry.camera import Camera, read_camera
 from evaluate.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
 
 DETECTORS = ("opencv", "deep")
@@ -42,10 +42,10 @@ DETECTORS = ("opencv", "deep")
 
 def make_detector(name: str, board: BoardSpec):
     if name == "opencv":
-        from deepcharuco.opencv_detector import OpenCVDetector
+        from deepcharuco.detection.opencv_detector import OpenCVDetector
 
         return OpenCVDetector(board, refine="subpix"), "subpix"
-    from deepcharuco.deep_detector import Detector
+    from deepcharuco.detection.deep_detector import Detector
 
     return Detector(board=board), "refinenet"
 

@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.cli import output_folder, run_command
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder, run_command
 from evaluate.calibration_sequences import DARK_LUX, GOOD_LUX, calibration_config
 from evaluate.rig_views import RIG_BOARD, board_poses, rig_cameras
 

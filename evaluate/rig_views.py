@@ -1,6 +1,6 @@
 """Drawn views of a board waved through a rig of cameras with known intrinsics, lens distortion and poses.
 
-No renderer: each camera's view is the board drawn exactly (`deepcharuco.synthetic.render_board_view`) through
+No renderer: each camera's view is the board drawn exactly (`deepcharuco.boards.synthetic.render_board_view`) through
 a wider pinhole camera and resampled into the distorted image (`datagen.lens.distort_image`), so a corner lies
 where ``cv2.projectPoints`` with the camera's (K, dist) and pose puts it. Conditions: ``good`` (sensor noise of
 2 grey levels), ``dark`` (the light scaled by `DARKNESS_BASE` ** 7, then the same noise: ~3 % of the light, a
@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 
 from datagen.lens import distort_image, distortion_maps, wide_camera
-from deepcharuco.board import BoardSpec
-from deepcharuco.camera import Camera
-from deepcharuco.synthetic import render_board_view
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.synthetic import render_board_view
+from deepcharuco.geometry.camera import Camera
 from evaluate.protocols import DARKNESS_BASE
 
 CONDITIONS = ("good", "dark", "shake")

@@ -42,7 +42,6 @@ from typing import Callable, ClassVar
 import cv2
 import numpy as np
 
-import deepcharuco
 from blender_scenes.conversions import board_pose_in_camera, rigid
 from datagen.frames import LabelledRender, expose, luminance_scale, render_labelled, scene_meta
 from datagen.render import check_existing, remove_stale_temporaries, run_shard_tasks
@@ -52,9 +51,10 @@ from datagen.scene import (
 from datagen.sensor import SensorParams
 from datagen.shards import FrameLabels, update_index, write_shard
 from datagen.workers import report_progress
-from deepcharuco.cli import output_folder, run_command
-from deepcharuco.board import BoardSpec
-from deepcharuco.errors import DeepCharucoError
+import deepcharuco
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.core.errors import DeepCharucoError
 
 LUX_LEVELS = (700.0, 400.0, 100.0, 50.0, 30.0, 10.0, 5.0, 3.0, 1.0, 0.3)  # the paper's table
 LIT_FRAMES = 30  # the paper's recipe averages the first 30 frames

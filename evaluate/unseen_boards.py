@@ -19,10 +19,10 @@ import json
 import sys
 from pathlib import Path
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.files import write_atomic
-from deepcharuco.opencv_detector import OpenCVDetector
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.files import write_atomic
+from deepcharuco.detection.opencv_detector import OpenCVDetector
 from evaluate import experiments
 from evaluate.data import frames_fingerprint, load_frames, select_well_lit
 from evaluate.protocols import LEVELS
@@ -89,7 +89,7 @@ def board_summary(detectors: list[str], synthetic: dict, sequences: dict) -> dic
 
 def _shown(path: Path) -> str:
     """A weights path as the report shows it: inside the package from the package's folder, else as given."""
-    from deepcharuco.deep_detector import WEIGHTS_DIR
+    from deepcharuco.detection.deep_detector import WEIGHTS_DIR
 
     path = Path(path).resolve()
     return str(path.relative_to(WEIGHTS_DIR.parent.parent)) if path.is_relative_to(WEIGHTS_DIR) else str(path)
@@ -102,7 +102,7 @@ def unseen_boards_experiment(root: Path = DEFAULT_ROOT, weights: str | None = No
 
     ``every``: keep every n-th frame of each sequence (the report's --quick uses 4); ``only``: these boards
     (names of `UNSEEN_BOARDS`, any case) among the rendered ones."""
-    from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
+    from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
     boards = {}
     wanted = None if only is None else {name.lower() for name in only}

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from deepcharuco import BoardSpec, Camera, project_corners
-from deepcharuco.detection import Detection
-from deepcharuco.synthetic import look_at_pose, render_board_view
-from deepcharuco.tracking import search_region
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.core.detection import Detection
+from deepcharuco.detection.tracking import search_region
 
 # Tests that render with Blender: skipped where the [render] extra (bpy, Python 3.11 only) is not installed.
 needs_bpy = pytest.mark.skipif(importlib.util.find_spec("bpy") is None,

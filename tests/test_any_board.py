@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, deep_detector, project_corners
-from deepcharuco import placement
-from deepcharuco.lattice import cell_homographies, find_cells, squarest_cells
-from deepcharuco.marker_reader import board_markers, correlate, read_squares
-from deepcharuco.placement import marker_agreement
-from deepcharuco.synthetic import look_at_pose, render_board_view, texture_homography
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view, texture_homography
+from deepcharuco.detection import placement
+from deepcharuco.detection.lattice import cell_homographies, find_cells, squarest_cells
+from deepcharuco.detection.marker_reader import board_markers, correlate, read_squares
+from deepcharuco.detection.placement import marker_agreement
 
 # Boards of other layouts than the shipped weights' 5x5 DICT_5X5_50 (none of them seen in training).
 UNSEEN = [
@@ -299,7 +299,7 @@ def test_hybrid_keeps_verified_opencv_corners_and_falls_back_to_the_networks(cam
 
 
 def test_huge_images_are_never_searched_above_the_cap():
-    from deepcharuco.deep_detector import MAX_SEARCH_SIZE
+    from deepcharuco.detection.deep_detector import MAX_SEARCH_SIZE
 
     # an 8000x6000 photo: the network at full size took 9.5 GB
     sides = [round(scale * 8000) for scale in Detector._level_scales(8000, 320)]
@@ -310,7 +310,7 @@ def test_huge_images_are_never_searched_above_the_cap():
 def test_inverted_print_negated_about_its_local_white(camera):
     """A dim inverted board in a frame whose white is a lamp (caliscope's board across the room): negated about the
     frame's white it is pale grey on white; about its local white it is a dim board, found by its markers."""
-    from deepcharuco import print_face
+    from deepcharuco.boards import print_face
 
     board = UNSEEN[2]  # 4x5 DICT_4X4_1000, inverted
     image, truth = view_of(board, camera, fill=0.6, **POSES[0])
@@ -332,7 +332,7 @@ def test_inverted_print_negated_about_its_local_white(camera):
 
 
 def test_marker_family_of_dictionaries():
-    from deepcharuco.board import MARKER_FAMILIES, marker_family
+    from deepcharuco.boards.board import MARKER_FAMILIES, marker_family
 
     for family, dictionaries in MARKER_FAMILIES.items():
         assert {marker_family(name) for name in dictionaries} == {family}
@@ -343,8 +343,8 @@ def test_marker_family_of_dictionaries():
 def test_detector_loads_the_shipped_weights_of_the_board_family(tmp_path, monkeypatch):
     import shutil
 
-    from deepcharuco import deep_detector
-    from deepcharuco.models.checkpoint import load_charuconet
+    from deepcharuco.detection import deep_detector
+    from deepcharuco.networks.checkpoint import load_charuconet
 
     paper = BoardSpec()
     assert load_charuconet(deep_detector.DEFAULT_WEIGHTS)[1].same_layout(paper)  # BoardSpec() is the shipped board
@@ -366,9 +366,9 @@ def test_detector_loads_the_shipped_weights_of_the_board_family(tmp_path, monkey
 def test_shipped_family_models_are_point_heads_named_for_their_family():
     from pathlib import Path
 
-    from deepcharuco import deep_detector
-    from deepcharuco.board import MARKER_FAMILIES
-    from deepcharuco.models.checkpoint import load_charuconet
+    from deepcharuco.boards.board import MARKER_FAMILIES
+    from deepcharuco.detection import deep_detector
+    from deepcharuco.networks.checkpoint import load_charuconet
 
     for path in sorted(Path(deep_detector.FAMILY_WEIGHTS_DIR).glob("*.pt")):
         assert path.stem in MARKER_FAMILIES, f"{path.name} names no marker family"

@@ -69,7 +69,7 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_runtime_imports_no_other_layer():
     graph = import_graph()
-    assert "deepcharuco.detect" in graph and "evaluate.report" in graph  # the graph sees the project
+    assert "deepcharuco.cli.detect" in graph and "evaluate.report" in graph  # the graph sees the project
     crossing = sorted((m, t) for m, targets in graph.items() if m.startswith("deepcharuco")
                       for t in targets if not t.startswith("deepcharuco"))
     assert crossing == []

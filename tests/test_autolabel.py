@@ -12,7 +12,7 @@ import pytest
 
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, Camera, project_corners, write_camera
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from evaluate.autolabel import AutolabelError, autolabel, autolabel_sequence_errors, compare_to_truth, main
 
 ROOT = Path(__file__).resolve().parents[1]

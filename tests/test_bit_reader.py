@@ -8,12 +8,12 @@ import pytest
 import torch
 
 from deepcharuco import BoardSpec, Camera, Detector, marker_reader, project_corners
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.marker_reader import BIT_READER_WEIGHTS, board_markers, correlate, learned_bits, rectify_squares
-from deepcharuco.models.bit_reader import (
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.detection.marker_reader import BIT_READER_WEIGHTS, board_markers, correlate, learned_bits, rectify_squares
+from deepcharuco.networks.bit_reader import (
     MARGIN_BITS, SAMPLES_PER_BIT, BitReader, load_bit_reader, patch_side, save_bit_reader,
 )
-from deepcharuco.synthetic import look_at_pose, render_board_view
 from train.bit_reader import FAMILIES, Degradation, candidate_signs, family_bits, match_scores, render_cell, train
 
 # Close to ideal: big squares, no blur, no darkness, corners almost exact (JPEG and light gradients remain).

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Detection
-from deepcharuco.board_check import MIN_CONSENSUS, assign_ids, fit_board_homography, id_hypotheses
-from deepcharuco.models.cells import CellCandidates
+from deepcharuco.detection.board_check import MIN_CONSENSUS, assign_ids, fit_board_homography, id_hypotheses
+from deepcharuco.networks.cells import CellCandidates
 
 BOARD = BoardSpec()
 BOARD_XY = BOARD.corner_points()[:, :2]

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, CameraFileError, OpenCVDetector, read_camera, write_camera
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
 
 def test_round_trip(tmp_path):

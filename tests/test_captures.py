@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, Detection, OpenCVDetector, project_corners, write_camera
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from evaluate import documents
 from evaluate.captures import (
     CaptureError, evaluate_capture_set, evaluate_captures, open_capture_set, report_folders, sample_folders,
 )
 from evaluate.captures import reader
-from evaluate.protocols import motion_blur
 from evaluate.captures.truth import build_truth
+from evaluate.protocols import motion_blur
 from conftest import VIEW_POSES
 
 BOARD = BoardSpec()

@@ -1,4 +1,4 @@
-"""The printed-pattern corner fit (`deepcharuco.corner_fit`): exact drawn views, every board layout's quadrant parity,
+"""The printed-pattern corner fit (`deepcharuco.detection.corner_fit`): exact drawn views, every board layout's quadrant parity,
 blur and noise, covariances that match the errors, refusals, and the detector and calibration that use them."""
 
 import cv2
@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
-from deepcharuco.calibration import FrameDetection, SelectionOptions, calibrate
-from deepcharuco.corner_fit import FALLBACK_SIGMA_PX, _quadrant_signs, board_axes, fit_corners, view_homography
-from deepcharuco.detection import Detection
-from deepcharuco.junction import printed_pattern
-from deepcharuco.placement import neighbour_distances
-from deepcharuco.print_face import canonical_view
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.print_face import canonical_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.calibration.calibration import FrameDetection, SelectionOptions, calibrate
+from deepcharuco.core.detection import Detection
+from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, _quadrant_signs, board_axes, fit_corners, view_homography
+from deepcharuco.detection.junction import printed_pattern
+from deepcharuco.detection.placement import neighbour_distances
 
 CAMERA = Camera.from_fov(640, 480, hfov_deg=60.0)
 BOARDS = {

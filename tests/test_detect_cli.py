@@ -9,7 +9,7 @@ import pytest
 
 from conftest import VIEW_POSES, make_view
 from deepcharuco import BoardSpec, write_camera
-from deepcharuco.detect import main
+from deepcharuco.cli.detect import main
 from deepcharuco.examples.make_examples import make_example
 
 EXAMPLES = Path(__file__).parents[1] / "deepcharuco" / "examples"
@@ -175,8 +175,8 @@ def test_hybrid_detector_and_tracking_options(tmp_path, capsys):
 def test_a_fisheye_camera_gives_the_true_pose(camera):
     """A fisheye camera file's k1..k4 are not pinhole coefficients: the pose goes through its own model."""
     from deepcharuco import OpenCVDetector
-    from deepcharuco.camera import Camera
-    from deepcharuco.detect import estimate_frame_pose
+    from deepcharuco.cli.detect import estimate_frame_pose
+    from deepcharuco.geometry.camera import Camera
 
     board = BoardSpec()
     pinhole, rvec, tvec, _ = make_view(board, camera, distance=0.4, tilt_x_deg=20, offset=(0.04, 0.02))

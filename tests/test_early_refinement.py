@@ -7,8 +7,8 @@ import pytest
 
 from conftest import VIEW_POSES, make_view
 from deepcharuco import BoardSpec
-from deepcharuco.deep_detector import Detector
-from deepcharuco.runtime import BackgroundThread, onnxruntime_available
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.networks.runtime import BackgroundThread, onnxruntime_available
 
 BOARD = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
 

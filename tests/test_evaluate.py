@@ -12,7 +12,7 @@ import torch
 from conftest import VIEW_POSES, make_view
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, Detection, OpenCVDetector, estimate_pose
-from deepcharuco.models import ChArUcoNet, ChArUcoNetConfig, RefineNet, RefineNetConfig, save_checkpoint
+from deepcharuco.networks import ChArUcoNet, ChArUcoNetConfig, RefineNet, RefineNetConfig, save_checkpoint
 from evaluate import report, unseen_boards
 from evaluate.data import TestSetError, frames_fingerprint, load_frames, select_well_lit
 from evaluate.machine import cpu_description

@@ -1,4 +1,4 @@
-"""deepcharuco.export: TorchScript and ONNX files that reproduce PyTorch, and refusals."""
+"""deepcharuco.cli.export: TorchScript and ONNX files that reproduce PyTorch, and refusals."""
 
 import json
 
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from deepcharuco import BoardSpec
-from deepcharuco import export as export_module
-from deepcharuco.export import ExportError, compare, export, main
-from deepcharuco.models import ChArUcoNet, ChArUcoNetConfig, CheckpointError, RefineNet, RefineNetConfig, save_checkpoint
+from deepcharuco.cli import export as export_module
+from deepcharuco.cli.export import ExportError, compare, export, main
+from deepcharuco.networks import ChArUcoNet, ChArUcoNetConfig, CheckpointError, RefineNet, RefineNetConfig, save_checkpoint
 
 
 @pytest.fixture(scope="module")

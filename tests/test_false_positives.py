@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
-from deepcharuco.placement import MAX_CHANCE, chance_of_agreement
+from deepcharuco.detection.placement import MAX_CHANCE, chance_of_agreement
 from evaluate.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
 
 

@@ -24,8 +24,8 @@ from datagen.render import RenderJob, scene_config
 from datagen.scene import fitted_diag_frac, sample_scene
 from datagen.shards import FrameLabels, MarkerLabels, ShardError, ShardReader, list_shards, write_shard
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.board import marker_family
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.board import marker_family
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -172,7 +172,7 @@ def test_frames_of_inverted_prints_are_trained_as_the_detector_sees_them(tmp_pat
     """An inverted board's frame reaches ChArUcoNet negated about its white (`print_face.canonical_view`), after
     augmentation; a plain board's frame is the camera's image."""
     pytest.importorskip("torch")
-    from deepcharuco.print_face import canonical_view
+    from deepcharuco.boards.print_face import canonical_view
     from train.augment import AugmentConfig
     from train.dataset import FrameDataset
 

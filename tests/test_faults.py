@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-import deepcharuco.calibrate as calibrate_cli
-import deepcharuco.detect as detect_cli
+import deepcharuco.cli.calibrate as calibrate_cli
+import deepcharuco.cli.detect as detect_cli
 from conftest import VIEW_POSES, make_view
 from deepcharuco import BoardSpec, read_camera
-from deepcharuco.files import OutputError, OutputLock, write_atomic
-from deepcharuco.video import VideoFrames
+from deepcharuco.cli.video import VideoFrames
+from deepcharuco.core.files import OutputError, OutputLock, write_atomic
 from test_calibrate import SIZE, waved  # noqa: F401 (the waved-board video's frames, a fixture)
 
 EXAMPLES = Path(__file__).parents[1] / "deepcharuco" / "examples"
@@ -63,7 +63,7 @@ def _leftovers(folder: Path) -> list[str]:
 def test_a_failed_write_leaves_the_previous_file_and_no_temporary(tmp_path):
     path = tmp_path / "results.json"
     path.write_text("the previous results")
-    code = ("import sys; from deepcharuco.files import write_atomic\n"
+    code = ("import sys; from deepcharuco.core.files import write_atomic\n"
             "try:\n    write_atomic(sys.argv[1], 'x' * 100_000)\n"
             "except Exception as error:\n    print(type(error).__name__, error); sys.exit(2)\n")
     done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, cwd=ROOT,
@@ -104,7 +104,7 @@ def calibrated(tmp_path_factory, wave_video):
 def test_calibrate_onto_a_full_disk_keeps_the_previous_camera_file_and_report(calibrated, wave_video):
     folder, out, report = calibrated
     before = out.read_bytes(), report.read_bytes()
-    done = _command("deepcharuco.calibrate", str(wave_video), "--out", str(out), "--quiet", limit=20_000)
+    done = _command("deepcharuco.cli.calibrate", str(wave_video), "--out", str(out), "--quiet", limit=20_000)
     assert done.returncode == 2, done.stderr
     assert "error: could not write" in done.stderr and "Traceback" not in done.stderr
     assert "the previous file is unchanged" in done.stderr
@@ -113,7 +113,7 @@ def test_calibrate_onto_a_full_disk_keeps_the_previous_camera_file_and_report(ca
 
 def test_calibrate_without_report_onto_a_full_disk_writes_nothing(tmp_path, wave_video):
     out = tmp_path / "new.yaml"
-    done = _command("deepcharuco.calibrate", str(wave_video), "--out", str(out), "--no-report", "--quiet", limit=4_000)
+    done = _command("deepcharuco.cli.calibrate", str(wave_video), "--out", str(out), "--no-report", "--quiet", limit=4_000)
     assert done.returncode == 2 and "nothing was written" in done.stderr and "Traceback" not in done.stderr
     assert not out.exists() and _leftovers(tmp_path) == []
 
@@ -181,7 +181,7 @@ def test_calibrate_reads_past_a_damaged_stretch_of_video(tmp_path, wave_video, c
     assert frames.max() > 45  # views from past the damage (about frames 18-22 of 60)
 
 
-@pytest.mark.parametrize("module", ["deepcharuco.detect", "deepcharuco.calibrate"])
+@pytest.mark.parametrize("module", ["deepcharuco.cli.detect", "deepcharuco.cli.calibrate"])
 def test_negative_max_frames_is_refused(module):
     done = _command(module, str(EXAMPLES / "board_320x240.png"), "--max-frames", "-3")
     assert done.returncode == 2 and "--max-frames must be >= 1" in done.stderr
@@ -255,7 +255,7 @@ def test_detect_onto_a_full_disk_keeps_the_previous_results(tmp_path):
     image = str(EXAMPLES / "board_320x240.png")
     assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet"]) == 0
     before = {name: (tmp_path / name).read_bytes() for name in ("board_320x240.csv", "board_320x240.json")}
-    done = _command("deepcharuco.detect", image, "--out", str(tmp_path), "--no-overlay", "--quiet", limit=200)
+    done = _command("deepcharuco.cli.detect", image, "--out", str(tmp_path), "--no-overlay", "--quiet", limit=200)
     assert done.returncode == 2 and "error: could not write" in done.stderr and "Traceback" not in done.stderr
     assert {name: (tmp_path / name).read_bytes() for name in before} == before and _leftovers(tmp_path) == []
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.errors import ImageError
-from deepcharuco.image import to_gray_u8
+from deepcharuco.core.errors import ImageError
+from deepcharuco.core.image import to_gray_u8
 
 
 def suggested_conversion(message: str) -> str:

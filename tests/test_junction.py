@@ -1,4 +1,4 @@
-"""The board's printed pattern around a corner (`deepcharuco.junction`) and the corners it fills in where the point
+"""The board's printed pattern around a corner (`deepcharuco.detection.junction`) and the corners it fills in where the point
 head missed them (`placement._fill_in_by_pattern`, `Detector`): found across a cast shadow's edge, refused under an
 occluder or on another corner's place, located to a fraction of a pixel."""
 
@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
-from deepcharuco import deep_detector, placement
-from deepcharuco.junction import locate_by_pattern, pattern_evidence
-from deepcharuco.models.cells import CellCandidates
-from deepcharuco.print_face import canonical_view
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.print_face import canonical_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.detection import deep_detector
+from deepcharuco.detection import placement
+from deepcharuco.detection.junction import locate_by_pattern, pattern_evidence
+from deepcharuco.networks.cells import CellCandidates
 
 BOARD = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
 INVERTED = BoardSpec(squares_x=5, squares_y=4, square_length=0.05, marker_length=0.0375, dictionary="DICT_4X4_1000",

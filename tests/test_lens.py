@@ -7,7 +7,7 @@ from datagen.lens import (
     LensError, distort_image, distortion_displacement, distortion_maps, monotonic_k2, pixels_to_rays, wide_camera,
 )
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
 K = np.array([[262.0, 0.0, 163.4], [0.0, 262.0, 117.1], [0.0, 0.0, 1.0]])
 SIZE = (320, 240)

@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from deepcharuco import BoardSpec, DeepCharucoError
-from deepcharuco.deep_detector import PATCH_ORIGIN, Detector
-from deepcharuco.models import (
+from deepcharuco.detection.deep_detector import PATCH_ORIGIN, Detector
+from deepcharuco.networks import (
     ChArUcoNet, ChArUcoNetConfig, CheckpointError, fold_batch_norm, RefineNet, RefineNetConfig, cell_to_offset, decode_offsets,
     load_charuconet, offset_to_cell, save_checkpoint,
 )
-from deepcharuco.models.cells import decode_cells, encode_cells
-from deepcharuco.runtime import TorchRunner
+from deepcharuco.networks.cells import decode_cells, encode_cells
+from deepcharuco.networks.runtime import TorchRunner
 
 
 def megabytes(model):
@@ -197,7 +197,7 @@ def test_detector_plumbing(tmp_path, default_views):
 
 
 def test_a_failed_save_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
-    from deepcharuco.models import checkpoint
+    from deepcharuco.networks import checkpoint
 
     target = tmp_path / "detector.pt"
     target.write_bytes(b"old weights")

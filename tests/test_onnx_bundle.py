@@ -10,17 +10,17 @@ import pytest
 
 from conftest import VIEW_POSES, make_view
 from deepcharuco import BoardSpec, Detector, DeepCharucoError
-from deepcharuco.models.checkpoint import load_charuconet, load_refinenet
-from deepcharuco.onnx_bundle import BundleError, bundle_path, read_bundle
-from deepcharuco.runtime import float_onnx, weights_fingerprint
-from deepcharuco.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR
+from deepcharuco.networks.checkpoint import load_charuconet, load_refinenet
+from deepcharuco.networks.onnx_bundle import BundleError, bundle_path, read_bundle
+from deepcharuco.networks.runtime import float_onnx, weights_fingerprint
+from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR
 
 SHIPPED = [DEFAULT_WEIGHTS, *sorted(FAMILY_WEIGHTS_DIR.glob("*.pt"))]
 
 
 @pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
 def test_each_shipped_bundle_is_its_weights_exported_as_the_runtime_exports_them(weights):
-    """A bundle out of date with its .pt fails here: python -m deepcharuco.export --bundle --weights W makes it anew."""
+    """A bundle out of date with its .pt fails here: deepcharuco export --bundle --weights W makes it anew."""
     bundle = read_bundle(bundle_path(weights))
     charuconet, board, checkpoint = load_charuconet(weights)
     assert bundle.meta["weights_sha256"] == weights_fingerprint(charuconet)
@@ -92,7 +92,7 @@ def test_a_damaged_bundle_or_one_given_with_a_refinenet_is_refused(tmp_path):
     folder = tmp_path / "mine.onnx"
     folder.mkdir()
     (folder / "bundle.json").write_text('{"format": 1, "board": ')
-    with pytest.raises(BundleError, match=r"bundle.json is damaged .*python -m deepcharuco.export --bundle"):
+    with pytest.raises(BundleError, match=r"bundle.json is damaged .*deepcharuco export --bundle"):
         Detector(weights=folder)
     (folder / "bundle.json").write_text(json.dumps({"format": 1, "board": BoardSpec().to_dict(), "heads": "all"}))
     with pytest.raises(BundleError, match="lacks its ChArUcoNet model"):
@@ -105,7 +105,7 @@ def test_a_damaged_bundle_or_one_given_with_a_refinenet_is_refused(tmp_path):
 
 def test_the_package_ships_only_its_own_weights():
     """Every weights file beside the shipped ones is in the wheel: a test's bundle (3.4 MB) once was."""
-    from deepcharuco.shipped import WEIGHTS_DIR
+    from deepcharuco.networks.shipped import WEIGHTS_DIR
 
     shipped = {"MODEL_CARD.md", "bit_reader.pt", "detector.pt", "detector.onnx", "families"}
     assert {path.name for path in WEIGHTS_DIR.iterdir()} - {"__pycache__"} == shipped

@@ -6,7 +6,7 @@ import pytest
 
 from conftest import VIEW_POSES, make_view, rotation_error_deg
 from deepcharuco import BoardSpec, Detection, ImageError, OpenCVDetector, match_corners
-from deepcharuco.opencv_detector import charuco_detector_bias
+from deepcharuco.detection.opencv_detector import charuco_detector_bias
 
 
 @pytest.mark.parametrize("refine", ["subpix", "none"])

@@ -1,5 +1,5 @@
-"""Detection on worker processes (`deepcharuco.parallel`, ``detect --jobs``, ``calibrate --jobs``): the same
-detections as one process, in the frames' order; the OpenCV 4 / 5 calls behind `deepcharuco.opencv_api`."""
+"""Detection on worker processes (`deepcharuco.detection.parallel`, ``detect --jobs``, ``calibrate --jobs``): the same
+detections as one process, in the frames' order; the OpenCV 4 / 5 calls behind `deepcharuco.core.opencv_api`."""
 
 import json
 import pickle
@@ -11,10 +11,10 @@ import pytest
 
 from conftest import VIEW_POSES, Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec
-from deepcharuco.detect import main as detect_main
-from deepcharuco.detect import make_finders
-from deepcharuco.opencv_api import fisheye_calibration_flags, undistort_points
-from deepcharuco.parallel import DetectorPool
+from deepcharuco.cli.detect import main as detect_main
+from deepcharuco.cli.detect import make_finders
+from deepcharuco.core.opencv_api import fisheye_calibration_flags, undistort_points
+from deepcharuco.detection.parallel import DetectorPool
 
 
 @pytest.fixture(scope="module")
@@ -87,9 +87,9 @@ def test_detect_with_jobs_writes_what_one_process_writes(tmp_path, frames):
 @pytest.mark.parametrize("command", ["detect", "calibrate"])
 def test_jobs_below_one_is_a_clear_error(tmp_path, capsys, command):
     if command == "detect":
-        from deepcharuco.detect import main
+        from deepcharuco.cli.detect import main
     else:
-        from deepcharuco.calibrate import main
+        from deepcharuco.cli.calibrate import main
     with pytest.raises(SystemExit) as stop:
         main([str(tmp_path / "clip.avi"), "--out", str(tmp_path / "out.yaml"), "--jobs", "0"])
     assert stop.value.code == 2 and "--jobs must be >= 1" in capsys.readouterr().err
@@ -114,8 +114,8 @@ def test_fisheye_flags_recompute_the_poses_and_fix_the_skew():
 
 
 def test_a_pool_answers_every_frame_in_order_when_a_tracker_looks_back(monkeypatch):
-    from deepcharuco import parallel
-    from deepcharuco.tracking import BoardTracker
+    from deepcharuco.detection import parallel
+    from deepcharuco.detection.tracking import BoardTracker
 
     frames = video(10)
     present = {4, 5, 6, 7}
@@ -133,7 +133,7 @@ def test_a_pool_answers_every_frame_in_order_when_a_tracker_looks_back(monkeypat
 
 
 def tracked_only_finders():
-    from deepcharuco.tracking import BoardTracker
+    from deepcharuco.detection.tracking import BoardTracker
 
     return [BoardTracker(TrackedOnly(), search_every=3), TrackedOnly()]
 

@@ -15,10 +15,10 @@ import pytest
 from conftest import VIEW_POSES, make_view, needs_bpy
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
-from deepcharuco.deep_detector import Detector
-from deepcharuco.models import load_charuconet
-from deepcharuco.models.checkpoint import PointsOnlyBoard, read_checkpoint
-from deepcharuco.placement import WEAK_CONFIDENCE
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.placement import WEAK_CONFIDENCE
+from deepcharuco.networks import load_charuconet
+from deepcharuco.networks.checkpoint import PointsOnlyBoard, read_checkpoint
 from train import pipeline
 from train.bundle import choose_threshold
 from train.charuconet import ChArUcoNetTask, match_points

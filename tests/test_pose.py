@@ -3,7 +3,7 @@ import pytest
 
 from conftest import rotation_error_deg
 from deepcharuco import BoardSpec, Detection, OpenCVDetector, estimate_pose, project_corners
-from deepcharuco.synthetic import look_at_pose
+from deepcharuco.boards.synthetic import look_at_pose
 
 BOARD = BoardSpec()
 

@@ -8,7 +8,7 @@ import torch
 
 from conftest import network_widths
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
 CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
 BOARD = BoardSpec()  # the shipped weights' board: the preview serves its own decoding
@@ -53,7 +53,7 @@ def test_a_preview_costs_one_refinenet_pass_at_full_resolution(camera):
 
 
 def test_a_preview_corner_is_nudged_onto_the_corner_at_most_one_and_a_half_pixels():
-    from deepcharuco.deep_detector import PREVIEW_MAX_NUDGE_PX, _nudged
+    from deepcharuco.detection.deep_detector import PREVIEW_MAX_NUDGE_PX, _nudged
 
     # A chessboard X-junction at (30.3, 20.6): dark top-left and bottom-right quadrants, drawn 8x oversampled.
     size, scale, corner = (40, 60), 8, np.array([30.3, 20.6])
@@ -96,7 +96,7 @@ def test_a_board_read_by_its_markers_is_not_previewed(camera):
 
 
 def test_refinenet_may_move_a_corner_three_pixels_no_farther():
-    from deepcharuco.models.refinenet import GRID
+    from deepcharuco.networks.refinenet import GRID
 
     detector = Detector()
     gray = np.full((60, 60), 128, np.uint8)

@@ -1,4 +1,4 @@
-"""Printable boards (deepcharuco.printing, `deepcharuco board`) and the `deepcharuco` command."""
+"""Printable boards (deepcharuco.boards.printing, `deepcharuco board`) and the `deepcharuco` command."""
 
 import io
 import re
@@ -11,9 +11,9 @@ import pytest
 from PIL import Image
 
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.command import main as deepcharuco_main
-from deepcharuco.print_board import main as board_main
-from deepcharuco.printing import MM_PER_POINT, PrintError, board_sheet, paper_size, pdf_bytes, png_bytes, raster, svg_text
+from deepcharuco.boards.printing import MM_PER_POINT, PrintError, board_sheet, paper_size, pdf_bytes, png_bytes, raster, svg_text
+from deepcharuco.cli.board import main as board_main
+from deepcharuco.cli.main import main as deepcharuco_main
 
 BOARDS = [BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250"),
           BoardSpec(4, 5, 0.03, 0.022, "DICT_4X4_1000", inverted=True),
@@ -154,7 +154,7 @@ def test_the_commands_and_both_detectors_run_without_torch(tmp_path):
     code = f"""
 import json, sys
 sys.modules["torch"] = None  # any import of torch fails
-from deepcharuco.command import main
+from deepcharuco.cli.main import main
 for detector in ("opencv", "deep"):
     assert main(["detect", r"{image}", "--camera", r"{camera}", "--detector", detector,
                  "--out", r"{tmp_path}" + "/" + detector]) == 0
@@ -164,11 +164,11 @@ assert main(["board", "--squares", "5x5", "--dictionary", "DICT_5X5_50", "--squa
              "--out", r"{tmp_path / 'b'}"]) == 0
 assert main(["detect", r"{image}", "--detector", "deep", "--weights", r"{tmp_path / 'lonely.pt'}",
              "--out", r"{tmp_path / 'x'}"]) == 2
-import deepcharuco.calibrate
+import deepcharuco.cli.calibrate
 assert "torch" not in {{name.split(".")[0] for name, module in sys.modules.items() if module is not None}}
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "lonely.pt is a PyTorch checkpoint and PyTorch is not installed" in done.stderr
-    assert "python -m deepcharuco.export --bundle" in done.stderr and "Traceback" not in done.stderr
+    assert "deepcharuco export --bundle" in done.stderr and "Traceback" not in done.stderr
     assert (tmp_path / "b.pdf").is_file()

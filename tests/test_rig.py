@@ -1,4 +1,4 @@
-"""Rig calibration (deepcharuco.rig, calibrate with several sources): exact projections through known rigs, drawn
+"""Rig calibration (deepcharuco.calibration.rig, calibrate with several sources): exact projections through known rigs, drawn
 views through the CLI, and the refusals of bad input."""
 
 import tomllib
@@ -9,11 +9,11 @@ import pytest
 
 from conftest import assert_same_but_rounding, needs_bpy
 from deepcharuco import BoardSpec, Camera, read_camera
-from deepcharuco.calibrate import main
-from deepcharuco.rig import (
+from deepcharuco.calibration.rig import (
     RigError, RigView, calibrate_rig, corner_weights, intrinsic_vector, project, rotation_angle_deg,
     rotations_from_vectors,
 )
+from deepcharuco.cli.calibrate import main
 from evaluate.rig_views import RIG_BOARD, board_poses, drawn_rig, rig_cameras
 
 SIZE = (640, 480)
@@ -302,8 +302,8 @@ def test_two_boards_link_cameras_that_never_see_the_same_one_as_the_first():
 
 def test_one_detector_finds_each_of_several_boards(tmp_path, capsys):
     from deepcharuco import Detector
-    from deepcharuco.detect import main as detect_main
-    from deepcharuco.synthetic import look_at_pose, render_board_view
+    from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+    from deepcharuco.cli.detect import main as detect_main
 
     a = BoardSpec(squares_x=5, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50")
     b = BoardSpec(squares_x=5, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50",
@@ -387,7 +387,7 @@ def test_timestamps_pair_frames_of_cameras_with_their_own_clocks(tmp_path, drawn
     for image in sorted(folders[2].iterdir()):
         if image.name != "005.png":
             (dropped / image.name).write_bytes(image.read_bytes())
-    from deepcharuco.calibrate_rig import instants_by_time, read_timestamps
+    from deepcharuco.cli.calibrate_rig import instants_by_time, read_timestamps
 
     mapping = instants_by_time(read_timestamps(tmp_path / "times.csv", ["cam0", "cam1", "cam2"]))
     assert mapping[1][0] == 3 and mapping[2][5] == 6 and len(mapping[2]) == 15
@@ -400,7 +400,7 @@ def test_timestamps_pair_frames_of_cameras_with_their_own_clocks(tmp_path, drawn
 
 
 def test_jobs_detect_a_rig_on_worker_processes_and_write_the_same_files(tmp_path, drawn):
-    """``--jobs 2``: the three cameras' frames detected on two worker processes (`deepcharuco.parallel`) give the
+    """``--jobs 2``: the three cameras' frames detected on two worker processes (`deepcharuco.detection.parallel`) give the
     camera files and the rig file one process gives (to rounding: `assert_same_but_rounding`)."""
     truth, folders, board = drawn
     written = []

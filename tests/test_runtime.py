@@ -1,4 +1,4 @@
-"""Backends (deepcharuco.runtime): PyTorch and ONNX Runtime give the same corners; int8 only when accepted."""
+"""Backends (deepcharuco.networks.runtime): PyTorch and ONNX Runtime give the same corners; int8 only when accepted."""
 
 import cv2
 import numpy as np
@@ -8,10 +8,10 @@ from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from conftest import make_view
 from deepcharuco import BoardSpec
-from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.runtime import (INT8_KEY, int8_model, make_runner, onnxruntime_available, resolve_backend,
-                                 weights_fingerprint)
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
+from deepcharuco.networks.runtime import (INT8_KEY, int8_model, make_runner, onnxruntime_available, resolve_backend,
+                                          weights_fingerprint)
 from evaluate.protocols import TestFrame
 from train import quantize as quantize_module
 
@@ -64,7 +64,7 @@ def test_an_int8_model_of_other_weights_is_ignored():
 
 @pytest.fixture(scope="module")
 def validation_frames(camera=None):
-    from deepcharuco.camera import Camera
+    from deepcharuco.geometry.camera import Camera
 
     camera = Camera.from_fov(320, 240, hfov_deg=60.0)
     board = BoardSpec()

@@ -6,10 +6,10 @@ import pytest
 
 from conftest import network_widths
 from deepcharuco import BoardSpec, Detector
-from deepcharuco.models.cells import CELL, cell_confidence
-from deepcharuco.search_regions import (CONFIDENCE, DIM_CONFIDENCE, DIM_MIN_CELLS, DIM_WHITE, MIN_CELLS, area_share,
-                                        board_like_boxes, is_dim, to_full)
-from deepcharuco.stage_times import StageTimes, stage, tally
+from deepcharuco.core.stage_times import StageTimes, stage, tally
+from deepcharuco.detection.search_regions import (CONFIDENCE, DIM_CONFIDENCE, DIM_MIN_CELLS, DIM_WHITE, MIN_CELLS, area_share,
+                                                  board_like_boxes, is_dim, to_full)
+from deepcharuco.networks.cells import CELL, cell_confidence
 from evaluate.realistic import Placement, clutter, with_board, without_board
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.synthetic import look_at_pose, texture_homography
+from deepcharuco.boards.synthetic import look_at_pose, texture_homography
 
 
 @pytest.mark.parametrize(

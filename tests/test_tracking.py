@@ -5,10 +5,10 @@ import pytest
 
 from conftest import Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
-from deepcharuco.camera import Camera
-from deepcharuco.detection import Detection
-from deepcharuco.parallel import detect_all
-from deepcharuco.tracking import BoardTracker, search_region
+from deepcharuco.core.detection import Detection
+from deepcharuco.detection.parallel import detect_all
+from deepcharuco.detection.tracking import BoardTracker, search_region
+from deepcharuco.geometry.camera import Camera
 
 
 class Recording:
@@ -258,7 +258,7 @@ def test_the_coarse_level_alone_finds_a_large_board_and_not_a_small_one():
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
     """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
     away: the same corners as the search through the cells, which does not run."""
-    import deepcharuco.placement as placement
+    import deepcharuco.detection.placement as placement
 
     board = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
                       dictionary="DICT_4X4_1000", inverted=True)
@@ -280,7 +280,7 @@ def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_sear
 def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_search(monkeypatch):
     """A frame with board-like cells and no board of ours (another dictionary's board): the full search searches it
     again negated about its local white, a quick look at the coarse level does not."""
-    import deepcharuco.deep_detector as deep_detector
+    import deepcharuco.detection.deep_detector as deep_detector
 
     ours = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
                      dictionary="DICT_4X4_1000", inverted=True)

@@ -6,7 +6,7 @@ import pytest
 
 from datagen.shards import FrameLabels, ShardError, write_shard
 from deepcharuco import BoardSpec
-from deepcharuco.models.cells import decode_cells
+from deepcharuco.networks.cells import decode_cells
 from train.augment import AugmentConfig, augment, crop_labels, crop_origin, warp_labels
 from train.dataset import FrameDataset, split_shards
 

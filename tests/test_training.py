@@ -15,8 +15,8 @@ import torch
 from datagen.patches import synthetic_patches
 from datagen.shards import FrameLabels, write_patch_shard, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
-from deepcharuco.deep_detector import Detector
-from deepcharuco.models import load_charuconet, load_refinenet
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.networks import load_charuconet, load_refinenet
 from train.bundle import choose_threshold
 from train.charuconet import ChArUcoNetTask
 from train.loop import TrainConfig, train

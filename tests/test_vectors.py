@@ -1,9 +1,9 @@
-"""deepcharuco.vectors: the lengths np.linalg.norm gives, bit for bit."""
+"""deepcharuco.core.vectors: the lengths np.linalg.norm gives, bit for bit."""
 
 import numpy as np
 import pytest
 
-from deepcharuco.vectors import lengths, pairwise_distances
+from deepcharuco.core.vectors import lengths, pairwise_distances
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

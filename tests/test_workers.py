@@ -17,7 +17,7 @@ import pytest
 from datagen.render import run_shard_tasks
 from datagen.shards import list_shards, shard_name, temporary_prefix, write_patch_shard
 from datagen.workers import TaskError, report_progress, run_tasks
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.core.errors import DeepCharucoError
 
 ROOT = Path(__file__).resolve().parents[1]
 HANG_S = 60  # far longer than any of these runs: reaching it means the parent hung

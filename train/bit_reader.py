@@ -39,8 +39,8 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepcharuco.marker_reader import MAX_BIT_LOGIT, rectify_squares
-from deepcharuco.models.bit_reader import SIZES, BitReader, BitReaderConfig, normalise_patches, save_bit_reader
+from deepcharuco.detection.marker_reader import MAX_BIT_LOGIT, rectify_squares
+from deepcharuco.networks.bit_reader import SIZES, BitReader, BitReaderConfig, normalise_patches, save_bit_reader
 
 # Families per inner size: the _1000 dictionaries hold the _50/_100/_250 ones as prefixes.
 FAMILIES: dict[int, tuple[str, ...]] = {
@@ -383,7 +383,7 @@ def validation_views(seed: int, per_board: int) -> list[tuple[object, np.ndarray
     the renders (paper 150-230, ink 25-75 grey levels, a light gradient, sensor noise), squares ~11-30 px,
     -> [(board, image (240, 320) uint8, true corners (C, 2))]."""
     from deepcharuco import BoardSpec, Camera, project_corners
-    from deepcharuco.synthetic import look_at_pose, render_board_view
+    from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
     rng = np.random.default_rng([seed, 7])
     camera = Camera.from_fov(320, 240, hfov_deg=60.0)
@@ -413,8 +413,8 @@ def compare_readers(views: list, readers: tuple[str, ...] = ("sampled", "learned
     """The deep detector's corner accuracy (ID right, < 3 px, over the corners inside the image) on ``views``
     under `VALIDATION_CONDITIONS`, with each marker reader -> {reader: {condition: mean accuracy}}."""
     from deepcharuco import Detector
-    from deepcharuco import marker_reader
-    from deepcharuco.metrics import match_corners
+    from deepcharuco.detection import marker_reader
+    from deepcharuco.detection.metrics import match_corners
     from evaluate.protocols import darken, motion_blur
 
     detectors: dict = {}

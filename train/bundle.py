@@ -28,16 +28,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deepcharuco.board_check import GEOMETRY_MODES
-from deepcharuco.cli import output_file, run_command
-from deepcharuco.deep_detector import Detector
-from deepcharuco.detection import Detection
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.metrics import match_corners
 from datagen.shards import ShardReader
-from deepcharuco.export import write_onnx_bundle
-from deepcharuco.models.checkpoint import id_head_trained, read_checkpoint, save_bundle
-from deepcharuco.placement import WEAK_CONFIDENCE
+from deepcharuco.cli.common import output_file, run_command
+from deepcharuco.cli.export import write_onnx_bundle
+from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.detection.board_check import GEOMETRY_MODES
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.metrics import match_corners
+from deepcharuco.detection.placement import WEAK_CONFIDENCE
+from deepcharuco.networks.checkpoint import id_head_trained, read_checkpoint, save_bundle
 from train.dataset import FrameDataset, split_shards
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))

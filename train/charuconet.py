@@ -24,13 +24,13 @@ import torch
 import torch.nn.functional as F
 
 from datagen.shards import ShardReader
-from deepcharuco.detection import Detection
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.metrics import match_corners
-from deepcharuco.board import BoardSpec
-from deepcharuco.models.cells import decode_cells, point_candidates
-from deepcharuco.models.checkpoint import HEADS, read_checkpoint
-from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.detection.metrics import match_corners
+from deepcharuco.networks.cells import decode_cells, point_candidates
+from deepcharuco.networks.charuconet import ChArUcoNet, ChArUcoNetConfig
+from deepcharuco.networks.checkpoint import HEADS, read_checkpoint
 from train.augment import AugmentConfig
 from train.cli import parse_crop, run_trainer
 from train.dataset import FrameDataset, split_shards

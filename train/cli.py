@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from dataclasses import fields
 
-from deepcharuco.cli import run_command
-from deepcharuco.models.checkpoint import HEADS
+from deepcharuco.cli.common import run_command
+from deepcharuco.networks.checkpoint import HEADS
 from train.loop import TrainConfig, pick_device, train
 
 HELP = {

@@ -14,9 +14,9 @@ import numpy as np
 import torch
 
 from datagen.shards import ShardError, ShardReader, list_shards
-from deepcharuco.board import BoardSpec
-from deepcharuco.models.cells import encode_cells
-from deepcharuco.models.charuconet import CELL
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.networks.cells import encode_cells
+from deepcharuco.networks.charuconet import CELL
 from train.augment import AugmentConfig, augment
 
 

@@ -9,7 +9,7 @@
 - Checkpoints: ``last.pt`` every ``checkpoint_every`` steps, at the end and on SIGINT/SIGTERM
   (the command then exits with 130/143, as a shell does for a process the signal ended, so
   ``train && bundle`` stops there); ``best.pt`` on the best validation score; both are
-  `deepcharuco.models` checkpoints with the training state under ``training``.
+  `deepcharuco.networks` checkpoints with the training state under ``training``.
 - Logs: ``log.csv`` (step, loss, lr, validation metrics ...), TensorBoard if installed, tqdm.
   ``--resume`` first cuts ``log.csv`` back to the checkpoint's step: the steps after it (logged
   before a kill) are run again and would otherwise appear twice.
@@ -34,10 +34,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deepcharuco.cli import output_folder
-from deepcharuco.cli import pick_device  # noqa: F401 - the trainers' --device, shared with the report
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.checkpoint import read_checkpoint, save_checkpoint
+from deepcharuco.cli.common import output_folder
+from deepcharuco.cli.common import pick_device  # noqa: F401 - the trainers' --device, shared with the report
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.networks.checkpoint import read_checkpoint, save_checkpoint
 
 # Options --resume may change: they do not decide the run's result (out: the folder may move; steps:
 # train longer than first planned), or are compared by what they name (data, init) in `_path_differs`.

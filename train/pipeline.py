@@ -44,10 +44,10 @@ from pathlib import Path
 
 from datagen.family import FamilyError, parse_families
 from datagen.shards import ShardReader, list_shards, read_patch_shard
-from deepcharuco.board import MARKER_FAMILIES, BoardSpec, marker_family
-from deepcharuco.cli import check_output_folder, output_folder, run_command
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.files import write_atomic
+from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec, marker_family
+from deepcharuco.cli.common import check_output_folder, output_folder, run_command
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.files import write_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "deepcharuco" / "weights" / "detector.pt"
@@ -235,9 +235,9 @@ def probe_training_step(network: str, width: str, batch: int, size: tuple[int, i
     import torch
     import torch.nn.functional as F
 
-    from deepcharuco.cli import pick_device
-    from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig
-    from deepcharuco.models.refinenet import RefineNet, RefineNetConfig
+    from deepcharuco.cli.common import pick_device
+    from deepcharuco.networks.charuconet import ChArUcoNet, ChArUcoNetConfig
+    from deepcharuco.networks.refinenet import RefineNet, RefineNetConfig
 
     device = pick_device(device_name)
     if network == "charuconet":
@@ -964,8 +964,8 @@ def evaluation_boards(target: Target) -> dict[str, BoardSpec]:
 def evaluate_model(weights: Path, boards: dict[str, BoardSpec], root: Path, sizes: Sizes, quiet: bool) -> dict:
     """Per board: the synthetic blur/darkness protocol and the sequences' pose accuracy, the bundle (as
     `Detector(board=...)` uses it) next to OpenCV + cornerSubPix on the same frames; and the bundle's speed."""
-    from deepcharuco.deep_detector import Detector
-    from deepcharuco.opencv_detector import OpenCVDetector
+    from deepcharuco.detection.deep_detector import Detector
+    from deepcharuco.detection.opencv_detector import OpenCVDetector
     from evaluate import experiments
     from evaluate.data import load_frames, select_well_lit
     from evaluate.protocols import LEVELS
@@ -1003,7 +1003,7 @@ def measure_fps(detector, frames: list, seconds: float = 2.0) -> float:
 
 def bundle_summary(path: Path) -> dict:
     """What the card needs from the bundle: the threshold, each network's steps and validation metrics."""
-    from deepcharuco.models.checkpoint import id_head_trained, read_checkpoint
+    from deepcharuco.networks.checkpoint import id_head_trained, read_checkpoint
 
     charuconet, refinenet = read_checkpoint(path, "charuconet"), read_checkpoint(path, "refinenet")
     return {"threshold": charuconet.get("threshold"), "id_head_trained": id_head_trained(charuconet),

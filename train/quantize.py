@@ -30,11 +30,11 @@ import torch
 from tqdm import tqdm
 
 from datagen.shards import list_shards
-from deepcharuco.cli import run_command
-from deepcharuco.deep_detector import Detector, network_input
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.models.checkpoint import read_checkpoint, save_atomically
-from deepcharuco.runtime import INT8_KEY, float_onnx, onnxruntime_available, weights_fingerprint
+from deepcharuco.cli.common import run_command
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.detection.deep_detector import Detector, network_input
+from deepcharuco.networks.checkpoint import read_checkpoint, save_atomically
+from deepcharuco.networks.runtime import INT8_KEY, float_onnx, onnxruntime_available, weights_fingerprint
 from evaluate.data import load_frames
 from evaluate.protocols import LEVELS, TestFrame, apply_effect, synthetic_curve
 

@@ -18,8 +18,8 @@ import torch
 import torch.nn.functional as F
 
 from datagen.shards import read_patch_shard
-from deepcharuco.models.refinenet import CENTRE_LOW, GRID, RefineNet, RefineNetConfig, decode_offsets, offset_to_cell
-from deepcharuco.errors import DeepCharucoError
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.networks.refinenet import CENTRE_LOW, GRID, RefineNet, RefineNetConfig, decode_offsets, offset_to_cell
 from train.cli import run_trainer
 from train.dataset import split_shards
 from train.loop import TrainConfig

@@ -9,9 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.camera import Camera, write_camera
-from deepcharuco.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.geometry.camera import Camera, write_camera
 
 HERE = Path(__file__).parent
 

@@ -8,9 +8,9 @@ import shlex
 import sys
 from pathlib import Path
 
-from deepcharuco.cli import output_folder, run_command
-from deepcharuco.files import write_atomic
-from deepcharuco.html_page import html_page
+from deepcharuco.calibration.html_page import html_page
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.core.files import write_atomic
 from evaluate import documents
 from evaluate.captures.present import DEFAULT_GALLERY, DEFAULT_STEP, capture_sections, evaluate_captures, sample_folders
 

@@ -27,13 +27,13 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.board_check import MIN_CONSENSUS, TOLERANCE_PX, fit_board_homography
-from deepcharuco.camera import Camera
-from deepcharuco.detection import Detection
-from deepcharuco.metrics import CORRECT_RADIUS_PX, match_corners
-from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.pose import estimate_pose
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.detection import Detection
+from deepcharuco.detection.board_check import MIN_CONSENSUS, TOLERANCE_PX, fit_board_homography
+from deepcharuco.detection.metrics import CORRECT_RADIUS_PX, match_corners
+from deepcharuco.detection.opencv_detector import OpenCVDetector
+from deepcharuco.geometry.camera import Camera
+from deepcharuco.geometry.pose import estimate_pose
 from evaluate.captures.reader import MIN_FOUND, CaptureFrame, CaptureSet
 from evaluate.captures.truth import FrameTruth, SetTruth, build_truth
 from evaluate.protocols import (
@@ -84,7 +84,7 @@ def build_detectors(board: BoardSpec, weights: str | None = None, refine_weights
                     device: str = "cpu") -> dict[str, DetectorLike]:
     """OpenCV + cornerSubPix, the deep detector (when there are weights: given, or shipped), and its hybrid
     mode when this version's `Detector` has one (``mode="hybrid"``)."""
-    from deepcharuco.deep_detector import DEFAULT_WEIGHTS, Detector
+    from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
     detectors: dict[str, DetectorLike] = {REFERENCE: OpenCVDetector(board, refine="subpix")}
     if weights is None and not DEFAULT_WEIGHTS.is_file():

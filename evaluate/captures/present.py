@@ -1,5 +1,5 @@
 """The real-captures section: every set through every detector, the gallery of frames where they disagree
-(JPEG, drawn on the real image with `deepcharuco.draw`), and the report's table rows."""
+(JPEG, drawn on the real image with `deepcharuco.cli.draw`), and the report's table rows."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco.detection import Detection
-from deepcharuco.draw import draw_detection
+from deepcharuco.cli.draw import draw_detection
+from deepcharuco.core.detection import Detection
 from evaluate.captures.measure import REFERENCE, GalleryFrame, build_detectors, evaluate_capture_set
 from evaluate.captures.reader import CaptureError, open_capture_set
 

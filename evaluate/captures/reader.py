@@ -25,14 +25,14 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.board_hints import matching_variant
-from deepcharuco.camera import Camera, read_camera
-from deepcharuco.detect import IMAGE_SUFFIXES
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.image import to_gray_u8
-from deepcharuco.opencv_detector import OpenCVDetector
-from deepcharuco.video import VideoFrames
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.detect import IMAGE_SUFFIXES
+from deepcharuco.cli.video import VideoFrames
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.image import to_gray_u8
+from deepcharuco.detection.board_hints import matching_variant
+from deepcharuco.detection.opencv_detector import OpenCVDetector
+from deepcharuco.geometry.camera import Camera, read_camera
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
 BOARD_FILE, LABELS_FILE, REVIEW_FILE = "board.yaml", "labels.csv", "frames_review.csv"
@@ -243,7 +243,7 @@ def video_frames(path: Path, step: int, limit: int | None, problems: list[str] |
                  ) -> Iterator[tuple[int, np.ndarray]]:
     """(frame number, (H, W) uint8) of every ``step``-th frame, at most ``limit``; frames in between are
     grabbed, not decoded into images, and one frame is held at a time. A damaged stretch is skipped
-    (`deepcharuco.video.VideoFrames`) and said in ``problems`` and on stderr."""
+    (`deepcharuco.cli.video.VideoFrames`) and said in ``problems`` and on stderr."""
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         capture.release()

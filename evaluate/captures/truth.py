@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deepcharuco.board import BoardSpec
-from deepcharuco.detection import Detection
-from deepcharuco.pose import estimate_pose
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.detection import Detection
+from deepcharuco.geometry.pose import estimate_pose
 from evaluate.autolabel import AVERAGE_FRAMES, AutolabelError, autolabel
 from evaluate.captures.reader import (
     CaptureError, CaptureFrame, CaptureSet, Medium, absent_frames, read_labels, video_frames,

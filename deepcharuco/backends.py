@@ -1,4 +1,0 @@
-"""The names of the ways the networks can run (`deepcharuco.runtime` runs them): here, apart, so that command
-lines can offer the choice without loading PyTorch."""
-
-BACKENDS = ("auto", "torch", "onnx", "onnx-int8")

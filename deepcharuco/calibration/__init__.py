@@ -1,0 +1,24 @@
+"""Calibration: one camera's intrinsics from its views of the board (view selection, the solve, the model's
+terms, per-corner weights, deviations) and a rig's cameras together (bundle adjustment), with their files and
+HTML reports.
+
+Imports `deepcharuco.core`, `boards` and `geometry`: never the detectors (the command line feeds it their
+detections). The names here are loaded on first use.
+"""
+
+from typing import TYPE_CHECKING
+
+from deepcharuco.core.lazy import lazy_exports
+
+_WHERE = {
+    "calibrate": "calibration", "CalibrationResult": "calibration", "CalibrationError": "calibration",
+    "FrameDetection": "calibration", "SelectionOptions": "calibration",
+    "calibrate_rig": "rig", "RigView": "rig", "RigResult": "rig", "RigError": "rig",
+}
+__all__ = list(_WHERE)
+__getattr__, __dir__ = lazy_exports(__name__, _WHERE)
+
+if TYPE_CHECKING:
+    from deepcharuco.calibration.calibration import (CalibrationError, CalibrationResult, FrameDetection,
+                                                     SelectionOptions, calibrate)
+    from deepcharuco.calibration.rig import RigError, RigResult, RigView, calibrate_rig

@@ -1,0 +1,334 @@
+"""``python -m deepcharuco.calibrate cam0.mp4 cam1.mp4 ... --out rig/``: a rig of cameras from synchronised sources.
+
+Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant; with
+``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them) and
+the board detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
+own single-camera calibration (`deepcharuco.calibration.calibration.calibrate`, as ``calibrate`` does for one camera) or
+are held at a given ``--camera`` file's; then `deepcharuco.calibration.rig.calibrate_rig` places the cameras and
+bundle-adjusts everything together. Writes into ``--out``: ``<source name>.yaml`` per camera, ``rig.toml`` and
+``rig_report.html`` (`deepcharuco.calibration.rig_files`, `deepcharuco.calibration.rig_report`), all together and last: bad input
+leaves nothing behind (one line, exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.calibration.calibration import (
+    CalibrationError, FrameDetection, SelectionOptions, border_margin, calibrate, within_border,
+)
+from deepcharuco.calibration.rig import RigError, RigResult, RigView, calibrate_rig, rotations_from_vectors
+from deepcharuco.calibration.rig_files import is_rig_toml, rig_camera_text, rig_toml
+from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
+from deepcharuco.cli.common import check_output_folder
+from deepcharuco.cli.detect import Source, open_source
+from deepcharuco.core.errors import CameraFileError, DeepCharucoError
+from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
+from deepcharuco.core.image import to_gray_u8
+from deepcharuco.detection.parallel import DetectorPool
+from deepcharuco.geometry.camera import Camera, is_camera_file, read_camera
+
+TOML_NAME, REPORT_NAME = "rig.toml", "rig_report.html"
+REPORT_START = b"<!doctype html><html><head><meta charset='utf-8'><title>Rig calibration"
+
+
+def source_names(sources: list[Source]) -> list[str]:
+    """The cameras' names (their sources' stems); two sources of one name are refused."""
+    names = [source.stem for source in sources]
+    for name in names:
+        if names.count(name) > 1:
+            raise DeepCharucoError(f"two sources are named {name}: each camera's file is rig/<name>.yaml, so give "
+                                   f"sources with different names (rename or link one)")
+    return names
+
+
+def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
+    """Videos (or folders of frames) of one rig recorded together have one length; without --sync-offsets other
+    lengths are refused."""
+    totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
+    if offsets is None and len({total for _, total in totals}) > 1:
+        listed = ", ".join(f"{name} {total}" for name, total in totals)
+        raise RigError(f"the sources have different lengths ({listed} frames), so frame n of each need not show one "
+                       f"instant: give --sync-offsets (the frames to skip at each one's start so that they line up), "
+                       f"or trim them to start and end together")
+
+
+def detect_synchronised(sources: list[Source], detectors: list, offsets: list[int], *, step: int = 1,
+                        quiet: bool = False, pool: DetectorPool | None = None
+                        ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
+    """``detections[c][b]``: camera c's `FrameDetection` of board b (``detectors[b]``'s) at every ``step``-th
+    instant (the instant as its index), and each camera's frame size. Frame ``n + offsets[c]`` of source c is
+    instant n; reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
+    detectors (worker processes; default: these detectors in this process)."""
+    streams = []
+    for source, offset in zip(sources, offsets):
+        frames = iter(source.frames)
+        for _ in range(offset):
+            next(frames, None)
+        streams.append(frames)
+    totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
+    sizes: list[tuple[int, int] | None] = [None] * len(sources)
+
+    def wanted():
+        for instant, frames in enumerate(zip(*streams)):
+            if instant % step == 0:
+                for c, (name, frame) in enumerate(frames):
+                    gray = _checked_gray(c, name, frame, sources[c], sizes)
+                    yield (c, instant, str(name), gray), gray
+
+    total = len(sources) * -(-min(totals) // step) if totals else None
+    return detect_views(wanted(), detectors, len(sources), pool, total, quiet), sizes
+
+
+def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
+                  sizes: list[tuple[int, int] | None]) -> np.ndarray:
+    """``camera``'s ``frame`` as uint8 grey; the camera's frame size is kept in ``sizes`` and another size refused."""
+    gray = to_gray_u8(frame)
+    size = (gray.shape[1], gray.shape[0])
+    if sizes[camera] is None:
+        sizes[camera] = size
+    elif size != sizes[camera]:
+        raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
+                               f"{sizes[camera][0]}x{sizes[camera][1]}: one camera, one resolution")
+    return gray
+
+
+def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
+    """Each source's {frame: time (s)} from a CSV with the columns ``source,frame,time_s`` (``source``: the source's
+    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). A source without any row is refused."""
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+    except OSError as error:
+        raise DeepCharucoError(f"--timestamps {path}: cannot read it ({error.strerror or error})") from None
+    if not rows or not {"source", "frame", "time_s"} <= set(rows[0]):
+        raise DeepCharucoError(f"--timestamps {path} needs a header source,frame,time_s and one row per frame")
+    times: list[dict[int, float]] = [{} for _ in names]
+    for line, row in enumerate(rows, start=2):
+        key = row["source"].strip()
+        camera = names.index(key) if key in names else int(key) if key.isdigit() and int(key) < len(names) else None
+        if camera is None:
+            raise DeepCharucoError(f"--timestamps {path} line {line}: source {key!r} is none of {', '.join(names)} "
+                                   f"(or 0..{len(names) - 1})")
+        try:
+            times[camera][int(row["frame"])] = float(row["time_s"])
+        except ValueError:
+            raise DeepCharucoError(f"--timestamps {path} line {line}: frame and time_s must be numbers") from None
+    for name, table in zip(names, times):
+        if not table:
+            raise DeepCharucoError(f"--timestamps {path} has no row for {name}: give every source's frame times")
+    return times
+
+
+def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
+    """Per source, {frame: instant}: the instants are the first source's frames, and another source's frame belongs
+    to the instant nearest in time when within half of the first source's median frame interval (the nearer of two
+    frames that would share one)."""
+    reference = sorted(times[0].items(), key=lambda item: item[1])
+    frames0 = np.array([frame for frame, _ in reference])
+    times0 = np.array([t for _, t in reference])
+    tolerance = 0.5 * float(np.median(np.diff(times0))) if len(times0) > 1 else math.inf
+    mapping: list[dict[int, int]] = [{int(f): int(f) for f in frames0}]
+    for table in times[1:]:
+        best: dict[int, tuple[float, int]] = {}
+        for frame, t in table.items():
+            k = int(np.clip(np.searchsorted(times0, t), 1, len(times0) - 1)) if len(times0) > 1 else 0
+            k = k - 1 if k > 0 and abs(times0[k - 1] - t) <= abs(times0[k] - t) else k
+            gap = abs(times0[k] - t)
+            if gap <= tolerance and (frames0[k] not in best or gap < best[frames0[k]][0]):
+                best[int(frames0[k])] = (gap, frame)
+        mapping.append({frame: instant for instant, (_, frame) in best.items()})
+    return mapping
+
+
+def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,
+                   quiet: bool = False, pool: DetectorPool | None = None
+                   ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
+    """`detect_synchronised`'s result where the instants come from timestamps (`instants_by_time`): each source
+    is read whole, and only its frames that belong to an instant (every ``step``-th) are detected."""
+    sizes: list[tuple[int, int] | None] = [None] * len(sources)
+
+    def wanted():
+        for c, source in enumerate(sources):
+            for frame_index, (name, frame) in enumerate(source.frames):
+                instant = mapping[c].get(frame_index)
+                if instant is not None and instant % step == 0:
+                    gray = _checked_gray(c, name, frame, source, sizes)
+                    yield (c, instant, str(name), gray), gray
+
+    total = sum(1 for c in range(len(sources)) for instant in mapping[c].values() if instant % step == 0) or None
+    return detect_views(wanted(), detectors, len(sources), pool, total, quiet), sizes
+
+
+def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
+                     given: list[str | None], boards: list[BoardSpec], model: str, options: SelectionOptions,
+                     fix_k3: bool) -> tuple[list[Camera], list[str | None], list[str], list[dict[str, float] | None],
+                                            list[float | None]]:
+    """Each camera's starting intrinsics (its single-camera calibration from the board it saw in the most frames),
+    the distortion terms the rig solves for it (None: held as given), what to tell the user, and the starting
+    intrinsics' standard deviations (`deepcharuco.calibration.rig`'s prior) and corner noise (px per axis; None where given)."""
+    cameras, terms, notes, priors, noise = [], [], [], [], []
+    for c, name in enumerate(names):
+        if given[c] not in (None, "-"):
+            try:
+                camera = read_camera(given[c]).for_image_size(*sizes[c])
+            except CameraFileError as error:
+                raise CameraFileError(f"--camera {given[c]} ({name}): {error}") from None
+            if camera.model != "pinhole":
+                raise CameraFileError(f"--camera {given[c]} ({name}) is a {camera.model} camera: a rig uses the pinhole "
+                                      f"or rational model")
+            cameras.append(camera)
+            terms.append(None)
+            priors.append(None)
+            noise.append(None)
+            continue
+        seen = [sum(len(f.ids) >= options.min_corners for f in frames) for frames in detections[c]]
+        b = int(np.argmax(seen))
+        try:
+            single = calibrate(detections[c][b], boards[b], sizes[c], model, options, fix_k3=fix_k3)
+        except CalibrationError as error:
+            raise RigError(f"{name}: {error} (or give its intrinsics: --camera FILE for it)") from None
+        cameras.append(single.camera)
+        terms.append(single.terms)
+        notes += [f"{name}: {note}" for note in single.notes]
+        priors.append(dict(single.std))
+        noise.append(single.corner_sigma)
+    return cameras, terms, notes, priors, noise
+
+
+def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
+              boards: list[BoardSpec], options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
+              given: list[str | None] | None = None, weigh_rig_corners: bool = True) -> RigResult:
+    """The rig from every camera's detections of every board (``detections[c][b]``: one `FrameDetection` per
+    instant, its index the instant): starting intrinsics (`starting_cameras`), corners within
+    ``options.border_px`` of the border left out, then `calibrate_rig`, which weighs corners by their covariances
+    where ``options`` weighs one camera's and ``weigh_rig_corners``."""
+    cameras, terms, notes, priors, noise = starting_cameras(detections, sizes, names, given or [None] * len(names), boards,
+                                                     model, options, fix_k3)
+    views = []
+    for c, per_board in enumerate(detections):
+        for b, frames in enumerate(per_board):
+            for frame in frames:
+                kept = within_border(frame, sizes[c], options.border_px)
+                if len(kept.ids):
+                    views.append(RigView(c, frame.index, kept.ids, kept.corners, f"{names[c]} {frame.name}", b,
+                                         kept.covariances))
+    result = calibrate_rig(views, boards, cameras, names, terms, min_corners=options.min_corners, priors=priors,
+                           own_noise=noise,
+                           weigh_corners=options.weight_views and options.weight_corners and weigh_rig_corners)
+    result.notes = notes + result.notes
+    return result
+
+
+def board_origin(result: RigResult, instant: int | None = None) -> tuple[tuple[int, int], RigResult]:
+    """The rig in a board's frame at ``instant``, or (None) at the instant the most cameras saw it (the most corners
+    breaking ties; of several boards, the first one's), and that (instant, board)."""
+    seen: dict[tuple[int, int], list[int]] = {}
+    for view in result.views:
+        seen.setdefault(view.key, []).append(len(view.ids))
+    if instant is not None:
+        chosen = [key for key in seen if key[0] == instant]
+        if not chosen:
+            nearest = sorted({i for i, _ in seen}, key=lambda i: abs(i - instant))[:5]
+            raise RigError(f"--origin-instant {instant}: no board pose was solved at that instant (no camera kept a "
+                           f"view of it); instants near it that have one: {', '.join(map(str, sorted(nearest)))}")
+        seen = {key: seen[key] for key in chosen}
+    key = max(seen, key=lambda k: (-k[1], len(seen[k]), sum(seen[k]), -k[0]))
+    rvec, tvec = result.board_poses[key]
+    return key, result.reframed(rotations_from_vectors(rvec)[0], np.asarray(tvec, np.float64))
+
+
+def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) -> RigResult:
+    """The rig command (module docstring): ``boards`` and one detector each."""
+    out = Path(args.out)
+    if out.suffix.lower() in (".yaml", ".yml", ".xml", ".json") and not out.is_dir():
+        raise DeepCharucoError(f"--out {out} names a file, but {len(args.source)} sources make a rig: give a folder, "
+                               f"e.g. --out {out.with_suffix('')}/")
+    check_output_folder(out)
+    sources = [open_source(source, args.max_frames) for source in args.source]
+    names = source_names(sources)
+    targets = [out / f"{name}.yaml" for name in names] + [out / TOML_NAME] + ([] if args.no_report else [out / REPORT_NAME])
+    for path in targets[:len(names)]:
+        refuse_foreign(path, is_camera_file, "camera file", args.force)
+    refuse_foreign(out / TOML_NAME, is_rig_toml, "rig file", args.force)
+    if not args.no_report:
+        refuse_foreign(out / REPORT_NAME, starts_with(REPORT_START), "rig report", args.force)
+    mapping = None  # with --timestamps: per source, {frame: instant}
+    if args.timestamps is None:
+        check_lengths(sources, args.sync_offsets)
+    else:
+        mapping = instants_by_time(read_timestamps(args.timestamps, names))
+    out.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out / TOML_NAME, "another calibrate"):
+        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping)
+
+
+def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
+              targets: list[Path], mapping: list[dict[int, int]] | None) -> RigResult:
+    pool = calibration_pool(args.detector, boards, args.refine, args.weights, args.jobs)
+    if mapping is None:
+        offsets = args.sync_offsets or [0] * len(sources)
+        detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet, pool=pool)
+    else:
+        detections, sizes = detect_by_time(sources, detectors, mapping, step=args.step, quiet=args.quiet, pool=pool)
+    for source in sources:
+        for line in source.problems():
+            print(f"warning: {line}", file=sys.stderr)
+    for name, size, source in zip(names, sizes, args.source):
+        if size is None:
+            raise CalibrationError(f"no frames could be read from {source} ({name}): give videos, folders of images "
+                                   f"or camera indices that deliver frames")
+    unseen = [name for name, per_board in zip(names, detections)
+              if not any(len(f.ids) for frames in per_board for f in frames)]
+    if unseen:
+        raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0][0])} instants: check "
+                       f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
+                       f"in focus")
+    margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
+    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
+                               border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
+    result = solve_rig(detections, sizes, names, boards, options, model=args.model, fix_k3=args.fix_k3,
+                       given=args.camera)
+    frame = f"camera {names[0]}'s"
+    if args.origin == "board":
+        (instant, board_index), result = board_origin(result, args.origin_instant)
+        frame = f"the board's at instant {instant}" if len(boards) == 1 else \
+            f"board {Path(args.board[board_index]).stem}'s at instant {instant}"
+    files = {path: rig_camera_text(result, c, boards, args.detector, frame, path.name)
+             for c, path in enumerate(targets[:len(names)])}
+    files[out / TOML_NAME] = rig_toml(result, frame)
+    if not args.no_report:
+        try:
+            import matplotlib  # noqa: F401 - the report's figures need it: the eval extra
+        except ImportError as exc:
+            print(f"no report ({exc}): pip install 'deepcharuco[eval]' for it", file=sys.stderr)
+        else:
+            from deepcharuco.calibration.rig_report import report_html
+
+            files[out / REPORT_NAME] = report_html(
+                result, boards, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
+                command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+    write_together(files)
+    print(f"{len(names)} cameras, {len({i for i, _ in result.board_poses})} instants, {len(result.views)} views: RMS {result.rms:.3f} px"
+          f" -> {out}/")
+    for c, name in enumerate(names):
+        K, std, centre = result.cameras[c].K, result.std[c], result.centre(c)
+        deviation = (lambda key, scale=1.0: f" +- {scale * std[key]:.2f}" if key in std else "")  # noqa: E731
+        print(f"  {name}: {result.camera_views(c)} views, RMS {result.camera_rms(c):.3f} px, fx {K[0, 0]:.1f}"
+              f"{deviation('fx')} fy {K[1, 1]:.1f}{deviation('fy')} cx {K[0, 2]:.1f}{deviation('cx')} cy "
+              f"{K[1, 2]:.1f}{deviation('cy')}, centre ({centre[0]:+.3f}, {centre[1]:+.3f}, {centre[2]:+.3f}) m"
+              + (f" +- {1000 * max(std['tx'], std['ty'], std['tz']):.1f} mm, rotation +- {std['rotation_deg']:.2f} deg"
+                 if "tx" in std else ""))
+    pairs = ", ".join(f"{names[i]}-{names[j]} {n}" for (i, j), n in sorted(result.shared.items()))
+    print(f"  shared instants: {pairs}")
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    return result

@@ -1,0 +1,45 @@
+"""The board found in calibration frames, one camera's or a rig's: each frame's detections as `FrameDetection`s
+with their sharpness, detected in this process or on a `DetectorPool` (``calibrate --jobs``)."""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Iterable
+
+import numpy as np
+from tqdm import tqdm
+
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.calibration.calibration import FrameDetection, sharpness
+from deepcharuco.cli.detect import CHUNK_FRAMES, make_finders
+from deepcharuco.detection.parallel import DetectorPool
+
+
+def calibration_pool(name: str, boards: list[BoardSpec], refine: str, weights: str | None, jobs: int
+                     ) -> DetectorPool | None:
+    """``jobs`` worker processes, each with the detector ``name`` of each board (as `detect.make_detector` makes
+    them); None for one job (the caller's detectors, in this process)."""
+    if jobs == 1:
+        return None
+    return DetectorPool(partial(make_finders, name, boards, refine, weights, None, "auto", True, "cpu", 1), jobs,
+                        chunk=CHUNK_FRAMES)
+
+
+def detect_views(items: Iterable[tuple[tuple[int, int, str, np.ndarray], np.ndarray]], detectors: list,
+                 cameras: int, pool: DetectorPool | None = None, total: int | None = None, quiet: bool = False
+                 ) -> list[list[list[FrameDetection]]]:
+    """Every board found in each ((camera, frame or instant, name, grey), grey) of ``items`` by ``detectors`` (one
+    per board; or by ``pool``, whose finders are the same), as ``detections[camera][board]`` in the items' order,
+    with a progress bar of frames (``total`` of them, when known)."""
+    detections: list[list[list[FrameDetection]]] = [[[] for _ in detectors] for _ in range(cameras)]
+    seen = [0] * cameras  # frames in which each camera found a board, for the progress bar
+    with pool or DetectorPool(lambda: detectors) as detecting:
+        bar = tqdm(detecting.detect(items), total=total, unit="frame", desc="detecting", disable=quiet)
+        for (camera, index, name, gray), found in bar:
+            for board, detection in enumerate(found):
+                detections[camera][board].append(FrameDetection(index, name, detection.ids, detection.corners,
+                                                                sharpness(gray, detection.corners),
+                                                                detection.covariances))
+            seen[camera] += any(len(d.ids) for d in found)
+            bar.set_postfix(boards="/".join(map(str, seen)), refresh=False)
+    return detections

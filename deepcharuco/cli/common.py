@@ -1,0 +1,110 @@
+"""What every command line of the project shares: one-line errors and output paths checked up front.
+
+Bad input, a read-only or mistyped ``--out`` and a full disk are the user's to fix, not bugs: a
+command says what went wrong and what to do in one line on stderr and exits with code 2, instead
+of a traceback. Bugs (any other exception) still show their traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.platform import describe_os_error
+
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a command stopped by Ctrl-C
+
+
+def run_command(body: Callable[[], int | None]) -> int:
+    """``body()``'s exit code (None: 0); a `DeepCharucoError` or `OSError` becomes ``error: ...`` on
+    stderr and exit code 2; Ctrl-C (`KeyboardInterrupt`) becomes ``stopped: ...`` and exit code 130,
+    without a traceback (``KeyboardInterrupt("what was kept and how to go on")`` says more)."""
+    try:
+        code = body()
+    except KeyboardInterrupt as stop:
+        print(f"stopped: {stop.args[0] if stop.args else 'interrupted (Ctrl-C) before the end'}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except DeepCharucoError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as error:
+        print(f"error: {describe_os_error(error)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return 0 if code is None else code
+
+
+def output_folder(path: str | Path, option: str = "--out") -> Path:
+    """Create the output folder ``path`` (and its parents) and check that files can be written in it.
+
+    Raises `DeepCharucoError` naming ``option`` when ``path`` is a file, or the folder cannot be
+    created or written to — before any work is done, so nothing half-made is left behind."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise DeepCharucoError(f"{option} {path} is a file, not a folder: give a folder path")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        descriptor, probe = tempfile.mkstemp(prefix=".write-test-", dir=path)
+        os.close(descriptor)
+        os.unlink(probe)
+    except OSError as error:
+        raise DeepCharucoError(f"{option} {path}: cannot write there ({error.strerror or error}): "
+                               f"choose a writable folder or fix its permissions") from None
+    return path
+
+
+def check_output_folder(path: str | Path, option: str = "--out") -> Path:
+    """What `output_folder` checks, without creating anything (for a dry run): ``path`` is a folder or can be
+    made in a writable folder. Raises `DeepCharucoError` naming ``option`` otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise DeepCharucoError(f"{option} {path} is a file, not a folder: give a folder path")
+    existing = next(p for p in [path, *path.absolute().parents] if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise DeepCharucoError(f"{option} {path}: cannot write there ({existing} is not a writable folder): "
+                               f"choose a writable folder or fix its permissions")
+    return path
+
+
+def output_file(path: str | Path, option: str = "--out") -> Path:
+    """Check that the file ``path`` can be written (its folder is created): not a folder, and its
+    folder writable (files here are written to a temporary name and renamed, so the folder's
+    permissions are what count). Raises `DeepCharucoError` naming ``option`` otherwise."""
+    path = Path(path)
+    if path.is_dir():
+        raise DeepCharucoError(f"{option} {path} is a folder: give a file path, e.g. {path / 'detector.pt'}")
+    output_folder(path.parent, option=f"{option}'s folder")
+    return path
+
+
+def pick_device(name: str) -> "torch.device":
+    """The torch device ``name`` names ("auto": CUDA, else MPS, else CPU); `DeepCharucoError` when it is
+    not a device name or this machine (or this torch build) does not have it."""
+    import torch  # here, so that commands without a network do not load torch
+    if name != "auto":
+        try:
+            device = torch.device(name)
+        except RuntimeError:
+            raise DeepCharucoError(f"--device {name!r} is not a device: use auto, cpu, cuda, cuda:N or mps") from None
+        if device.type == "cuda":
+            count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+            if count == 0:
+                raise DeepCharucoError(f"--device {name}: no CUDA GPU is usable here (this torch {torch.__version__} "
+                                       f"{'has no CUDA support' if torch.version.cuda is None else 'sees no GPU'}): "
+                                       f"use --device cpu or auto")
+            if device.index is not None and device.index >= count:
+                raise DeepCharucoError(f"--device {name}: only {count} CUDA GPU(s) here (cuda:0..cuda:{count - 1})")
+        elif device.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+            raise DeepCharucoError(f"--device {name}: MPS (Apple GPU) is not available here: use --device cpu or auto")
+        elif device.type not in ("cpu", "cuda", "mps"):
+            raise DeepCharucoError(f"--device {name}: use cpu, cuda or mps")
+        return device
+    if torch.cuda.is_available():
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+    if getattr(torch.backends, "mps", None) and torch.backends.mps.is_available():
+        return torch.device("mps")
+    return torch.device("cpu")

@@ -1,0 +1,541 @@
+"""``python -m deepcharuco.detect``: find the board (and its pose) in images, a video or a camera.
+
+Writes, into --out: an overlay (PNG per image, MP4 for a video or camera) and per-frame
+results as CSV (written as frames arrive) and JSON (written at the end, also on Ctrl-C).
+
+In a folder, an image that cannot be read is skipped with a message and counted in the summary
+(and in the JSON's ``skipped``); the others go on. A folder's overlays are named after the
+images (``a.png`` -> ``a.png``); images that share a name but not the extension (``a.png``,
+``a.jpg``) get the extension in the overlay's name (``a_png.png``, ``a_jpg.png``), so no overlay
+overwrites another. An overlay that cannot be written (a full disk) is an error, exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.cli.common import output_folder, run_command
+from deepcharuco.cli.draw import draw_detection
+from deepcharuco.cli.video import VideoFrames
+from deepcharuco.core.detection import Detection, largest_sigmas
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
+from deepcharuco.core.image import to_gray_u8
+from deepcharuco.detection.board_hints import what_matches
+from deepcharuco.detection.opencv_detector import OpenCVDetector
+from deepcharuco.detection.parallel import DetectorPool
+from deepcharuco.detection.tracking import BoardTracker
+from deepcharuco.geometry.camera import Camera, read_camera
+from deepcharuco.geometry.pose import Pose
+from deepcharuco.networks.backends import BACKENDS
+
+# Frames kept (spread over the source, every HINT_STRIDE-th of a camera's, until the board is found) to say what
+# they show when no frame has the board.
+HINT_FRAMES, HINT_STRIDE = 12, 5
+CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`deepcharuco.detection.parallel`)
+# --search-every's default for a camera (`BoardTracker`'s search_every). Measured on caliscope's four 1280x720 webcam
+# videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.2-2.3x the frames a second of 1,
+# lit and dark, and found the same frames but 13 of the 684 with a board (cam_1's 5 lit and 5 dark, port_2's 3 dark):
+# boards of small squares (22-34 px on cam_1), found a frame or two later.
+CAMERA_SEARCH_EVERY = 3
+# --search-every's default for a video. A video looks back (`BoardTracker.push`): the frames searched at the coarse
+# level alone wait for the next frame that finds the board, which finds it in them, so the quicker search loses no
+# frame. The camera's 3, not tuned again; on the same five videos (docs/detector.md, 2026-11-26), against every level
+# of every frame: 1.2-2.5x the frames a second, lit and dark, every frame found again and 3 more.
+VIDEO_SEARCH_EVERY = 3
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
+              "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
+# What a CSV of this command begins with, in this version and those before the sigmas column: safe to overwrite.
+CSV_SIGNATURE = ",".join(CSV_FIELDS[:6])
+
+
+class SourceError(DeepCharucoError):
+    """An input the CLI cannot open."""
+
+
+@dataclass
+class Source:
+    """Frames to process: ``frames`` yields (name, BGR or gray image); ``skipped`` collects the
+    "name: reason" of a folder's images that could not be read (as ``frames`` meets them)."""
+
+    stem: str
+    kind: str  # "image" | "images" | "video" | "camera"
+    frames: Iterator[tuple[str, np.ndarray]]
+    fps: float
+    total: int | None
+    skipped: list[str] = field(default_factory=list)
+    overlay_names: dict[str, str] = field(default_factory=dict)  # folder: image file name -> overlay file name
+    video: VideoFrames | None = None  # a video or camera: what was read, skipped as undecodable, or stopped
+
+    def problems(self) -> list[str]:
+        """What could not be read, one line each: a folder's unreadable images (counted), a video's damaged
+        stretches, a camera that stopped delivering frames."""
+        lines = [f"{self.stem}: {len(self.skipped)} unreadable image(s) skipped"] if self.skipped else []
+        if self.video is not None and self.video.skipped:
+            lines.append(self.video.describe_skipped(self.stem))
+        if self.video is not None and self.video.stopped_at is not None:
+            lines.append(f"{self.stem} stopped delivering frames after {self.video.stopped_at}: is it still connected?")
+        return lines
+
+
+def overlay_names(images: list[Path]) -> dict[str, str]:
+    """Overlay file names for a folder's images: ``<stem>.png``, or ``<stem>_<ext>.png`` where two
+    images share a stem (a.png and a.jpg), so that every image gets its own overlay."""
+    stems = Counter(p.stem for p in images)
+    return {p.name: f"{p.stem}.png" if stems[p.stem] == 1 else f"{p.stem}_{p.suffix.lstrip('.').lower()}.png"
+            for p in images}
+
+
+def _folder_frames(images: list[Path], skipped: list[str]) -> Iterator[tuple[str, np.ndarray]]:
+    """The folder's readable images; the others are reported on stderr and listed in ``skipped``."""
+    for path in images:
+        try:
+            yield path.name, _read_image(path)
+        except SourceError as error:
+            skipped.append(f"{path.name}: {error}")
+            print(f"skipping {path.name}: {error}", file=sys.stderr)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SourceError(f"cannot read image {path}: not an image file OpenCV can decode")
+    if image.dtype == np.uint16:  # 16-bit PNG/TIFF from machine-vision cameras
+        image = (image >> 8).astype(np.uint8)
+    return image
+
+
+def _named(frames: VideoFrames) -> Iterator[tuple[str, np.ndarray]]:
+    """A video's frames named by their number in the recording (a damaged stretch skipped leaves a gap)."""
+    for index, frame in frames:
+        yield str(index), frame
+
+
+def open_source(source: str, max_frames: int | None = None) -> Source:
+    """Image file, directory of images, video file, or an integer camera index."""
+    if source.isdigit() and not Path(source).exists():
+        capture = cv2.VideoCapture(int(source))
+        if not capture.isOpened():
+            raise SourceError(f"cannot open camera {source}: is it connected and not in use?")
+        video = VideoFrames(capture, limit=max_frames, live=True)
+        return Source(f"camera{source}", "camera", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, max_frames,
+                      video=video)
+    path = Path(source)
+    if not path.exists():
+        raise SourceError(f"{path} does not exist: give an image, a folder of images, a video or a camera index")
+    if path.is_dir():
+        images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:max_frames]
+        if not images:
+            raise SourceError(f"{path} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+        skipped: list[str] = []
+        return Source(path.name, "images", _folder_frames(images, skipped), 0.0, len(images), skipped,
+                      overlay_names(images))
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        return Source(path.stem, "image", iter([(path.name, _read_image(path))]), 0.0, 1)
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise SourceError(f"cannot open {path} as a video: unknown format or codec")
+    video = VideoFrames(capture, limit=max_frames)
+    count = video.count
+    total = min(count, max_frames) if count and max_frames else count or max_frames
+    return Source(path.stem, "video", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, total, video=video)
+
+
+def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
+                  refine_weights: str | None = None, backend: str = "auto", corner_fit: bool = True,
+                  device: str = "cpu"):
+    """"opencv", "deep" or "hybrid" (OpenCV first, the networks where its corners do not verify); ``corner_fit``:
+    the deep and hybrid detectors place corners last by the printed-pattern fit (`deepcharuco.detection.corner_fit`);
+    ``device``: where their networks run ("cuda": PyTorch on the GPU)."""
+    if name == "opencv":
+        if refine == "refinenet":
+            raise DeepCharucoError("--refine refinenet needs --detector deep or hybrid; OpenCV takes subpix or none")
+        return OpenCVDetector(board, refine=refine)
+    from deepcharuco.detection.deep_detector import Detector
+
+    return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights,
+                    mode="hybrid" if name == "hybrid" else "deep", backend=backend, corner_fit=corner_fit,
+                    device=device)
+
+
+def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights: str | None,
+                 refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int,
+                 search_every: int = 1, look_back: bool = True) -> list:
+    """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.detection.parallel`): the detector,
+    wrapped in a `BoardTracker` where ``refresh_every`` > 1."""
+    detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
+                 for board in boards]
+    return [BoardTracker(d, refresh_every, search_every, look_back) if refresh_every > 1 else d for d in detectors]
+
+
+def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
+    record = {"frame": index, "source": name, "num_corners": len(detection), **detection.to_dict()}
+    record["pose"] = None if pose is None else pose.to_dict()
+    return record
+
+
+def _join(values) -> str:
+    return " ".join(f"{v:g}" for v in values)
+
+
+def _csv_row(record: dict) -> dict:
+    """One CSV row per frame: lists as space-separated numbers, corners as x0 y0 x1 y1 ..."""
+    pose = record["pose"] or {}
+    return {
+        "frame": record["frame"], "source": record["source"], "num_corners": record["num_corners"],
+        "ids": " ".join(str(i) for i in record["ids"]),
+        "corners": _join(np.ravel(record["corners"])), "scores": _join(record["scores"]),
+        "rvec": _join(pose.get("rvec", [])), "tvec": _join(pose.get("tvec", [])),
+        "reprojection_error": pose.get("reprojection_error", ""),
+        "num_inliers": len(pose["inliers"]) if pose else "",
+        # each corner's standard deviation along its least certain direction (px); nan where none is given
+        "sigmas": _join(largest_sigmas([[[c[0], c[1]], [c[1], c[2]]] if c else [[math.nan] * 2] * 2
+                                        for c in record["covariances"]])),
+    }
+
+
+def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
+    """The detector's pose through the camera's own model: a fisheye camera's corners are undistorted first
+    (``solvePnP`` knows only the pinhole model, and would read k1..k4 as k1 k2 p1 p2)."""
+    if camera.model == "fisheye":
+        undistorted = Detection(detection.ids, camera.undistort_points(detection.corners), detection.scores)
+        return detector.estimate_pose(undistorted, camera.K, None)
+    return detector.estimate_pose(detection, camera.K, camera.dist)
+
+
+def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
+    return None if camera is None else camera.for_image_size(shape[1], shape[0])
+
+
+@dataclass
+class _BoardRun:
+    """One board's part of a run: its detector (and tracker), its output files and what it found."""
+
+    board_file: str | None
+    detector: object
+    finder: object
+    csv_path: Path
+    json_path: Path
+    records: list[dict] = field(default_factory=list)
+    found: bool = False
+    samples: list[np.ndarray] = field(default_factory=list)
+
+
+def board_names(paths: list[str]) -> list[str]:
+    """The suffix each board's output files get when several boards are given: their files' stems, refused when
+    two are alike."""
+    names = [Path(p).stem for p in paths]
+    for name in names:
+        if names.count(name) > 1:
+            raise DeepCharucoError(f"two --board files are named {name}: each board's results are <source>_{name}.csv, "
+                                   f"so give board files of different names")
+    return names
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Detect in every frame of ``args.source`` and write the results into ``args.out``; returns the JSON summary
+    (of the first board, where several are given), whose ``complete`` is False when Ctrl-C stopped the run (what
+    was done is written all the same). Several ``--board`` files: each board is searched in every frame and gets
+    its own ``<source>_<board file stem>.csv`` / ``.json``; the overlay shows them all."""
+    board_files = args.board or [None]
+    suffixes = [""] if len(board_files) == 1 else [f"_{name}" for name in board_names(board_files)]
+    boards = [BoardSpec.load(path) if path else None for path in board_files]  # deep: default to the weights' board
+    camera = read_camera(args.camera) if args.camera else None
+    detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend,
+                               corner_fit=not args.no_corner_fit, device=args.device)
+                 for board in boards]
+    source = open_source(args.source, args.max_frames)
+    # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames). A camera's
+    # frames go to --jobs workers one at a time, as they come: each is searched whole.
+    tracking = source.kind == "video" or (source.kind == "camera" and args.jobs == 1)
+    tracking = tracking and args.refresh_every > 1
+    # While no board is tracked, every level of the pyramid every --search-every frames, the coarse one between: a
+    # live camera's stream outruns the detector, so it gets the quicker search unless told otherwise.
+    search_every = args.search_every or (CAMERA_SEARCH_EVERY if source.kind == "camera" else VIDEO_SEARCH_EVERY)
+    # A video is not watched live: frames the quick search found nothing in wait for the next that finds the board,
+    # which looks back through them (`BoardTracker.push`).
+    look_back = source.kind == "video"
+    out = output_folder(args.out)
+    runs = [_BoardRun(path, detector,
+                      BoardTracker(detector, args.refresh_every, search_every, look_back) if tracking else detector,
+                      out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
+            for path, detector, suffix in zip(board_files, detectors, suffixes)]
+    for board_run in runs:
+        refuse_foreign(board_run.csv_path, starts_with(CSV_SIGNATURE.encode()), "detection CSV", args.force)
+        refuse_foreign(board_run.json_path, starts_with(JSON_START), "detection JSON", args.force)
+    if camera is None:
+        print("no --camera given: detecting corners only, no pose", file=sys.stderr)
+    if getattr(detectors[0], "weights", None) is not None:
+        print(f"weights: {detectors[0].weights} (decoding: {detectors[0].geometry})", file=sys.stderr)
+
+    overlays = _Overlays(out, source)
+    interrupted = False
+    hint_stride = max(1, (source.total or HINT_FRAMES * HINT_STRIDE) // HINT_FRAMES)  # spread over the source
+    frames_read = 0
+    # The CSVs are written as frames arrive, under temporary names renamed into place at the end (also after
+    # Ctrl-C): a full disk or a kill never leaves a cut-off <stem>.csv in place of a complete one.
+    with ExitStack() as files:
+        writers = []
+        for board_run in runs:
+            rows = csv.DictWriter(files.enter_context(atomic_file(board_run.csv_path, "w", newline="")),
+                                  fieldnames=CSV_FIELDS)
+            rows.writeheader()
+            writers.append(rows)
+        detect_seconds, total_seconds = None, 0.0
+        jobs = 1 if source.kind == "image" else args.jobs
+        if jobs == 1:
+            pool = DetectorPool(lambda: [board_run.finder for board_run in runs])
+        else:
+            print(f"detecting on {jobs} worker processes", file=sys.stderr)
+            pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
+                                        args.refine_weights, args.backend, not args.no_corner_fit, args.device,
+                                        args.refresh_every if tracking else 1, search_every, look_back),
+                                jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
+        files.callback(pool.close)
+        try:
+            results = pool.detect(((name, frame), to_gray_u8(frame)) for name, frame in source.frames)
+            progress = tqdm(results, total=source.total, unit="frame", disable=source.kind == "image" or args.quiet)
+            mark = time.perf_counter()
+            for index, ((name, frame), detections) in enumerate(progress):
+                # One worker: reading and detecting this frame. Several: the time between results (they detect while
+                # this process writes), what the run delivers.
+                now = time.perf_counter()
+                elapsed = now - mark
+                total_seconds += elapsed
+                frames_read += 1
+                # Live detection speed (an exponential average: a camera's rate changes as the board moves), beside
+                # the mean the JSON reports: alone, a slow stretch (no board in view) read as the run's speed.
+                detect_seconds = elapsed if detect_seconds is None else 0.9 * detect_seconds + 0.1 * elapsed
+                progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps now, "
+                                         f"{(index + 1) / max(total_seconds, 1e-9):.1f} mean", refresh=False)
+                frame_camera = _camera_for(camera, frame.shape)
+                overlay = frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
+                for board_run, rows, detection in zip(runs, writers, detections):
+                    pose = estimate_frame_pose(board_run.detector, detection, frame_camera) if frame_camera else None
+                    record = frame_record(index, name, detection, pose)
+                    board_run.records.append(record)
+                    if not board_run.found and len(detection):
+                        board_run.found, board_run.samples = True, []  # the board is there: no hint needed
+                    elif not board_run.found and len(board_run.samples) < HINT_FRAMES and index % hint_stride == 0:
+                        board_run.samples.append(to_gray_u8(frame))
+                    rows.writerow(_csv_row(record))
+                    if not args.no_overlay:
+                        overlay = draw_detection(overlay, detection, pose,
+                                                 *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None),
+                                                 board_run.detector.board)
+                if not args.no_overlay:
+                    overlays.add(name, overlay)
+                mark = time.perf_counter() if jobs == 1 else now
+        except KeyboardInterrupt:
+            interrupted = True
+            print(f"interrupted after {frames_read} frames; writing what was done (marked incomplete)", file=sys.stderr)
+        finally:
+            overlays.close(keep=frames_read > 0)
+    summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1)
+                 for board_run in runs]
+    return summaries[0]
+
+
+def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, camera: Camera | None, interrupted: bool,
+            total_seconds: float, several: bool) -> dict:
+    """Write one board's JSON, say what it found, and return its summary."""
+    records, board, detector = board_run.records, board_run.detector.board, board_run.detector
+    problems = source.problems()
+    if records and not board_run.found:
+        problems.append(f"no board corners in any of {len(records)} frames ({args.detector} detector, board "
+                        f"{board.squares_x}x{board.squares_y} {board.dictionary}{', inverted' if board.inverted else ''}"
+                        f"); {what_matches(board_run.samples, board, board_run.board_file)}")
+    summary = {
+        "board": board.to_dict(),
+        "detector": repr(detector),
+        "camera": None if camera is None else {"K": camera.K.tolist(), "dist": camera.dist.tolist(),
+                                               "image_size": list(camera.image_size)},
+        # False: stopped by Ctrl-C before the source's end; the frames listed are all that were looked at.
+        "complete": not interrupted,
+        "frames": records,
+        "skipped": source.skipped,
+        "problems": problems,
+        "detect_fps": len(records) / total_seconds if total_seconds > 0 else None,
+    }
+    write_atomic(board_run.json_path, json.dumps(summary))
+    with_pose = sum(r["pose"] is not None for r in records)
+    for line in problems:
+        print(f"warning: {line}", file=sys.stderr)
+    found = sum(r["num_corners"] > 0 for r in records)
+    lost = [f"{len(source.skipped)} unreadable image(s) skipped"] if source.skipped else []
+    if source.video is not None and source.video.skipped:
+        lost.append(f"{source.video.skipped_frames} undecodable frame(s) skipped")
+    which = f" board {Path(board_run.board_file).stem}:" if several else ""
+    print(f"{len(records)} frames{' (incomplete: interrupted)' if interrupted else ''},{which} board corners in {found}, "
+          f"pose in {with_pose}{''.join(f', {line}' for line in lost)} -> {board_run.json_path.parent}/")
+    return summary
+
+
+# How every detection JSON of this command begins: what a rerun may overwrite without --force.
+JSON_START = b'{"board": '
+
+
+class _Overlays:
+    """The overlay of each frame: a PNG per image (each written whole or not at all), or one MP4 for a video or
+    camera, written under a temporary name and renamed into place only when it reads back complete."""
+
+    def __init__(self, out: Path, source: Source):
+        self.out, self.source = out, source
+        self.writer: cv2.VideoWriter | None = None
+        self.video = out / f"{source.stem}_overlay.mp4"
+        self.written = 0
+
+    def add(self, name: str, overlay: np.ndarray) -> None:
+        if self.source.kind == "image":
+            _write_image(self.out / f"{self.source.stem}_overlay.png", overlay)
+        elif self.source.kind == "images":
+            folder = self.out / f"{self.source.stem}_overlay"
+            folder.mkdir(exist_ok=True)
+            _write_image(folder / self.source.overlay_names[name], overlay)
+        else:
+            if self.writer is None:
+                self.writer = cv2.VideoWriter(str(temporary_name(self.video)), cv2.VideoWriter_fourcc(*"mp4v"),
+                                              self.source.fps, (overlay.shape[1], overlay.shape[0]))
+                if not self.writer.isOpened():
+                    self.writer = None
+                    raise DeepCharucoError(f"cannot write the overlay video {self.video}: choose a writable --out "
+                                           f"with free space, or pass --no-overlay")
+            self.writer.write(overlay)
+            self.written += 1
+
+    def close(self, keep: bool) -> None:
+        """Finish the overlay video: renamed into place when it reads back with every frame written, else
+        removed and reported (OpenCV's video writer does not report a full disk itself)."""
+        if self.writer is None:
+            return
+        self.writer.release()
+        self.writer = None
+        temporary = temporary_name(self.video)
+        if not keep:
+            temporary.unlink(missing_ok=True)
+            return
+        check = cv2.VideoCapture(str(temporary))
+        frames = int(check.get(cv2.CAP_PROP_FRAME_COUNT)) if check.isOpened() else 0
+        check.release()
+        if frames != self.written:
+            temporary.unlink(missing_ok=True)
+            raise DeepCharucoError(f"could not write the overlay video {self.video} (is the disk full?): free some "
+                                   f"space, choose another --out, or pass --no-overlay")
+        os.replace(temporary, self.video)
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """The overlay image, whole or not at all (cv2.imwrite reports a full disk only by returning False)."""
+    ok, encoded = cv2.imencode(path.suffix, image)
+    if not ok:
+        raise DeepCharucoError(f"could not encode the overlay {path}: pass --no-overlay")
+    try:
+        write_atomic(path, encoded.tobytes(), "the overlay")
+    except DeepCharucoError as error:
+        raise DeepCharucoError(f"{error} (or pass --no-overlay)") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m deepcharuco.detect",
+        description="Find the ChArUco board (and its pose) in images, a video or a camera; write an "
+                    "overlay and per-frame results (CSV, JSON) into --out.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("source", help="image file, folder of images, video file, or camera index (0, 1, ...)")
+    parser.add_argument("--board", action="append", default=None,
+                        help="board description (.json/.yaml); default: the paper's 5x5 DICT_5X5_50 board. Given "
+                             "several times: every board is searched in each frame, each with its own "
+                             "<source>_<board file name>.csv/.json (boards of other dictionaries or first_marker_id)")
+    parser.add_argument("--camera", help="OpenCV intrinsics YAML (camera_matrix, distortion_coefficients, "
+                                         "image_width, image_height); without it no pose is estimated")
+    parser.add_argument("--detector", choices=["opencv", "deep", "hybrid"], default="hybrid",
+                        help="which detector. hybrid (the default): OpenCV first, the networks only where OpenCV's "
+                             "corners do not fit one view of the board; chosen by measurement "
+                             "(benchmarks/detect.py, docs/detector.md): in good light OpenCV's corners, placed by the "
+                             "printed-pattern fit, at 0.47-0.83x its speed, in the dark (k = 7) the deep detector's "
+                             "0.97-1.00 of the corners where "
+                             "OpenCV finds none. deep: the networks always; opencv: OpenCV + cornerSubPix alone")
+    parser.add_argument("--backend", choices=list(BACKENDS), default="auto",
+                        help="deep/hybrid: how the networks run (auto: ONNX Runtime when installed, int8 when the "
+                             "weights carry an accepted int8 model; else PyTorch)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="worker processes that detect frames side by side (a folder, a video, a camera; each "
+                             "worker's network gets CPUs / jobs threads): up to ~jobs x the frames a second where the "
+                             "cores are there. A video's frames go to them in chunks of %d, each tracked from its "
+                             "first frame, or from the chunk before's board where that frame lost it; a camera's one "
+                             "at a time, each searched whole" % CHUNK_FRAMES)
+    parser.add_argument("--device", default="cpu",
+                        help="deep/hybrid: where the networks run: cpu, or a PyTorch device such as cuda (needs "
+                             "PyTorch with CUDA; the decoding stays on the CPU, so --jobs helps there too)")
+    parser.add_argument("--refresh-every", type=int, default=30,
+                        help="video/camera: search the whole frame at least every N frames, in between only around "
+                             "the last board found (1: whole frames always)")
+    parser.add_argument("--search-every", type=int, default=None,
+                        help="video/camera, deep/hybrid: while no board is tracked, search every level of the frame "
+                             "every N frames and only the coarse level (320 px) between, where a board of squares "
+                             "~12 px there is found at once and a smaller one up to N - 1 frames late (a video: "
+                             "found there too, by looking back from the frame that finds it); a frame without a "
+                             "board searched so costs 6-17x less (default: %d for a camera, %d for a video; 1: "
+                             "every level of every frame)" % (CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY))
+    parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
+                        help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid, as "
+                             "calibrate and the Detector API)")
+    parser.add_argument("--no-corner-fit", action="store_true",
+                        help="deep and hybrid: leave out the printed-pattern fit that places each corner last and gives "
+                             "its uncertainty (~5 ms a frame faster on a 2-core CPU; corners ~5x less exact)")
+    parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle "
+                                                         "(default: the shipped weights for the board: the paper's "
+                                                         "board's own, else its marker family's model where one "
+                                                         "is shipped)")
+    parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
+                                                                "checkpoint when --weights holds only ChArUcoNet")
+    parser.add_argument("--out", default="detect_out", help="output folder")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    parser.add_argument("--no-overlay", action="store_true", help="write results only, no overlay images/video")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--force", action="store_true",
+                        help="overwrite <source>.csv / .json in --out even where they are not this command's files")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.refresh_every < 1:
+        parser.error(f"--refresh-every must be >= 1 (1: search whole frames always), got {args.refresh_every}")
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1 (1: detect in this process), got {args.jobs}")
+    if args.search_every is not None and args.search_every < 1:
+        parser.error(f"--search-every must be >= 1 (1: every level of every frame), got {args.search_every}")
+    if args.max_frames is not None and args.max_frames < 1:
+        parser.error(f"--max-frames must be >= 1 (leave it out for every frame), got {args.max_frames}")
+    args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")
+
+    def body() -> int:
+        summary = run(args)
+        return 0 if summary["complete"] else 130  # Ctrl-C: the results so far are written, marked incomplete
+
+    return run_command(body)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

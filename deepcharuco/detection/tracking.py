@@ -1,0 +1,223 @@
+"""`BoardTracker`: in a video, search each frame only around the board found in the frame before.
+
+A board moves little between frames, so the region around the previous frame's corners (widened by
+`MARGIN` of its size and at least `MIN_MARGIN_SQUARES` corner spacings, for motion and for the
+markers beyond the outermost corners) holds it again; the detector runs on that crop, which at
+1280x720 with the board covering a quarter of the frame costs a quarter of the pixels. A full-frame
+search runs when the crop finds nothing, when there was no board before, and every ``refresh_every``
+frames (a second board, or the board re-entering elsewhere, is never missed for long); a refresh that finds
+nothing keeps the board the crop still finds. A detector that takes
+``expected`` (`Detector`) is told where the board was: a board read by its markers is looked for first in that
+view, verified by its markers as any view is.
+
+While no board is tracked, ``search_every`` N > 1 searches the whole frame at every level only every N-th
+frame, and the frames between at the coarse level alone (`Detector.detect`'s ``levels``): a board large
+enough to be read there (squares of ~12 px or more at 320 px: a 5x5-square board a fifth of a 1280x720
+frame's width) is found at once, a smaller one up to N - 1 frames late. A frame without a board costs
+most (every level is searched, and twice for an inverted print); in a live camera's stream it is most of the
+frames while the board is away.
+
+A whole video need not answer frame by frame: `BoardTracker.push` holds back the frames searched at the coarse level
+alone that found nothing, and when a later frame finds the board, looks back through them, newest first, around the
+board as if tracking it backwards, until one shows it no more. A small board is then found in the frames a quicker
+search reached late too.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+
+from deepcharuco.core.detection import Detection, corner_spacing
+
+MARGIN = 0.5  # of the corners' bounding box, on each side
+MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
+MIN_CROP = 64  # px: smaller crops are widened to this
+MIN_CORNERS = 4  # a crop's detection with fewer corners falls back to the full frame
+
+
+def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1), exclusive ends, of the crop to search the next frame in, around (N, 2) ``corners``
+    (N >= 2), inside an image of ``image_size`` (W, H)."""
+    limits = np.array(image_size, np.float64)
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    margin = np.maximum(MARGIN * (high - low), MIN_MARGIN_SQUARES * corner_spacing(corners))
+    size = np.minimum(np.maximum(high - low + 2 * margin, MIN_CROP), limits)
+    # Centred on the corners, moved (not cut) to stay inside the image, so a board at an edge keeps its margin.
+    start = np.clip(np.floor((low + high - size) / 2), 0, limits - np.ceil(size))
+    x0, y0 = (int(v) for v in start)
+    x1, y1 = (int(v) for v in np.minimum(start + np.ceil(size), limits))
+    return x0, y0, x1, y1
+
+
+def _takes(detector, option: str) -> bool:
+    """Whether ``detector.detect`` takes the keyword ``option`` (a coarse-to-fine `Detector`'s takes ``levels`` and
+    ``expected``)."""
+    try:
+        return option in inspect.signature(detector.detect).parameters
+    except (TypeError, ValueError):  # a detect without a readable signature (a compiled extension's)
+        return False
+
+
+class BoardTracker:
+    """Wraps any detector (``detect(image) -> Detection``) for consecutive video frames.
+
+    Args:
+        detector: `Detector`, `OpenCVDetector`, ...
+        refresh_every: a full-frame search at least every this many frames (1: always, no tracking).
+        search_every: while no board is tracked, every level of the pyramid is searched every this many
+            frames, the coarse level alone in the frames between (1: every level always; module docstring).
+            Only for detectors whose ``detect`` takes ``levels`` (`Detector`); others search whole frames.
+        look_back: `push` holds back the frames the coarse level alone found nothing in, and looks back through
+            them when a later frame finds the board (a whole video); False: `push` answers each frame at once
+            (a live camera).
+
+    ``detect(image)`` returns corners in ``image``'s pixels, as the detector would; ``last_search`` says
+    whether the last call searched the "crop", the "full" frame or the frame at the "coarse" level alone.
+    ``push(image)`` / ``flush()`` do the same for a whole video, looking back (module docstring).
+    """
+
+    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True):
+        if refresh_every < 1:
+            raise ValueError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
+        if search_every < 1:
+            raise ValueError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
+        self.detector = detector
+        self.refresh_every = refresh_every
+        self.search_every = search_every if _takes(detector, "levels") else 1
+        self.look_back = look_back
+        self._region: tuple[int, int, int, int] | None = None
+        self._last = Detection.empty()  # the board found in the frame before
+        self._takes_expected = _takes(detector, "expected")
+        self._since_full = 0
+        self._coarse_left = 0  # coarse-only searches before the next search of every level
+        self._held: list[tuple[np.ndarray, Detection]] = []  # `push`: coarse-only frames that found nothing
+        self.last_search = "full"
+        self.looked_back = 0  # frames `push` found the board in by looking back
+
+    def reset(self) -> None:
+        """Forget the board (a cut in the video): the next frame is searched whole, at every level. Frames `push`
+        holds back are dropped: `flush` them first."""
+        self._region = None
+        self._last = Detection.empty()
+        self._coarse_left = 0
+        self._held.clear()
+
+    def follow_from(self, detection: Detection, image_size: tuple[int, int]) -> None:
+        """Track on from ``detection``, the board in the frame before the next one given (found by another tracker:
+        a worker process's chunk continues the chunk before it) in an image of ``image_size`` (W, H)."""
+        self._follow(detection, image_size)
+        self._since_full = 0
+        self._coarse_left = 0
+
+    def push(self, image: np.ndarray) -> list[Detection]:
+        """The next frame of a whole video -> the detections it settles, oldest first: none while it is held back,
+        else those of the frames held before it and its own. A frame is held back when it was searched at the
+        coarse level alone (``search_every`` > 1) and found nothing; when a later frame finds the board, the held
+        frames are searched again, newest first, in the region around the board in the frame after each (as
+        `detect` tracks forwards), until one finds it no more; those before it keep their empty detections."""
+        detection = self.detect(image)
+        if self.look_back and self.last_search == "coarse" and len(detection) < MIN_CORNERS:
+            self._held.append((image, detection))
+            return []
+        settled = self._looked_back(detection) if len(detection) >= MIN_CORNERS else [d for _, d in self._held]
+        self._held.clear()
+        return [*settled, detection]
+
+    def flush(self) -> list[Detection]:
+        """The detections of the frames still held back (the video has ended), oldest first."""
+        settled = [detection for _, detection in self._held]
+        self._held.clear()
+        return settled
+
+    def _looked_back(self, found: Detection) -> list[Detection]:
+        """The held frames' detections, oldest first, each held frame searched again from the newest back around
+        the board in the frame after it, until one finds too few corners."""
+        later, revised = found, []
+        for image, _ in reversed(self._held):
+            around = self._around(image, later)
+            if len(around) < MIN_CORNERS:
+                break
+            later = around
+            revised.append(later)
+        self.looked_back += len(revised)
+        kept = [detection for _, detection in self._held[:len(self._held) - len(revised)]]
+        return [*kept, *reversed(revised)]
+
+    def detect(self, image: np.ndarray) -> Detection:
+        height, width = image.shape[:2]
+        self._since_full += 1
+        refreshing = self._region is not None and self._since_full >= self.refresh_every
+        if self._region is not None and not refreshing:
+            detection = self._around(image, self._last)
+            if len(detection) >= MIN_CORNERS:
+                self._follow(detection, (width, height))
+                self.last_search = "crop"
+                return detection
+            self._coarse_left = 0  # the board was just lost: it may have shrunk or left by an edge
+        if self._region is None and self._coarse_left > 0:
+            self._coarse_left -= 1
+            detection = self.detector.detect(image, levels=1)
+            self._follow(detection, (width, height))
+            if self._region is not None:
+                self._since_full = 0
+            self.last_search = "coarse"
+            return detection
+        detection = self.detector.detect(image)
+        self._since_full = 0
+        if refreshing and len(detection) < MIN_CORNERS:
+            # A refresh that finds nothing keeps the board the crop still finds: a still board half out of the frame,
+            # which only tracking reads (cam_1's, caliscope), was dropped every refresh_every frames.
+            around = self._around(image, self._last)
+            if len(around) >= MIN_CORNERS:
+                detection = around
+                self._follow(detection, (width, height))
+                self.last_search = "crop"
+                return detection
+        self._follow(detection, (width, height))
+        self._coarse_left = self.search_every - 1 if self._region is None else 0
+        self.last_search = "full"
+        return detection
+
+    def _around(self, image: np.ndarray, last: Detection) -> Detection:
+        """The board in ``image`` (its pixels) found in the region around ``last``, the board in the frame next to it
+        (`search_region`)."""
+        height, width = image.shape[:2]
+        x0, y0, x1, y1 = search_region(last.corners, (width, height))
+        found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), last)
+        return Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32), scores=found.scores,
+                         covariances=found.covariances)
+
+    def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int], last: Detection
+                     ) -> Detection:
+        """The detector on ``crop``, around ``last`` (the board in the frame next to it, in frame pixels); a
+        coarse-to-fine `Detector` searches it from the scale its whole frame is searched at (its own choice, by the
+        crop's size alone, would look at a nearly square crop of a board that fills the frame in more pixels than the
+        whole frame), skipping the levels (twice that scale, four times ...) where the
+        board's squares, as wide as in the frame before, would be narrower than half ``min_square_px``:
+        there and at the next level they are too narrow to stop the search. The last level before they are wide
+        enough is kept: caliscope's webcams show blurred boards that it reads (squares ~11 px) and full resolution
+        (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark).
+        A detector whose ``detect`` takes ``expected`` is told where the board was (the crop's origin at ``origin``
+        in the frame)."""
+        options = {}
+        if self._takes_expected:
+            options["expected"] = Detection(ids=last.ids, corners=last.corners - np.array(origin, np.float32),
+                                            scores=last.scores)
+        working_size = getattr(self.detector, "working_size", None)
+        if working_size is None:
+            return self.detector.detect(crop, **options)
+        spacing = corner_spacing(last.corners)
+        longest = max(crop.shape[:2])
+        size = max(1, round(min(1.0, working_size / frame_longest) * longest))
+        min_square = getattr(self.detector, "min_square_px", None)
+        if min_square is not None:
+            while size < longest and 2 * spacing * size / longest < min_square:
+                size = min(2 * size, longest)
+        return self.detector.detect(crop, working_size=size, **options)
+
+    def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
+        tracked = len(detection) >= MIN_CORNERS
+        self._region = search_region(detection.corners, image_size) if tracked else None
+        self._last = detection

@@ -1,0 +1,121 @@
+"""Board pose from detected corners: RANSAC PnP, refinement and the paper's eps_re."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.detection import Detection
+
+# Below this ratio of the second to the first singular value the detected corners are
+# (nearly) on one line, and the board's rotation about that line is not observable.
+MIN_SPREAD_RATIO = 0.05
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A board pose (board -> camera, OpenCV axes) and how well it explains the detection.
+
+    Attributes:
+        rvec: (3,) float64 Rodrigues rotation.
+        tvec: (3,) float64 translation in metres.
+        reprojection_error: the paper's eps_re, the mean distance in pixels between each
+            detected corner and its reprojection, over all detected corners.
+        inliers: (M,) int64 corner IDs that RANSAC kept (ascending).
+        residuals: (N,) float64 reprojection error of each detected corner, in detection order.
+    """
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+    reprojection_error: float
+    inliers: np.ndarray
+    residuals: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {
+            "rvec": self.rvec.tolist(),
+            "tvec": self.tvec.tolist(),
+            "reprojection_error": float(self.reprojection_error),
+            "inliers": self.inliers.tolist(),
+        }
+
+
+def project_corners(
+    board: BoardSpec, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None,
+    ids: np.ndarray | None = None,
+) -> np.ndarray:
+    """(N, 2) float64 image positions of the board's inner corners (all, or ``ids``) under a pose."""
+    points = board.object_points()
+    if ids is not None:
+        points = points[np.asarray(ids, dtype=np.int64)]
+    if points.shape[0] == 0:
+        return np.zeros((0, 2))
+    image_points, _ = cv2.projectPoints(
+        points, np.asarray(rvec, np.float64), np.asarray(tvec, np.float64),
+        np.asarray(K, np.float64), None if dist is None else np.asarray(dist, np.float64),
+    )
+    return image_points.reshape(-1, 2)
+
+
+def estimate_pose(
+    detection: Detection,
+    K: np.ndarray,
+    dist: np.ndarray | None = None,
+    board: BoardSpec | None = None,
+    *,
+    ransac_threshold: float = 3.0,
+    min_inliers: int = 4,
+) -> Pose | None:
+    """Board pose by ``cv2.solvePnPRansac`` (IPPE, planar) then Levenberg-Marquardt on the inliers.
+
+    Args:
+        detection: corners of ``board`` (IDs index ``board.corner_points()``).
+        K: (3, 3) camera matrix; dist: OpenCV distortion coefficients or None.
+        board: the board the IDs refer to; default the paper's board.
+        ransac_threshold: RANSAC inlier threshold in pixels.
+        min_inliers: fewest inliers for a pose to be returned.
+
+    Returns:
+        The `Pose`, or None when fewer than 4 corners were detected, the corners lie on a
+        line (rotation unobservable), RANSAC finds no consensus of ``min_inliers``, or the
+        board would be behind the camera.
+    """
+    board = board or BoardSpec()
+    if len(detection) < 4:
+        return None
+    if detection.ids.min() < 0 or detection.ids.max() >= board.num_corners:
+        raise ValueError(
+            f"corner IDs {detection.ids.tolist()} do not belong to a board with {board.num_corners} "
+            "corners: pass the board the detection was made for"
+        )
+    object_points = board.object_points()[detection.ids]
+    image_points = detection.corners.astype(np.float64)
+    spread = np.linalg.svd(object_points[:, :2] - object_points[:, :2].mean(0), compute_uv=False)
+    if spread[1] < MIN_SPREAD_RATIO * spread[0]:
+        return None
+    K = np.asarray(K, dtype=np.float64)
+    dist = None if dist is None else np.asarray(dist, dtype=np.float64)
+    found, rvec, tvec, inlier_idx = cv2.solvePnPRansac(
+        object_points, image_points, K, dist,
+        reprojectionError=ransac_threshold, iterationsCount=200, confidence=0.999, flags=cv2.SOLVEPNP_IPPE,
+    )
+    if not found or inlier_idx is None or len(inlier_idx) < min_inliers:
+        return None
+    inlier_idx = np.sort(inlier_idx.ravel())
+    rvec, tvec = cv2.solvePnPRefineLM(object_points[inlier_idx], image_points[inlier_idx], K, dist, rvec, tvec)
+    rvec, tvec = rvec.ravel(), tvec.ravel()
+    rotation, _ = cv2.Rodrigues(rvec)
+    depths = (object_points @ rotation.T + tvec)[:, 2]
+    if np.any(depths <= 0):
+        return None
+    residuals = np.linalg.norm(project_corners(board, rvec, tvec, K, dist, detection.ids) - image_points, axis=1)
+    return Pose(
+        rvec=rvec,
+        tvec=tvec,
+        reprojection_error=float(residuals.mean()),
+        inliers=detection.ids[inlier_idx],
+        residuals=residuals,
+    )
