@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 from deepcharuco.boards.board import BoardSpec, BoardTexture, dictionary_names
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import BoardSpecError, CameraFileError, DeepCharucoError, ImageError, OptionError
+from deepcharuco.core.version import __version__
 from deepcharuco.detection.metrics import CornerMatch, match_corners
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.parallel import detect_all
@@ -21,7 +22,6 @@ from deepcharuco.detection.tracking import BoardTracker
 from deepcharuco.geometry.camera import Camera, read_camera, write_camera
 from deepcharuco.geometry.pose import Pose, estimate_pose, project_corners
 
-__version__ = "0.1.0"
 
 __all__ = [
     "BoardSpec", "BoardTexture", "dictionary_names", "Camera", "read_camera", "write_camera",

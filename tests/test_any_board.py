@@ -5,8 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, deep_detector, project_corners
+from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view, texture_homography
+from deepcharuco.detection import deep_detector
 from deepcharuco.detection import placement
 from deepcharuco.detection.lattice import cell_homographies, find_cells, squarest_cells
 from deepcharuco.detection.marker_reader import board_markers, correlate, read_squares

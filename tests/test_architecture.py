@@ -1,11 +1,16 @@
-"""The layers point one way: the runtime (deepcharuco/) imports nothing from evaluate/, train/ or datagen/, and no
-module imports, at the top or inside a function, one that imports it back (no cycles)."""
+"""The layers point one way: the runtime (deepcharuco/) imports nothing from evaluate/, train/ or datagen/; inside
+it, each subpackage imports only those below it (`SUBPACKAGES`, docs/architecture.md); and no module imports, at
+the top or inside a function, one that imports it back (no cycles)."""
 
 import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("deepcharuco", "evaluate", "train", "datagen")
+# The runtime's subpackages, bottom to top: each may import those before it, never one after it.
+SUBPACKAGES = ("core", "boards", "geometry", "networks", "detection", "calibration", "cli")
+# Modules directly in deepcharuco/: the public API and the documented entry points, above every subpackage.
+TOP = {"deepcharuco", "deepcharuco.__main__", "deepcharuco.detect", "deepcharuco.calibrate"}
 
 
 def import_graph() -> dict[str, set[str]]:
@@ -77,6 +82,39 @@ def test_the_runtime_imports_no_other_layer():
 
 def test_no_import_cycles():
     assert cycles(import_graph()) == []
+
+
+def layer(module: str) -> int:
+    """The rank of a runtime module: its subpackage's place in `SUBPACKAGES`, or above them all for `TOP` and
+    the examples' script."""
+    if module in TOP or module.startswith("deepcharuco.examples."):  # examples/make_examples.py: a script
+        return len(SUBPACKAGES)
+    parts = module.split(".")
+    assert len(parts) >= 2 and parts[1] in SUBPACKAGES, f"{module} is in no subpackage of {SUBPACKAGES}"
+    return SUBPACKAGES.index(parts[1])
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """Runtime imports from a lower subpackage into a higher one, (importer, imported)."""
+    return sorted((m, t) for m, targets in graph.items() if m.startswith("deepcharuco")
+                  for t in targets if t.startswith("deepcharuco") and layer(t) > layer(m))
+
+
+def test_every_runtime_module_is_in_a_subpackage():
+    loose = sorted(m for m in import_graph() if m.startswith("deepcharuco") and m not in TOP
+                   and m.split(".")[1] not in SUBPACKAGES + ("examples",))
+    assert loose == []
+
+
+def test_subpackages_import_only_those_below_them():
+    assert upward_imports(import_graph()) == []
+
+
+def test_the_layer_check_sees_an_import_up():
+    # the old layout's kind of mistake: a file helper importing the command line (files.py -> cli.py)
+    graph = {"deepcharuco.core.files": {"deepcharuco.cli.common"}, "deepcharuco.cli.common": {"deepcharuco.core.errors"},
+             "deepcharuco.core.errors": set()}
+    assert upward_imports(graph) == [("deepcharuco.core.files", "deepcharuco.cli.common")]
 
 
 def test_the_cycle_finder_finds_a_cycle():

@@ -90,7 +90,8 @@ def test_bad_arguments():
 
 
 def test_deep_detector_without_weights_explains_itself(monkeypatch, tmp_path):
-    from deepcharuco import DeepCharucoError, Detector, deep_detector
+    from deepcharuco import DeepCharucoError, Detector
+    from deepcharuco.detection import deep_detector
 
     monkeypatch.setattr(deep_detector, "DEFAULT_WEIGHTS", tmp_path / "detector.pt")
     with pytest.raises(DeepCharucoError, match="no shipped weights"):

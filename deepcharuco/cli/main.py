@@ -16,7 +16,7 @@ import importlib
 import inspect
 import sys
 
-from deepcharuco import __version__
+from deepcharuco.core.version import __version__
 
 # name: (module with main(argv), what it does, the extra its imports need or None)
 SUBCOMMANDS = {
