@@ -1,5 +1,6 @@
 import importlib.util
 import re
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,6 +11,25 @@ from deepcharuco import BoardSpec, Camera, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from deepcharuco.core.detection import Detection
 from deepcharuco.detection.tracking import search_region
+
+ROOT = Path(__file__).resolve().parents[1]  # the repository; tests sit in tests/<subpackage>/
+
+def shipped_backends() -> list[str]:
+    """The backends the shipped weights run on: PyTorch, ONNX Runtime (their bundles), and int8 ONNX Runtime
+    where the shipped checkpoints carry an accepted int8 ChArUcoNet (none in this version)."""
+    from deepcharuco.networks.runtime import int8_model
+    from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR
+
+    weights = [DEFAULT_WEIGHTS, *sorted(FAMILY_WEIGHTS_DIR.glob("*.pt"))]
+    int8 = any(int8_model(torch.load(path, map_location="cpu", weights_only=False)) for path in weights)
+    return ["torch", "onnx"] + (["onnx-int8"] if int8 else [])
+
+
+@pytest.fixture(params=shipped_backends())
+def backend(request) -> str:
+    """Runs a detector test once per backend of the shipped weights (as Kornia's BaseTester runs per device)."""
+    return request.param
+
 
 # Tests that render with Blender: skipped where the [render] extra (bpy, Python 3.11 only) is not installed.
 needs_bpy = pytest.mark.skipif(importlib.util.find_spec("bpy") is None,

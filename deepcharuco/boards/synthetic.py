@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec, BoardTexture
+from deepcharuco.core.errors import OptionError
 
 
 def texture_homography(texture: BoardTexture, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -102,7 +103,7 @@ def paint_markers(texture: BoardTexture, marker_ids: np.ndarray | None) -> np.nd
     dictionary = board.cv_dictionary()
     _, corners = board.marker_corners()
     if board.mirrored:
-        raise ValueError("paint_markers draws on the printed side: give the board unmirrored")
+        raise OptionError("paint_markers draws on the printed side: give the board unmirrored")
     for index, marker in enumerate(corners):
         (u0, v0), (u1, v1) = np.round(texture.board_to_texture(marker[[0, 2], :2])).astype(int)
         image[v0:v1 + 1, u0:u1 + 1] = paper

@@ -45,7 +45,9 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.checks import check_choice
 from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.errors import OptionError
 from deepcharuco.core.opencv_api import fisheye_calibration_flags
 from deepcharuco.geometry.camera import Camera
 from deepcharuco.geometry.pose import MIN_SPREAD_RATIO
@@ -428,7 +430,7 @@ class _Solution:
 
 def _flags(model: str, fix_k3: bool, zero_tangent: bool = False) -> int:
     if model not in ("pinhole", "rational"):
-        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+        raise OptionError(f"model must be one of {MODELS}, got {model!r}")
     # k3 fixed at 0: the usual choice for webcam lenses and few views, where a free k3 fits the noise
     # and bends the model where no corner was seen. Tangential terms at 0: see `select_terms`.
     return ((cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0) | (cv2.CALIB_FIX_K3 if fix_k3 else 0)
@@ -554,9 +556,8 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     """Select views from ``frames``, solve, reject outliers and re-solve (module docstring). ``fix_k3``:
     keep k3 at 0 (not for fisheye)."""
     if fix_k3 and model == "fisheye":
-        raise ValueError("fix_k3 applies to the pinhole and rational models, not fisheye")
-    if model not in MODELS:
-        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+        raise OptionError("fix_k3 applies to the pinhole and rational models, not fisheye")
+    check_choice("model", model, MODELS)
     options = options or SelectionOptions()
     trimmed = [within_border(f, image_size, options.border_px) for f in frames]
     at_border = {f.index: len(f.ids) - len(t.ids) for f, t in zip(frames, trimmed) if len(f.ids) > len(t.ids)}

@@ -45,6 +45,7 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.calibration import (
     MAX_RELATIVE_STD, MIN_FOLD_SHARE, CalibrationError, checked_covariances, fold_share, view_excess,
 )
+from deepcharuco.core.errors import OptionError
 from deepcharuco.geometry.camera import Camera
 from deepcharuco.geometry.pose import MIN_SPREAD_RATIO
 
@@ -641,7 +642,7 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
     corners' covariances, each corner weighs by them and its view's excess (`corner_weights`)."""
     n = len(cameras)
     if n < 2:
-        raise ValueError("a rig has two cameras or more; calibrate one camera with deepcharuco.calibration.calibration")
+        raise OptionError("a rig has two cameras or more; calibrate one camera with deepcharuco.calibration.calibrate")
     boards = [board] if isinstance(board, BoardSpec) else list(board)
     poses, kept, dropped = view_poses(views, boards, cameras, min_corners)
     for c in range(n):

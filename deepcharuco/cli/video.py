@@ -14,6 +14,7 @@ from typing import Iterator
 
 import cv2
 import numpy as np
+from deepcharuco.core.errors import OptionError
 
 # Failed reads in a row after which a file is taken to have ended (about 10 s of 30 fps video): a damaged
 # stretch longer than this ends the reading, and is reported as frames that could not be decoded.
@@ -31,7 +32,7 @@ class VideoFrames:
 
     def __init__(self, capture: cv2.VideoCapture, *, step: int = 1, limit: int | None = None, live: bool = False):
         if step < 1 or (limit is not None and limit < 1):
-            raise ValueError(f"step and limit must be >= 1, got step={step}, limit={limit}")
+            raise OptionError(f"step and limit must be >= 1, got step={step}, limit={limit}")
         self.capture, self.step, self.limit, self.live = capture, step, limit, live
         count = 0 if live else int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         self.count: int | None = count if count > 0 else None  # the container's frame count, when it says

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deepcharuco.core.errors import OptionError, ShapeError
 from deepcharuco.core.vectors import pairwise_distances
 
 
@@ -49,10 +50,10 @@ class Detection:
         covariances = np.full((len(ids), 2, 2), np.nan, np.float32) if self.covariances is None else \
             np.asarray(self.covariances, dtype=np.float32).reshape(-1, 2, 2)
         if not (ids.shape[0] == corners.shape[0] == scores.shape[0] == covariances.shape[0]):
-            raise ValueError(f"ids, corners, scores and covariances disagree in length: {ids.shape[0]}, "
+            raise ShapeError(f"ids, corners, scores and covariances disagree in length: {ids.shape[0]}, "
                              f"{corners.shape[0]}, {scores.shape[0]}, {covariances.shape[0]}")
         if np.unique(ids).size != ids.size:
-            raise ValueError(f"corner IDs must be unique, got {ids.tolist()}")
+            raise OptionError(f"corner IDs must be unique, got {ids.tolist()}")
         order = np.argsort(ids, kind="stable")
         object.__setattr__(self, "ids", ids[order])
         object.__setattr__(self, "corners", corners[order])

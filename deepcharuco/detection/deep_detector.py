@@ -26,8 +26,10 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec, marker_family
 from deepcharuco.boards.print_face import (canonical_view, canonical_view_local_white, corners_from_canonical,
                                            covariances_from_canonical)
+from deepcharuco.core.checks import check_choice
 from deepcharuco.core.detection import Detection, corner_spacing, detect_board_result, no_corners
 from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.errors import OptionError
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.core.stage_times import stage, tally
 from deepcharuco.core.vectors import lengths
@@ -256,8 +258,7 @@ def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle
 def _bundle_runner(bundle: OnnxBundle, backend: str, refinenet: bool, points_only: bool) -> OnnxRunner:
     """ONNX Runtime over a bundle's models; ``backend`` as `deepcharuco.networks.runtime.resolve_backend` reads it on the CPU
     ("auto": the int8 ChArUcoNet where the bundle has one, run whole)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    check_choice("backend", backend, BACKENDS)
     if backend == "torch":
         raise DeepCharucoError("backend='torch' needs PyTorch: pip install torch, or use backend='auto' or 'onnx'")
     if not onnxruntime_available():
@@ -336,11 +337,19 @@ class Detector:
             corner's covariance; a corner the fit cannot place keeps ``refine``'s position, with a sigma of
             `FALLBACK_SIGMA_PX` or its distance from where its neighbours put it, whichever is larger.
             False: ``refine``'s positions, no covariances.
+
+    Every argument after ``weights`` is keyword-only.
+
+    Raises:
+        OptionError: an option outside its choices (``refine``, ``mode``, ``backend``, ``reader``, ``geometry``),
+            ``working_size`` below 16 px, or ``board`` and ``boards`` both given.
+        DeepCharucoError: weights that cannot be read or run here (missing, damaged, a backend not installed),
+            each with the fix.
     """
 
     min_square_px = MIN_SQUARE_PX  # a board found with narrower squares is searched again at the next finer level
 
-    def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, refine: str = "refinenet",
+    def __init__(self, board: BoardSpec | None = None, weights: str | Path | None = None, *, refine: str = "refinenet",
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
                  mode: str = "deep", backend: str = "auto", reader: str | None = None, preview: bool = True,
@@ -350,9 +359,9 @@ class Detector:
         if boards is not None:
             boards = list(boards)
             if board is not None:
-                raise ValueError("give board or boards, not both")
+                raise OptionError("give board or boards, not both")
             if not boards:
-                raise ValueError("boards is empty: give one board or more")
+                raise OptionError("boards is empty: give one board or more")
             for i, a in enumerate(boards):
                 for j in range(i):
                     if a.same_layout(boards[j]) and a.first_marker_id == boards[j].first_marker_id:
@@ -368,14 +377,12 @@ class Detector:
                 self.board = None
                 return
             board = boards[0]
-        if refine not in REFINE_MODES:
-            raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if reader is not None and reader not in READERS:
-            raise ValueError(f"reader must be one of {READERS}, got {reader!r}")
-        if geometry is not None and geometry not in DECODINGS:
-            raise ValueError(f"geometry must be one of {DECODINGS}, got {geometry!r}")
+        check_choice("refine", refine, REFINE_MODES)
+        check_choice("mode", mode, MODES)
+        if reader is not None:
+            check_choice("reader", reader, READERS)
+        if geometry is not None:
+            check_choice("geometry", geometry, DECODINGS)
         if weights is None:
             weights = shipped_weights(board)
             if not weights.is_file():
@@ -409,7 +416,7 @@ class Detector:
         self.soft_radius = int(soft_radius)
         self.geometry = geometry
         if working_size is not None and working_size < 2 * CELL:
-            raise ValueError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
+            raise OptionError(f"working_size must be None (native resolution) or >= {2 * CELL} px, got {working_size}")
         self.working_size = working_size
         self.mode = mode
         # Only with the board-geometry check of the weights' own board. Not by markers: on the 4x5 inverted

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.checks import check_choice
 from deepcharuco.networks.shipped import WEIGHTS_DIR
 
 SAMPLES_PER_BIT = 2  # per side: 4 bilinear samples over the middle half of each bit cell
@@ -136,8 +137,7 @@ def _sample_grid(size: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _reader(reader: str | None) -> str:
     reader = DEFAULT_READER if reader is None else reader
-    if reader not in READERS:
-        raise ValueError(f"reader must be one of {READERS}, got {reader!r}")
+    check_choice("reader", reader, READERS)
     return reader
 
 

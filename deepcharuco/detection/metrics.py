@@ -53,6 +53,14 @@ def match_corners(
         radius: the correctness radius in pixels (3 in the paper).
 
     The accuracy divides by C, all board corners (16 on the paper's board), as the paper does.
+
+    Example:
+        >>> truth = np.array([[10.0, 10.0], [50.0, 10.0], [90.0, 10.0], [np.nan, np.nan]])
+        >>> found = Detection(ids=np.array([0, 1, 3]), corners=np.array([[10.5, 10.0], [55.0, 10.0], [1.0, 1.0]]),
+        ...                   scores=np.ones(3))
+        >>> match = match_corners(found, truth)
+        >>> match.correct, match.errors.round(2), match.accuracy
+        (array([ True, False, False]), array([0.5, 5. , inf]), 0.25)
     """
     truth = np.asarray(true_corners, dtype=np.float64).reshape(-1, 2)
     num_corners = truth.shape[0]

@@ -11,7 +11,9 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.boards.print_face import canonical_view, corners_from_canonical
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.core.checks import check_choice
 from deepcharuco.core.detection import Detection, detect_board_result
+from deepcharuco.core.errors import OptionError
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.geometry.pose import Pose, estimate_pose, project_corners
 
@@ -56,10 +58,9 @@ class OpenCVDetector:
     """
 
     def __init__(self, board: BoardSpec | None = None, refine: str = "subpix", max_window: int = 5):
-        if refine not in REFINE_MODES:
-            raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
+        check_choice("refine", refine, REFINE_MODES)
         if max_window < 1:
-            raise ValueError(f"max_window must be >= 1 px, got {max_window}")
+            raise OptionError(f"max_window must be >= 1 px, got {max_window}")
         self.board = board or BoardSpec()
         self.refine = refine
         self.max_window = int(max_window)

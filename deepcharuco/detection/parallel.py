@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import OptionError
 from deepcharuco.core.platform import available_cpus
 from deepcharuco.detection.tracking import MIN_CORNERS
 
@@ -104,7 +105,7 @@ class DetectorPool:
 
     def __init__(self, make_finders: Callable[[], Sequence[Any]], workers: int = 1, chunk: int = 16):
         if workers < 1 or chunk < 1:
-            raise ValueError(f"workers and chunk must be >= 1, got workers={workers}, chunk={chunk}")
+            raise OptionError(f"workers and chunk must be >= 1, got workers={workers}, chunk={chunk}")
         self.workers, self.chunk = workers, chunk
         self._executor: ProcessPoolExecutor | None = None
         self._local: list[Any] | None = None

@@ -30,6 +30,7 @@ import inspect
 import numpy as np
 
 from deepcharuco.core.detection import Detection, corner_spacing
+from deepcharuco.core.errors import OptionError
 
 MARGIN = 0.5  # of the corners' bounding box, on each side
 MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
@@ -80,9 +81,9 @@ class BoardTracker:
 
     def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True):
         if refresh_every < 1:
-            raise ValueError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
+            raise OptionError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
         if search_every < 1:
-            raise ValueError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
+            raise OptionError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
         self.detector = detector
         self.refresh_every = refresh_every
         self.search_every = search_every if _takes(detector, "levels") else 1

@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
+from deepcharuco.core.checks import check_shape
 from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import OptionError
 
 # Below this ratio of the second to the first singular value the detected corners are
 # (nearly) on one line, and the board's rotation about that line is not observable.
@@ -47,7 +49,16 @@ def project_corners(
     board: BoardSpec, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None,
     ids: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(N, 2) float64 image positions of the board's inner corners (all, or ``ids``) under a pose."""
+    """(N, 2) float64 image positions (OpenCV's pixel convention) of the board's inner corners (all, or ``ids``,
+    in that order) under a pose (board -> camera, ``tvec`` in metres).
+
+    Example:
+        >>> board = BoardSpec()  # the paper's board: 5 x 5 squares of 4 cm, 16 inner corners
+        >>> K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+        >>> project_corners(board, np.zeros(3), np.array([-0.05, -0.05, 0.5]), K, ids=[0, 1]).round(2)
+        array([[304., 224.],
+               [368., 224.]])
+    """
     points = board.object_points()
     if ids is not None:
         points = points[np.asarray(ids, dtype=np.int64)]
@@ -82,12 +93,25 @@ def estimate_pose(
         The `Pose`, or None when fewer than 4 corners were detected, the corners lie on a
         line (rotation unobservable), RANSAC finds no consensus of ``min_inliers``, or the
         board would be behind the camera.
+
+    Raises:
+        ShapeError: ``K`` is not a finite (3, 3) matrix, or ``dist`` not a finite vector.
+        OptionError: the detection's IDs are not corners of ``board``.
+
+    Example:
+        >>> board = BoardSpec()
+        >>> K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+        >>> corners = project_corners(board, np.zeros(3), np.array([-0.05, -0.05, 0.5]), K)
+        >>> found = Detection(ids=np.arange(16), corners=corners, scores=np.ones(16))
+        >>> pose = estimate_pose(found, K, None, board)
+        >>> pose.tvec.round(4), round(pose.reprojection_error, 3)
+        (array([-0.05, -0.05,  0.5 ]), 0.0)
     """
     board = board or BoardSpec()
     if len(detection) < 4:
         return None
     if detection.ids.min() < 0 or detection.ids.max() >= board.num_corners:
-        raise ValueError(
+        raise OptionError(
             f"corner IDs {detection.ids.tolist()} do not belong to a board with {board.num_corners} "
             "corners: pass the board the detection was made for"
         )
@@ -96,8 +120,8 @@ def estimate_pose(
     spread = np.linalg.svd(object_points[:, :2] - object_points[:, :2].mean(0), compute_uv=False)
     if spread[1] < MIN_SPREAD_RATIO * spread[0]:
         return None
-    K = np.asarray(K, dtype=np.float64)
-    dist = None if dist is None else np.asarray(dist, dtype=np.float64)
+    K = check_shape(K, (3, 3), "K")
+    dist = None if dist is None else check_shape(np.ravel(dist), (None,), "dist")
     found, rvec, tvec, inlier_idx = cv2.solvePnPRansac(
         object_points, image_points, K, dist,
         reprojectionError=ransac_threshold, iterationsCount=200, confidence=0.999, flags=cv2.SOLVEPNP_IPPE,

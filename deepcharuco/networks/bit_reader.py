@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.errors import ShapeError
 
 MARGIN_BITS = 2
 SAMPLES_PER_BIT = 3
@@ -110,7 +111,7 @@ class BitReader(nn.Module):
     def forward(self, patches: torch.Tensor, size: int) -> torch.Tensor:
         side = patch_side(size)
         if patches.shape[-2:] != (side, side):
-            raise ValueError(f"BitReader: markers of {size} bits take {side}x{side} patches, got {tuple(patches.shape)}")
+            raise ShapeError(f"BitReader: markers of {size} bits take {side}x{side} patches, got {tuple(patches.shape)}")
         logits = self.head(self.body(self.stem(patches)))[:, 0]  # (B, G, G)
         inner = MARGIN_BITS + 1
         return logits[:, inner:inner + size, inner:inner + size]

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from deepcharuco.core.errors import OptionError
 from deepcharuco.networks.cells import CELL
 
 
@@ -122,7 +123,7 @@ def fold_batch_norm(model: nn.Module) -> nn.Module:
     """Fold every Conv2d -> BatchNorm2d pair into one Conv2d, in place, for inference: the same outputs
     (to float rounding) for less work. ``model`` must be in eval mode (running statistics)."""
     if model.training:
-        raise ValueError("fold_batch_norm needs a model in eval mode: call model.eval() first")
+        raise OptionError("fold_batch_norm needs a model in eval mode: call model.eval() first")
     for module in model.modules():
         if isinstance(module, nn.Sequential):
             for i in range(len(module) - 1):

@@ -33,6 +33,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from deepcharuco.core.checks import check_choice
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.charuconet import ChArUcoNet, PointHeadOnly
@@ -87,8 +88,7 @@ def int8_model(checkpoint: dict, fingerprint: str | None = None) -> bytes | None
 
 def resolve_backend(backend: str, device: torch.device, checkpoint: dict) -> str:
     """The backend ``backend`` means for these weights on ``device`` (see the module's table)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    check_choice("backend", backend, BACKENDS)
     if backend == "auto":
         if device.type != "cpu" or not onnxruntime_available():
             return "torch"

@@ -9,11 +9,12 @@ import os
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+
+from conftest import ROOT
 
 from datagen.frames import blur_extent_px
 from datagen.shards import ShardReader, list_shards
@@ -22,7 +23,6 @@ from evaluate.sequences import (
     LIT_FRAMES, MAX_ATTEMPTS, SEQUENCE_NAMES, SEQUENCES, board_in_view, evaluation_config, main, plan_sequence,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 34  # 30 lit + 4 condition frames
 CHOSEN = ["lux-1-a", "shadow-1", "motion-1"]
 ARGS = ["--frames", FRAMES, "--samples", 2, "--quiet"]

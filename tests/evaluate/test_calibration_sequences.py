@@ -3,11 +3,12 @@
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+from conftest import ROOT
 
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, OpenCVDetector
@@ -15,7 +16,6 @@ from evaluate.calibration_sequences import (
     CALIBRATION_SEQUENCES, NAMES, SWEEP_S, WavingPath, hand_waved_pose, pose_of, read_truth, true_camera,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 BOARD = BoardSpec()
 SIZE = (320, 240)
 FRAMES = 3

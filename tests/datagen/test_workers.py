@@ -14,12 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import ROOT
+
 from datagen.render import run_shard_tasks
 from datagen.shards import list_shards, shard_name, temporary_prefix, write_patch_shard
 from datagen.workers import TaskError, report_progress, run_tasks
 from deepcharuco.core.errors import DeepCharucoError
 
-ROOT = Path(__file__).resolve().parents[1]
 HANG_S = 60  # far longer than any of these runs: reaching it means the parent hung
 
 

@@ -6,11 +6,12 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+
+from conftest import ROOT
 
 from datagen.patches import synthetic_patches
 from datagen.shards import FrameLabels, write_patch_shard, write_shard
@@ -22,7 +23,6 @@ from train.charuconet import ChArUcoNetTask
 from train.loop import TrainConfig, train
 from train.refinenet import RefineNetTask
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")

@@ -4,18 +4,18 @@ and a rendered sequence compared with the render truth (one Blender render in a 
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+from conftest import ROOT
 
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, Camera, project_corners, write_camera
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from evaluate.autolabel import AutolabelError, autolabel, autolabel_sequence_errors, compare_to_truth, main
 
-ROOT = Path(__file__).resolve().parents[1]
 BOARD = BoardSpec()
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, make_view, needs_bpy
+from conftest import ROOT, VIEW_POSES, make_view, needs_bpy
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
@@ -24,7 +24,6 @@ from train.bundle import choose_threshold
 from train.charuconet import ChArUcoNetTask, match_points
 from train.loop import TrainConfig, train
 
-ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "deepcharuco" / "weights" / "detector.pt"
 SMALL_BOARD = BoardSpec(squares_x=4, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50")
 # Rates as if recorded by an earlier run in the folder: the plan then needs no render probe (~15 s of Blender).

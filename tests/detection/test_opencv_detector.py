@@ -1,10 +1,9 @@
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, make_view, rotation_error_deg
+from conftest import ROOT, VIEW_POSES, make_view, rotation_error_deg
 from deepcharuco import BoardSpec, Detection, ImageError, OpenCVDetector, match_corners
 from deepcharuco.detection.opencv_detector import charuco_detector_bias
 
@@ -107,7 +106,7 @@ def test_shipped_weights_find_the_bundled_example():
 
     detector = Detector()
     assert detector.board == BoardSpec() and detector.refine == "refinenet" and 0 < detector.threshold < 1
-    image = cv2.imread(str(Path(__file__).resolve().parents[1] / "deepcharuco/examples/board_320x240.png"), cv2.IMREAD_GRAYSCALE)
+    image = cv2.imread(str(ROOT / "deepcharuco/examples/board_320x240.png"), cv2.IMREAD_GRAYSCALE)
     found, reference = detector.detect(image), OpenCVDetector(BoardSpec()).detect(image)
     truth = dict(zip(reference.ids.tolist(), reference.corners))
     close = [i for i, c in zip(found.ids.tolist(), found.corners) if i in truth and np.linalg.norm(c - truth[i]) < 0.5]

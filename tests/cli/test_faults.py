@@ -13,14 +13,13 @@ import pytest
 
 import deepcharuco.cli.calibrate as calibrate_cli
 import deepcharuco.cli.detect as detect_cli
-from conftest import VIEW_POSES, make_view
+from conftest import ROOT, VIEW_POSES, make_view
 from deepcharuco import BoardSpec, read_camera
 from deepcharuco.cli.video import VideoFrames
 from deepcharuco.core.files import OutputError, OutputLock, write_atomic
 from test_calibrate import SIZE, waved  # noqa: F401 (the waved-board video's frames, a fixture)
 
-EXAMPLES = Path(__file__).parents[1] / "deepcharuco" / "examples"
-ROOT = Path(__file__).parents[1]
+EXAMPLES = ROOT / "deepcharuco" / "examples"
 
 
 def _limited(limit: int):

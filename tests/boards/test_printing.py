@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import ROOT
+
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.boards.printing import MM_PER_POINT, PrintError, board_sheet, paper_size, pdf_bytes, png_bytes, raster, svg_text
 from deepcharuco.cli.board import main as board_main
@@ -146,9 +148,8 @@ def test_the_commands_and_both_detectors_run_without_torch(tmp_path):
     calibrate's imports and the board sheets work; weights with no bundle say what to do in one line."""
     import subprocess
     import sys
-    from pathlib import Path
 
-    examples = Path(__file__).parents[1] / "deepcharuco" / "examples"
+    examples = ROOT / "deepcharuco" / "examples"
     image, camera = examples / "board_320x240.png", examples / "webcam_320x240.yaml"
     (tmp_path / "lonely.pt").write_bytes(b"a PyTorch checkpoint without its ONNX bundle")
     code = f"""
@@ -165,6 +166,8 @@ assert main(["board", "--squares", "5x5", "--dictionary", "DICT_5X5_50", "--squa
 assert main(["detect", r"{image}", "--detector", "deep", "--weights", r"{tmp_path / 'lonely.pt'}",
              "--out", r"{tmp_path / 'x'}"]) == 2
 import deepcharuco.cli.calibrate
+
+from conftest import ROOT
 assert "torch" not in {{name.split(".")[0] for name, module in sys.modules.items() if module is not None}}
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -1,12 +1,11 @@
 """deepcharuco.cli.calibrate on exact synthetic videos through a known distorted camera (datagen.lens)."""
 
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from conftest import assert_same_but_rounding, make_view
+from conftest import ROOT, assert_same_but_rounding, make_view
 from datagen.lens import distort_image, distortion_maps, pixels_to_rays, wide_camera
 from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera, write_camera
 from deepcharuco.boards.synthetic import render_board_view
@@ -340,7 +339,7 @@ def test_a_wrong_corner_at_the_edge_cannot_bend_k3():
     # seed 0, good light; the true camera stored beside them): one corner lies 17 px off at the image's edge.
     # Solved with k3 free from the start, k2 and k3 bent the edges to meet it (fx +0.7 %, cy +4 px, RMS 0.185 px);
     # judged first with k3 at 0, it is dropped and the lens recovered.
-    data = np.load(Path(__file__).parent / "fixtures" / "calibration_deep_k1+0.10.npz")
+    data = np.load(ROOT / "tests" / "fixtures" / "calibration_deep_k1+0.10.npz")
     size = tuple(int(v) for v in data["size"])
     frames = [FrameDetection(i, str(i), data["ids"][data["frame"] == i], data["corners"][data["frame"] == i],
                              float(data["sharpness"][i])) for i in range(len(data["sharpness"]))]

@@ -16,6 +16,8 @@ import h5py
 import numpy as np
 import pytest
 
+from conftest import ROOT
+
 from datagen.frames import frame_rng
 from datagen.inspect import main as inspect_main
 from datagen.scene import SceneConfig, sample_scene
@@ -23,7 +25,6 @@ from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, OpenCVDetector
 
 pytest.importorskip("bpy", reason="the renderer needs the [render] extra (bpy)")
-ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--width", "160", "--height", "120", "--samples", "2", "--quiet"]
 
 

@@ -100,14 +100,14 @@ def test_assign_ids_skips_corners_outside_the_image_and_far_cells(default_views)
     assert sorted(ids.tolist()) == np.flatnonzero(inside).tolist()
 
 
-def test_detector_geometry_modes(default_views, camera):
+def test_detector_geometry_modes(default_views, camera, backend):
     """On a clean synthetic view the shipped weights find >= 12 corners with the check, all right, and the
-    pose follows; a detection of fewer than 6 corners gets no pose when the check is on."""
+    pose follows, on every backend; a detection of fewer than 6 corners gets no pose when the check is on."""
     from deepcharuco import Detector
     from evaluate.protocols import rotation_error_deg
 
     image, rvec, tvec, truth = default_views[0]
-    repaired = Detector(geometry="repair").detect(image)
+    repaired = Detector(geometry="repair", backend=backend).detect(image)
     assert len(repaired) >= 12
     assert np.all(np.linalg.norm(repaired.corners - truth[repaired.ids], axis=1) < 1.0)
     detector = Detector()

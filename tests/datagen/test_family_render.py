@@ -10,11 +10,12 @@ import os
 import subprocess
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+from conftest import ROOT
 
 from datagen.family import FAMILIES, FamilyError, check_prefixes, held_out, parse_families, sample_board
 from datagen.frames import frame_board, frame_distortion, frame_rng
@@ -27,7 +28,6 @@ from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.boards.board import marker_family
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # ------------------------------------------------------------------ no Blender

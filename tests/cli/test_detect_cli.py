@@ -1,18 +1,17 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, make_view
+from conftest import ROOT, VIEW_POSES, make_view
 from deepcharuco import BoardSpec, write_camera
 from deepcharuco.cli.detect import main
 from deepcharuco.examples.make_examples import make_example
 
-EXAMPLES = Path(__file__).parents[1] / "deepcharuco" / "examples"
+EXAMPLES = ROOT / "deepcharuco" / "examples"
 
 
 def test_bundled_example_is_current():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec
-from deepcharuco.calibration.calibration import FrameDetection, SelectionOptions, calibrate, terms_name, weigh_views
+from deepcharuco.calibration.calibration import FrameDetection, SelectionOptions, calibrate, terms_name
 from evaluate.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of
 
 BOARD = BoardSpec()

@@ -153,8 +153,9 @@ def test_every_marker_reads_as_itself_through_the_exact_view(board, camera):
 
 
 @pytest.mark.parametrize("board", UNSEEN, ids=lambda b: f"{b.dictionary}-{b.squares_x}x{b.squares_y}")
-def test_unseen_boards_found_with_right_ids(board, camera):
-    detector = Detector(board=board)
+def test_unseen_boards_found_with_right_ids(board, camera, backend):
+    detector = Detector(board=board, backend=backend)
+    assert detector.runner.name == backend
     assert detector.geometry == "markers"
     for pose in POSES:
         image, truth = view_of(board, camera, **pose)
