@@ -1,5 +1,5 @@
 """The evaluation report's calibration section: each detector calibrates each rendered calibration
-sequence (`evaluate.calibration_sequences`) with `deepcharuco.calibration.calibration`, against the known camera.
+sequence (`evaluate.calibration_sequences`) with `deepcharuco.calibration`, against the known camera.
 
 Errors per detector per sequence: fx and fy in % of the truth, cx and cy in px, the distortion's
 effect at the image corners (how far the solved distortion moves each of the four corner pixels,
@@ -25,7 +25,8 @@ import numpy as np
 from datagen.lens import pixels_to_rays
 from datagen.shards import ShardReader, list_shards
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.calibration import CalibrationError, CalibrationResult, SelectionOptions, border_margin, calibrate
+from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
+from deepcharuco.calibration.views import CalibrationError, SelectionOptions, border_margin
 from deepcharuco.cli.calibrate import detect_frames
 from deepcharuco.core.files import write_atomic
 from evaluate.calibration_sequences import read_truth

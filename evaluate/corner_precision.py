@@ -310,7 +310,8 @@ def calibration_check(seed: int, conditions: list[str], instants: int = 40, quie
     """Each camera of a drawn two-camera rig (`evaluate.rig_views`, exact intrinsics) calibrated on its own from the
     shipped detector's corners weighed by their covariances and not, RefineNet's corners alone, and OpenCV +
     cornerSubPix's: fx / fy error (%), cx / cy error (px), RMS (px) per camera, or why there is no calibration."""
-    from deepcharuco.calibration.calibration import CalibrationError, SelectionOptions, border_margin, calibrate
+    from deepcharuco.calibration.intrinsics import calibrate
+    from deepcharuco.calibration.views import CalibrationError, SelectionOptions, border_margin
     from evaluate.rig_eval import detect_all
     from evaluate.rig_views import RIG_BOARD, drawn_rig
 

@@ -12,7 +12,7 @@ Two kinds of data:
   distances against the printed 54 mm), and fx/fy against caliscope's own calibration of each camera.
 
 Both detectors go through the same solver (`deepcharuco.cli.calibrate_rig.solve_rig`, the CLI's defaults). Nothing
-here was tuned on: the solver's constants were set on `tests/test_rig.py`'s exact projections and seed 0's drawn
+here was tuned on: the solver's constants were set on `tests/calibration/test_rig.py`'s exact projections and seed 0's drawn
 rig (good light); these seeds, the dark and shake conditions and the real videos only measure.
 """
 
@@ -30,8 +30,8 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.calibration import CalibrationError, FrameDetection, SelectionOptions, border_margin, sharpness
-from deepcharuco.calibration.rig import RigResult, rotation_angle_deg
+from deepcharuco.calibration.rig_model import RigResult, rotation_angle_deg
+from deepcharuco.calibration.views import CalibrationError, FrameDetection, SelectionOptions, border_margin, sharpness
 from deepcharuco.cli.calibrate_rig import solve_rig
 from deepcharuco.core.opencv_api import undistort_points
 from deepcharuco.geometry.camera import Camera, read_camera

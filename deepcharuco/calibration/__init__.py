@@ -11,14 +11,15 @@ from typing import TYPE_CHECKING
 from deepcharuco.core.lazy import lazy_exports
 
 _WHERE = {
-    "calibrate": "calibration", "CalibrationResult": "calibration", "CalibrationError": "calibration",
-    "FrameDetection": "calibration", "SelectionOptions": "calibration",
-    "calibrate_rig": "rig", "RigView": "rig", "RigResult": "rig", "RigError": "rig",
+    "calibrate": "intrinsics", "CalibrationResult": "intrinsics", "CalibrationError": "views",
+    "FrameDetection": "views", "SelectionOptions": "views",
+    "calibrate_rig": "rig", "RigView": "rig_model", "RigResult": "rig_model", "RigError": "rig_model",
 }
 __all__ = list(_WHERE)
 __getattr__, __dir__ = lazy_exports(__name__, _WHERE)
 
 if TYPE_CHECKING:
-    from deepcharuco.calibration.calibration import (CalibrationError, CalibrationResult, FrameDetection,
-                                                     SelectionOptions, calibrate)
-    from deepcharuco.calibration.rig import RigError, RigResult, RigView, calibrate_rig
+    from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
+    from deepcharuco.calibration.rig import calibrate_rig
+    from deepcharuco.calibration.rig_model import RigError, RigResult, RigView
+    from deepcharuco.calibration.views import CalibrationError, FrameDetection, SelectionOptions

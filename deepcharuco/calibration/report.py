@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.calibration import CalibrationResult
 from deepcharuco.calibration.html_page import html_page, png, pyplot
+from deepcharuco.calibration.intrinsics import CalibrationResult
 from deepcharuco.core.files import write_atomic
 from deepcharuco.core.opencv_api import undistort_points
 

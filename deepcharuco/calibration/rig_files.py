@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.rig import RigResult
+from deepcharuco.calibration.rig_model import RigResult
 from deepcharuco.geometry.camera import camera_file_text
 
 TOML_START = "# deepcharuco rig calibration"

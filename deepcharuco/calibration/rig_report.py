@@ -13,7 +13,7 @@ import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.html_page import html_page, png, pyplot
-from deepcharuco.calibration.rig import INTRINSICS, RigResult, rotations_from_vectors
+from deepcharuco.calibration.rig_model import INTRINSICS, RigResult, rotations_from_vectors
 
 MAX_LISTED = 200
 

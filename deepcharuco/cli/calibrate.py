@@ -6,7 +6,7 @@ or a rig of cameras from synchronised videos of one.
 
 Frames are read one at a time (a video is never loaded whole) and the board is detected in each;
 only the corners are kept. Views are selected, calibrated with OpenCV, outliers rejected and the
-camera re-solved (`deepcharuco.calibration.calibration`). Several sources are a rig (`calibrate_rig_into`). Writes an OpenCV FileStorage camera file that
+camera re-solved (`deepcharuco.calibration`). Several sources are a rig (`calibrate_rig_into`). Writes an OpenCV FileStorage camera file that
 `read_camera` and OpenCV read (`write_camera`'s nodes, then ``distortion_model``, the RMS, the
 parameters' standard deviations, the distortion terms solved, the views used and their weights), and an HTML report beside it. Exit code 0,
 or 2 with a one-line reason and nothing written.
@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.calibration import (
-    MODELS, VIEW_WEIGHT_SPREAD, CalibrationError, CalibrationResult, FrameDetection, SelectionOptions, border_margin,
-    calibrate,
-)
+from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
+from deepcharuco.calibration.solve import MODELS
+from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, VIEW_WEIGHT_SPREAD,
+                                           border_margin)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder, run_command
 from deepcharuco.cli.detect import make_detector, open_source

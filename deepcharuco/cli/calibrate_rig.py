@@ -3,7 +3,7 @@
 Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant; with
 ``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them) and
 the board detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
-own single-camera calibration (`deepcharuco.calibration.calibration.calibrate`, as ``calibrate`` does for one camera) or
+own single-camera calibration (`deepcharuco.calibration.intrinsics.calibrate`, as ``calibrate`` does for one camera) or
 are held at a given ``--camera`` file's; then `deepcharuco.calibration.rig.calibrate_rig` places the cameras and
 bundle-adjusts everything together. Writes into ``--out``: ``<source name>.yaml`` per camera, ``rig.toml`` and
 ``rig_report.html`` (`deepcharuco.calibration.rig_files`, `deepcharuco.calibration.rig_report`), all together and last: bad input
@@ -20,11 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.calibration import (
-    CalibrationError, FrameDetection, SelectionOptions, border_margin, calibrate, within_border,
-)
-from deepcharuco.calibration.rig import RigError, RigResult, RigView, calibrate_rig, rotations_from_vectors
+from deepcharuco.calibration.intrinsics import calibrate
+from deepcharuco.calibration.rig import calibrate_rig
 from deepcharuco.calibration.rig_files import is_rig_toml, rig_camera_text, rig_toml
+from deepcharuco.calibration.rig_model import RigError, RigResult, RigView, rotations_from_vectors
+from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, border_margin,
+                                           within_border)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
 from deepcharuco.cli.detect import Source, open_source

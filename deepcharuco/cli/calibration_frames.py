@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.calibration import FrameDetection, sharpness
+from deepcharuco.calibration.views import FrameDetection, sharpness
 from deepcharuco.cli.detect import CHUNK_FRAMES, make_finders
 from deepcharuco.detection.parallel import DetectorPool
 

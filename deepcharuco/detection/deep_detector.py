@@ -536,7 +536,7 @@ class Detector:
         if self.corner_fit:
             with stage("corner fit"):
                 # a corner the point head missed sits on a shadow's edge, which the fit's model does not hold: the
-                # junction's pattern, which allows the edge, keeps it (tests/test_junction.py)
+                # junction's pattern, which allows the edge, keeps it (tests/detection/test_junction.py)
                 corners, covariances = self._fitted(region, ids, corners, keep=scores == PATTERN_SCORE)
         corners = corners + np.array(found.box[:2], np.float32)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,

@@ -130,6 +130,10 @@ def read_camera(path: str | Path) -> Camera:
     Required nodes: ``camera_matrix``, ``image_width`` and ``image_height``; optional
     ``distortion_coefficients`` (zeros when absent) and ``distortion_model`` ("fisheye" for
     ``cv2.fisheye``'s model; "pinhole", "rational" or absent for OpenCV's standard one).
+
+    Raises:
+        CameraFileError: a missing or unreadable file, a file that is not a camera file, or intrinsics that are
+            not a camera (a non-positive focal length, NaN), with what to do.
     """
     path = Path(path)
     if not path.is_file():

@@ -1,4 +1,4 @@
-"""deepcharuco.calibration.calibration's choice of the tangential terms p1 p2 by held-out views (`select_terms`) and its
+"""deepcharuco.calibration's choice of the tangential terms p1 p2 by held-out views (`select_terms`) and its
 weighing of views by their residuals (`weigh_views`), on exact projections through a known camera (OpenCV's
 model) plus Gaussian corner noise (and blur-like errors): no rendering, no detector."""
 
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec
-from deepcharuco.calibration.calibration import FrameDetection, SelectionOptions, calibrate, terms_name
+from deepcharuco.calibration.intrinsics import calibrate
+from deepcharuco.calibration.terms import terms_name
+from deepcharuco.calibration.views import FrameDetection, SelectionOptions
 from evaluate.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of
 
 BOARD = BoardSpec()

@@ -9,10 +9,10 @@ import pytest
 
 from conftest import assert_same_but_rounding, needs_bpy
 from deepcharuco import BoardSpec, Camera, read_camera
-from deepcharuco.calibration.rig import (
-    RigError, RigView, calibrate_rig, corner_weights, intrinsic_vector, project, rotation_angle_deg,
-    rotations_from_vectors,
-)
+from deepcharuco.calibration.bundle import corner_weights
+from deepcharuco.calibration.rig import calibrate_rig
+from deepcharuco.calibration.rig_model import (RigError, RigView, intrinsic_vector, project, rotation_angle_deg,
+                                               rotations_from_vectors)
 from deepcharuco.cli.calibrate import main
 from evaluate.rig_views import RIG_BOARD, board_poses, drawn_rig, rig_cameras
 

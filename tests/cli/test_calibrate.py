@@ -9,9 +9,8 @@ from conftest import ROOT, assert_same_but_rounding, make_view
 from datagen.lens import distort_image, distortion_maps, pixels_to_rays, wide_camera
 from deepcharuco import BoardSpec, Camera, OpenCVDetector, read_camera, write_camera
 from deepcharuco.boards.synthetic import render_board_view
-from deepcharuco.calibration.calibration import (
-    CalibrationError, FrameDetection, SelectionOptions, calibrate, sharpness, usable_reason,
-)
+from deepcharuco.calibration.intrinsics import calibrate
+from deepcharuco.calibration.views import CalibrationError, FrameDetection, SelectionOptions, sharpness, usable_reason
 from deepcharuco.cli.calibrate import detect_frames, main
 from evaluate.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of, true_camera
 
@@ -265,7 +264,7 @@ def test_fix_k3_keeps_k3_at_zero(detections):
 
 
 def test_poor_coverage_is_said(detections):
-    from deepcharuco.calibration.calibration import _coverage_notes, coverage
+    from deepcharuco.calibration.views import coverage, coverage_notes as _coverage_notes
 
     assert coverage(detections, SIZE) > 0.5 and _coverage_notes(detections, SIZE) == []
     central = [FrameDetection(0, "c", np.arange(4), np.array([[125.0, 85], [150, 85], [125, 115], [150, 115]]))]
@@ -352,7 +351,7 @@ def test_a_wrong_corner_at_the_edge_cannot_bend_k3():
 
 
 def test_corners_at_the_border_are_left_out_for_refinenet():
-    from deepcharuco.calibration.calibration import border_margin, within_border
+    from deepcharuco.calibration.views import border_margin, within_border
 
     assert border_margin("refinenet") == 12.0 and border_margin("subpix") == 0.0
     frame = FrameDetection(3, "f", np.arange(4), np.array([[5.0, 100], [12.0, 100], [160, 120], [310.0, 234]]))
@@ -398,7 +397,7 @@ def test_camera_files_name_their_model(tmp_path):
 def test_a_distortion_model_that_folds_inside_the_image_is_found():
     """fold_share: a lens maps radius to radius one to one out to the corners; k3 = -1.20 (a real webcam's solve from
     views that left the corners empty) folds two thirds of the way out; k2 < 0 alone folds near the corners."""
-    from deepcharuco.calibration.calibration import fold_share
+    from deepcharuco.calibration.intrinsics import fold_share
 
     K = np.array([[750.0, 0, 640], [0, 750, 360], [0, 0, 1]])
     folds = {k: fold_share(Camera(K=K, dist=np.array(d, float), image_size=(1280, 720))) for k, d in {
@@ -409,7 +408,7 @@ def test_a_distortion_model_that_folds_inside_the_image_is_found():
 
 
 def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detections, monkeypatch):
-    import deepcharuco.calibration.calibration as calibration
+    import deepcharuco.calibration.intrinsics as calibration
 
     shares = iter([0.6, None])
     monkeypatch.setattr(calibration, "fold_share", lambda camera: next(shares))
@@ -424,7 +423,7 @@ def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detection
 
 
 def test_deviations_are_at_least_the_view_bootstrap_spread(detections):
-    from deepcharuco.calibration.calibration import bootstrap_std
+    from deepcharuco.calibration.terms import bootstrap_std
 
     result = calibrate(detections, BOARD, SIZE)
     objects = [BOARD.object_points()[v.ids] for v in result.views]

@@ -1,5 +1,5 @@
 """Render workers that die or fail, and a full disk: the run ends at once with a clear error, complete
-shards stay, temporaries go (no Blender here: the tasks are small functions; tests/test_render.py kills
+shards stay, temporaries go (no Blender here: the tasks are small functions; tests/datagen/test_render.py kills
 a real render worker)."""
 
 import errno

@@ -8,9 +8,11 @@ import pytest
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.boards.print_face import canonical_view
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
-from deepcharuco.calibration.calibration import FrameDetection, SelectionOptions, calibrate
+from deepcharuco.calibration.intrinsics import calibrate
+from deepcharuco.calibration.views import FrameDetection, SelectionOptions
 from deepcharuco.core.detection import Detection
-from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, _quadrant_signs, board_axes, fit_corners, view_homography
+from deepcharuco.detection.corner_fit import (FALLBACK_SIGMA_PX, _quadrant_signs, board_axes, fit_corners,
+                                              view_homography)
 from deepcharuco.detection.junction import printed_pattern
 from deepcharuco.detection.placement import neighbour_distances
 
