@@ -120,3 +120,17 @@ def test_the_layer_check_sees_an_import_up():
 def test_the_cycle_finder_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_every_public_name_resolves():
+    """The package's and each subpackage's ``__all__`` (lazy ones included) give real objects, listed by ``dir``."""
+    import importlib
+
+    import deepcharuco
+
+    assert {"Detector", "BoardSpec", "OpenCVDetector", "BoardTracker", "read_camera", "detect_all"} <= set(deepcharuco.__all__)
+    for name in ("deepcharuco", *(f"deepcharuco.{sub}" for sub in SUBPACKAGES)):
+        package = importlib.import_module(name)
+        for public in package.__all__:
+            assert getattr(package, public) is not None, (name, public)
+            assert public in dir(package), (name, public)
