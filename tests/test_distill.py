@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
-from deepcharuco.models.checkpoint import load_charuconet, read_checkpoint
+from deepcharuco.deep_detector import Detector
+from deepcharuco.models.checkpoint import load_charuconet, read_checkpoint, save_bundle
 from deepcharuco.board import BoardSpec
 from deepcharuco.shipped import DEFAULT_WEIGHTS
 from train import distill
@@ -116,6 +117,11 @@ def test_the_checkpoint_loads_through_the_runtime_loader(tmp_path):
         expected = model(image)
     np.testing.assert_allclose(points, expected[0][0].numpy(), atol=1e-3)
     np.testing.assert_allclose(ids, expected[1][0].numpy(), atol=1e-3)
+    # Bundled with the shipped RefineNet, a Detector builds the fast network from the checkpoint's own config.
+    bundle = save_bundle(tmp_path / "fast.pt", tmp_path / "run" / "last.pt", DEFAULT_WEIGHTS, threshold=0.25)
+    detector = Detector(weights=bundle, backend="onnx")
+    assert detector.charuconet.config.arch == "fast"
+    assert detector.detect(np.full((120, 160), 128, np.uint8)) is not None
 
 
 def test_a_missing_teacher_is_one_line_and_writes_nothing(tmp_path, capsys):
