@@ -73,33 +73,53 @@ def count_macs(model, image) -> int:
 
 
 def compare_architectures(names: list[str], sizes: list[tuple[int, int]], seconds: float) -> None:
+    """MACs and ONNX Runtime ms of each architecture; the networks are timed interleaved, one call each in turn,
+    and each reported by its median call, so that a busy machine slows them alike (the ratio column, to the
+    first architecture, is the number to read)."""
     import torch
+    from dataclasses import replace
 
     from deepcharuco.models.charuconet import ChArUcoNet, PointHeadOnly, fold_batch_norm
     from deepcharuco.onnx_export import network_specs, onnx_bytes
     from deepcharuco.onnx_runner import _session
-    from dataclasses import replace
 
-    print(f"# ChArUcoNet architectures, random weights, ONNX Runtime on {cpu_description()}")
-    print(f"{'network':>26s} {'heads':>6s} {'size':>10s} {'GMACs':>7s} {'params':>8s} {'ms 2 thr':>9s} {'ms 1 thr':>9s}")
+    print(f"# ChArUcoNet architectures, random weights, ONNX Runtime on {cpu_description()}; median ms a call, "
+          f"interleaved; x: the first one's time / this one's")
+    spec = network_specs((320, 240))["charuconet"]
+    points_spec = replace(spec, output_names=spec.output_names[:1],
+                          dynamic_axes={k: v for k, v in spec.dynamic_axes.items() if k != "id_logits"})
+    networks = {}  # (name, heads) -> (torch module, {threads: session}, parameters)
     for name in names:
         torch.manual_seed(0)
         model = fold_batch_norm(ChArUcoNet(architecture(name)).eval())
         parameters = sum(p.numel() for p in model.parameters())
-        spec = network_specs((320, 240))["charuconet"]
-        for heads, net, net_spec in (
-                ("points", PointHeadOnly(model), replace(spec, output_names=spec.output_names[:1], dynamic_axes={
-                    k: v for k, v in spec.dynamic_axes.items() if k != "id_logits"})),
-                ("all", model, spec)):
+        for heads, net, net_spec in (("points", PointHeadOnly(model), points_spec), ("all", model, spec)):
             onnx = onnx_bytes(net, torch.zeros(1, 1, 240, 320), net_spec)
-            sessions = {threads: _session(onnx, threads) for threads in (2, 1)}
-            for width, height in sizes:
-                macs = count_macs(net, torch.zeros(1, 1, height, width))
-                image = np.random.default_rng(0).random((1, 1, height, width), dtype=np.float32)
-                ms = {threads: 1000 * per_call_seconds(lambda: session.run(None, {"image": image}), seconds)
-                      for threads, session in sessions.items()}
-                print(f"{name:>26s} {heads:>6s} {width}x{height:<5d} {macs / 1e9:7.3f} {parameters / 1e3:7.0f}k "
-                      f"{ms[2]:9.2f} {ms[1]:9.2f}", flush=True)
+            networks[name, heads] = (net, {threads: _session(onnx, threads) for threads in (2, 1)}, parameters)
+    print(f"{'network':>26s} {'heads':>6s} {'size':>10s} {'GMACs':>7s} {'params':>8s} {'ms 2 thr':>9s} {'x':>5s} "
+          f"{'ms 1 thr':>9s} {'x':>5s}")
+    for heads in ("points", "all"):
+        for width, height in sizes:
+            image = np.random.default_rng(0).random((1, 1, height, width), dtype=np.float32)
+            keys = [key for key in networks if key[1] == heads]
+            times = {(key, threads): [] for key in keys for threads in (2, 1)}
+            for threads in (2, 1):
+                for key in keys:  # warm-up
+                    networks[key][1][threads].run(None, {"image": image})
+                started = time.perf_counter()
+                while time.perf_counter() - started < seconds * len(keys) or len(times[keys[0], threads]) < 5:
+                    for key in keys:
+                        begin = time.perf_counter()
+                        networks[key][1][threads].run(None, {"image": image})
+                        times[key, threads].append(time.perf_counter() - begin)
+            median = {k: 1000 * float(np.median(v)) for k, v in times.items()}
+            for key in keys:
+                import torch
+
+                macs = count_macs(networks[key][0], torch.zeros(1, 1, height, width))
+                ratios = [median[keys[0], t] / median[key, t] for t in (2, 1)]
+                print(f"{key[0]:>26s} {heads:>6s} {width}x{height:<5d} {macs / 1e9:7.3f} {networks[key][2] / 1e3:7.0f}k "
+                      f"{median[key, 2]:9.2f} {ratios[0]:5.2f} {median[key, 1]:9.2f} {ratios[1]:5.2f}", flush=True)
 
 
 def main() -> None:
