@@ -138,3 +138,43 @@ def test_resume_refuses_other_settings(tmp_path, capsys):
                          "--val-size", "64x48", "--batch-size", "3", "--lr", "1e-2"])
     error = capsys.readouterr().err
     assert code == 2 and "--lr" in error and "resume with its settings" in error
+
+
+def test_the_fast_architecture():
+    """Same outputs as lite's at any size that is a multiple of 8 (not of 32), context for the ID head alone,
+    recorded in its config, batch norm folded exactly, and under a fifth of lite's multiply-adds for the point
+    network (9.3x fewer as built)."""
+    from benchmarks.network import count_macs
+    from deepcharuco.models.charuconet import PointHeadOnly
+
+    config = ChArUcoNetConfig.fast(16)
+    assert ChArUcoNetConfig.from_dict(config.to_dict()) == config and config.to_dict()["arch"] == "fast"
+    assert "arch" not in ChArUcoNetConfig.lite().to_dict()  # the VGG networks' files are as before
+    torch.manual_seed(0)
+    model = ChArUcoNet(config)
+    for module in model.modules():
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.running_mean.uniform_(-0.5, 0.5)
+            module.running_var.uniform_(0.5, 2.0)
+    model.eval()
+    image = torch.rand(2, 1, 248, 328)
+    with torch.no_grad():
+        points, ids = model(image)
+        assert points.shape == (2, 65, 31, 41) and ids.shape == (2, 17, 31, 41)
+        torch.testing.assert_close(model.points(image), points)
+        # The ID head sees a marker's context (the 1/16 and 1/32 branches), the point head only its neighbourhood:
+        # the pixels beyond (64, 64) change cell (3, 3)'s ID logits (its pixels are 24-31), never its point logits
+        # (the point head's receptive field ends at pixel 51).
+        changed = image.clone()
+        changed[:, :, 64:, 64:] = 1.0
+        other_points, other_ids = model(changed)
+        assert torch.equal(other_points[..., 3, 3], points[..., 3, 3])
+        assert not torch.equal(other_ids[..., 3, 3], ids[..., 3, 3])
+        folded = fold_batch_norm(model)
+        assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+        for ours, theirs in zip(folded(image), (points, ids)):
+            torch.testing.assert_close(ours, theirs, atol=1e-4, rtol=1e-4)
+    frame = torch.zeros(1, 1, 240, 320)
+    lite = count_macs(PointHeadOnly(ChArUcoNet(ChArUcoNetConfig.lite(16))), frame)
+    fast = count_macs(PointHeadOnly(ChArUcoNet(config)), frame)
+    assert 5 * fast <= lite
