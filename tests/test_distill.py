@@ -178,3 +178,20 @@ def test_the_fast_architecture():
     lite = count_macs(PointHeadOnly(ChArUcoNet(ChArUcoNetConfig.lite(16))), frame)
     fast = count_macs(PointHeadOnly(ChArUcoNet(config)), frame)
     assert 5 * fast <= lite
+
+
+def test_a_family_teacher_distils_the_point_head_on_random_boards_of_its_family(tmp_path):
+    args = tiny_args(tmp_path / "run", "--teacher", "deepcharuco/weights/families/DICT_4X4.pt", "--family", "DICT_4X4",
+                     "--boards", "3")
+    distiller = distill.Distiller(args, torch.device("cpu"))
+    assert not distiller.with_ids and len(distiller.drawer.boards) == 3
+    assert {b.dictionary.rsplit("_", 1)[0] for b in distiller.drawer.boards} == {"DICT_4X4"}
+    assert len({(b.squares_x, b.squares_y) for b in distiller.drawer.boards}) > 1
+    _, terms = distiller.loss(*distiller.batch(0))
+    assert set(terms) == {"kl_points", "ce_points"}  # its ID head was never trained: nothing to learn from it
+    distill.run(args)
+    _, board, data = load_charuconet(tmp_path / "run" / "last.pt")
+    assert data["heads"] == "points" and type(board).__name__ == "PointsOnlyBoard"
+    without = tiny_args(tmp_path / "other", "--teacher", "deepcharuco/weights/families/DICT_4X4.pt")
+    with pytest.raises(distill.DeepCharucoError, match="--family"):  # its checkpoint does not say which family
+        distill.Distiller(without, torch.device("cpu"))

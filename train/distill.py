@@ -3,6 +3,7 @@ drawn in torch (`train.draw`): no renders needed, any device.
 
     python -m train.distill --teacher deepcharuco/weights/detector.pt --out runs/distill_paper --steps 60000
     python -m train.distill --out runs/distill_paper --resume          # continue exactly where it stopped
+    python -m train.distill --teacher deepcharuco/weights/families/DICT_4X4.pt --family DICT_4X4 --out runs/distill_4x4
 
 Loss, on every 8x8 cell of every frame:
 
@@ -12,7 +13,8 @@ Loss, on every 8x8 cell of every frame:
     + T^2 KL of the (N+1)-way ID softmax + cross-entropy on the exact ID label, the cells holding a corner
       weighted --id-positive-weight times.
 
-Frames: the teacher's board (a family teacher: ``--boards`` random boards of its marker family) through random
+Frames: the teacher's board (a family teacher, ``heads: points``: ``--boards`` random boards of the marker family
+``--family`` names, which its checkpoint does not record) through random
 poses and lenses onto photographs, noise and clutter, under the paper's augmentations (`train.draw`). The batch
 at step s is drawn from ``default_rng([seed, s])`` alone, so ``--resume`` continues bit for bit: the model,
 AdamW's state and the step are in ``last.pt``; the learning rate is a function of the step (warm-up, cosine).
@@ -44,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepcharuco.board import MARKER_FAMILIES, BoardSpec, dictionary_size, marker_family
+from deepcharuco.board import MARKER_FAMILIES, BoardSpec, dictionary_size
 from deepcharuco.cli import output_folder, pick_device, run_command
 from deepcharuco.detection import Detection
 from deepcharuco.errors import DeepCharucoError
@@ -72,13 +74,11 @@ def parse_size(text: str, option: str) -> tuple[int, int]:
     return int(parts[0]), int(parts[1])
 
 
-def family_boards(board: BoardSpec, count: int, seed: int) -> list[BoardSpec]:
-    """``count`` random boards of ``board``'s marker family (3-12 squares a side, markers 0.6-0.8 of a square),
-    each with a dictionary of the family large enough for it; from ``seed``."""
-    family = marker_family(board.dictionary)
-    if family is None:
-        raise DeepCharucoError(f"the teacher's board uses {board.dictionary}, which belongs to no marker family: "
-                               "give a teacher trained on one board (heads: all) or on a family")
+def family_boards(family: str, count: int, seed: int) -> list[BoardSpec]:
+    """``count`` random boards of the marker ``family`` (3-12 squares a side, markers 0.6-0.8 of a square), each with
+    the family's smallest dictionary that holds its markers; from ``seed``."""
+    if family not in MARKER_FAMILIES:
+        raise DeepCharucoError(f"--family {family!r} is no marker family: choose one of {', '.join(MARKER_FAMILIES)}")
     rng = np.random.default_rng([seed, 7])
     names = sorted(MARKER_FAMILIES[family], key=dictionary_size)
     boards = []
@@ -110,7 +110,14 @@ class Distiller:
         self.with_ids = id_head_trained(data)
         stored = BoardSpec.from_dict(data["board"])
         self.board = stored
-        boards = [stored] if self.with_ids else family_boards(stored, args.boards, args.seed)
+        if not self.with_ids and not args.family:
+            # A family model's stored board is its warm start's (the paper's board), not of its family.
+            raise DeepCharucoError(f"--teacher {args.teacher} is a points-only (family) model: name the marker family "
+                                   "it was trained on with --family (its model card says; e.g. --family DICT_4X4)")
+        if self.with_ids and args.family:
+            raise DeepCharucoError(f"--family: the teacher {args.teacher} was trained on one board ({stored}), whose "
+                                   "corner IDs the student learns; --family is for points-only (family) teachers")
+        boards = [stored] if self.with_ids else family_boards(args.family, args.boards, args.seed)
         self.size = parse_size(args.size, "--size")
         self.val_size = parse_size(args.val_size, "--val-size")
         self.drawer = FrameDrawer(boards, DrawConfig(size=self.size), device)
@@ -229,8 +236,9 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
             raise DeepCharucoError(f"--resume: no {last_path} to resume from (start without --resume)")
         saved = torch.load(last_path, map_location="cpu", weights_only=True)
         before = saved["training"]["settings"]
+        defaults = parser()  # an option added since the run started: the run had its default
         differs = [name for name, value in settings(args).items()
-                   if name not in RESUME_MAY_CHANGE and before.get(name) != value]
+                   if name not in RESUME_MAY_CHANGE and before.get(name, defaults.get_default(name)) != value]
         if differs:
             raise DeepCharucoError(f"--resume: {', '.join('--' + n.replace('_', '-') for n in differs)} differ from "
                                    f"the run in {out} ({'; '.join(f'{n}: {before.get(n)!r} there' for n in differs)}); "
@@ -348,6 +356,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--label-weight", type=float, default=1.0, help="weight of the cross-entropy on the exact labels")
     p.add_argument("--id-positive-weight", type=float, default=10.0,
                    help="weight of the cells holding a corner in the ID cross-entropy (the shipped model's stage B)")
+    p.add_argument("--family", default="",
+                   help="a points-only (family) teacher: the marker family it was trained on (DICT_4X4, DICT_6X6, ...)")
     p.add_argument("--boards", type=int, default=64, help="a family teacher: random boards of its family drawn")
     p.add_argument("--seed", type=int, default=0, help="seeds the student's initial weights and every training frame")
     p.add_argument("--val-seed", type=int, default=1000, help="seeds the validation frames (not the training seed)")
