@@ -206,7 +206,8 @@ class Distiller:
                    "precision_vs_teacher": ratio(counts["t_matched"], counts["found"]),
                    "corner_accuracy": float(np.mean(accuracies)) if accuracies else float("nan"),
                    "teacher_f1": ratio(2 * teacher_recall * teacher_precision, teacher_recall + teacher_precision)}
-        metrics["score"] = (f1 + metrics["corner_accuracy"]) / 2 if self.with_ids else f1
+        # No validation frame showing a corner (tiny --val-size) scores no IDs: 0, so that the score stays a number.
+        metrics["score"] = (f1 + (metrics["corner_accuracy"] if accuracies else 0.0)) / 2 if self.with_ids else f1
         return metrics
 
 
