@@ -1,0 +1,197 @@
+"""train.draw's frames and labels, train.distill's loss, resume and checkpoints (tiny frames, a few steps)."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
+from deepcharuco.deep_detector import Detector
+from deepcharuco.models.checkpoint import load_charuconet, read_checkpoint, save_bundle
+from deepcharuco.board import BoardSpec
+from deepcharuco.shipped import DEFAULT_WEIGHTS
+from train import distill
+from train.draw import FrameDrawer, DrawConfig
+
+PAPER_BOARD = BoardSpec.from_dict(read_checkpoint(DEFAULT_WEIGHTS, "charuconet")["board"])
+
+
+def tiny_args(out, *extra):
+    return distill.parse_args(["--out", str(out), "--steps", "6", "--warmup", "2", "--batch-size", "3",
+                               "--size", "64x48", "--val-size", "64x48", "--val-batches", "1", "--val-every", "3",
+                               "--threads", "1", "--device", "cpu", "--quiet", *extra])
+
+
+@pytest.fixture(scope="module")
+def drawer():
+    return FrameDrawer([PAPER_BOARD], DrawConfig(size=(160, 120), lens_p=1.0, negative_p=0.0))
+
+
+def test_labels_land_on_the_drawn_corners(drawer):
+    """A label, taken back through the map the image was sampled by (lens, then the pose's homography), is its
+    corner in the board's texture to 1e-3 px; and cornerSubPix on the clean frames finds the corners at the labels."""
+    frames = drawer.draw(np.random.default_rng(3), 12, augment_frames=False)
+    texture = drawer.textures[0][0]
+    worst, refined = 0.0, []
+    for k in range(12):
+        visible = frames.visible[k]
+        assert frames.params[k]["k"] != 0  # every frame through a lens
+        labels = frames.corners[k][visible]
+        if not len(labels):
+            continue
+        true_uv = texture.board_to_texture(PAPER_BOARD.object_points()[visible])
+        uv = drawer.texture_points(labels, frames.params[k])
+        texels_per_px = np.linalg.norm(drawer.texture_points(labels + [0.001, 0], frames.params[k]) - uv, axis=1) / 0.001
+        worst = max(worst, float((np.linalg.norm(uv - true_uv, axis=1) / texels_per_px).max()))
+        if frames.params[k]["square_px"] >= 12:
+            image = frames.image[k, 0].numpy() * 255
+            inner = np.all((labels > 6) & (labels < [153, 113]), axis=1)
+            if inner.any():
+                start = labels[inner].astype(np.float32).reshape(-1, 1, 2)
+                found = cv2.cornerSubPix(image, start.copy(), (3, 3), (-1, -1),
+                                         (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4))
+                refined += list(np.linalg.norm((found - start)[:, 0], axis=1))
+    assert worst < 1e-3
+    assert len(refined) >= 10
+    assert np.median(refined) < 0.15  # 0.06 px as drawn; sampling half a texel or a fine pixel off fails it
+
+
+def test_drawing_is_a_function_of_the_seed(drawer):
+    a = drawer.draw(np.random.default_rng([5, 2]), 3)
+    b = drawer.draw(np.random.default_rng([5, 2]), 3)
+    c = drawer.draw(np.random.default_rng([5, 3]), 3)
+    assert torch.equal(a.image, b.image) and np.array_equal(a.corners, b.corners, equal_nan=True)
+    assert not torch.equal(a.image, c.image)
+
+
+def test_the_loss_falls_on_a_fixed_batch(tmp_path):
+    args = tiny_args(tmp_path / "run")
+    distiller = distill.Distiller(args, torch.device("cpu"))
+    batch = distiller.batch(0)
+    optimizer = torch.optim.Adam(distiller.student.parameters(), lr=3e-3)
+    history = []
+    for _ in range(40):
+        loss, terms = distiller.loss(*batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append(terms)
+    assert set(terms) == {"kl_points", "ce_points", "kl_ids", "ce_ids"}  # the paper's board: both heads distilled
+    for name in terms:  # each term, not only their sum: to the teacher and to the labels
+        assert history[-1][name] < 0.5 * history[0][name], name
+
+
+def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path):
+    whole = distill.run(tiny_args(tmp_path / "whole"))
+    assert whole["step"] == 6 and whole["signal"] is None
+    stopped = distill.run(tiny_args(tmp_path / "parts"), stop_at=4)
+    assert stopped["step"] == 4
+    resumed = distill.run(tiny_args(tmp_path / "parts", "--resume"))
+    assert resumed["step"] == 6
+    a = torch.load(tmp_path / "whole" / "last.pt", weights_only=True)
+    b = torch.load(tmp_path / "parts" / "last.pt", weights_only=True)
+    assert all(torch.equal(a["state_dict"][name], b["state_dict"][name]) for name in a["state_dict"])
+    assert (tmp_path / "whole" / "log.csv").read_text().splitlines()[1:] and [
+        row.split(",")[:2] for row in (tmp_path / "whole" / "log.csv").read_text().splitlines()] == [
+        row.split(",")[:2] for row in (tmp_path / "parts" / "log.csv").read_text().splitlines()]
+
+
+def test_the_checkpoint_loads_through_the_runtime_loader(tmp_path):
+    distill.run(tiny_args(tmp_path / "run"))
+    model, board, data = load_charuconet(tmp_path / "run" / "last.pt")
+    assert model.config == ChArUcoNetConfig.fast(16) and board == PAPER_BOARD
+    assert data["input_size"] == [64, 48] and data.get("heads", "all") == "all"
+    trained = ChArUcoNet(ChArUcoNetConfig.fast(16))
+    trained.load_state_dict(data["state_dict"])
+    image = torch.rand(1, 1, 96, 136)
+    with torch.no_grad():
+        for ours, theirs in zip(model(image), fold_batch_norm(trained.eval())(image)):
+            torch.testing.assert_close(ours, theirs, atol=1e-4, rtol=1e-4)
+    # The ONNX export the runtime makes of it gives PyTorch's logits, at a size that is no multiple of 32.
+    from deepcharuco.onnx_runner import OnnxRunner
+    from deepcharuco.runtime import float_onnx
+
+    runner = OnnxRunner(float_onnx(model), None, threads=1)
+    points, ids = runner.charuconet(image.numpy())
+    with torch.no_grad():
+        expected = model(image)
+    np.testing.assert_allclose(points, expected[0][0].numpy(), atol=1e-3)
+    np.testing.assert_allclose(ids, expected[1][0].numpy(), atol=1e-3)
+    # Bundled with the shipped RefineNet, a Detector builds the fast network from the checkpoint's own config.
+    bundle = save_bundle(tmp_path / "fast.pt", tmp_path / "run" / "last.pt", DEFAULT_WEIGHTS, threshold=0.25)
+    detector = Detector(weights=bundle, backend="onnx")
+    assert detector.charuconet.config.arch == "fast"
+    assert detector.detect(np.full((120, 160), 128, np.uint8)) is not None
+
+
+def test_a_missing_teacher_is_one_line_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = distill.main(["--teacher", str(tmp_path / "nope.pt"), "--out", str(out), "--quiet"])
+    error = capsys.readouterr().err.strip()
+    assert code == 2 and len(error.splitlines()) == 1 and "--teacher" in error and "nope.pt" in error
+    assert not out.exists()
+
+
+def test_resume_refuses_other_settings(tmp_path, capsys):
+    distill.run(tiny_args(tmp_path / "run"))
+    code = distill.main(["--out", str(tmp_path / "run"), "--resume", "--quiet", "--steps", "8", "--size", "64x48",
+                         "--val-size", "64x48", "--batch-size", "3", "--lr", "1e-2"])
+    error = capsys.readouterr().err
+    assert code == 2 and "--lr" in error and "resume with its settings" in error
+
+
+def test_the_fast_architecture():
+    """Same outputs as lite's at any size that is a multiple of 8 (not of 32), context for the ID head alone,
+    recorded in its config, batch norm folded exactly, and under a fifth of lite's multiply-adds for the point
+    network (9.3x fewer as built)."""
+    from benchmarks.network import count_macs
+    from deepcharuco.models.charuconet import PointHeadOnly
+
+    config = ChArUcoNetConfig.fast(16)
+    assert ChArUcoNetConfig.from_dict(config.to_dict()) == config and config.to_dict()["arch"] == "fast"
+    assert "arch" not in ChArUcoNetConfig.lite().to_dict()  # the VGG networks' files are as before
+    torch.manual_seed(0)
+    model = ChArUcoNet(config)
+    for module in model.modules():
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.running_mean.uniform_(-0.5, 0.5)
+            module.running_var.uniform_(0.5, 2.0)
+    model.eval()
+    image = torch.rand(2, 1, 248, 328)
+    with torch.no_grad():
+        points, ids = model(image)
+        assert points.shape == (2, 65, 31, 41) and ids.shape == (2, 17, 31, 41)
+        torch.testing.assert_close(model.points(image), points)
+        # The ID head sees a marker's context (the 1/16 and 1/32 branches), the point head only its neighbourhood:
+        # the pixels beyond (64, 64) change cell (3, 3)'s ID logits (its pixels are 24-31), never its point logits
+        # (the point head's receptive field ends at pixel 51).
+        changed = image.clone()
+        changed[:, :, 64:, 64:] = 1.0
+        other_points, other_ids = model(changed)
+        assert torch.equal(other_points[..., 3, 3], points[..., 3, 3])
+        assert not torch.equal(other_ids[..., 3, 3], ids[..., 3, 3])
+        folded = fold_batch_norm(model)
+        assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+        for ours, theirs in zip(folded(image), (points, ids)):
+            torch.testing.assert_close(ours, theirs, atol=1e-4, rtol=1e-4)
+    frame = torch.zeros(1, 1, 240, 320)
+    lite = count_macs(PointHeadOnly(ChArUcoNet(ChArUcoNetConfig.lite(16))), frame)
+    fast = count_macs(PointHeadOnly(ChArUcoNet(config)), frame)
+    assert 5 * fast <= lite
+
+
+def test_a_family_teacher_distils_the_point_head_on_random_boards_of_its_family(tmp_path):
+    args = tiny_args(tmp_path / "run", "--teacher", "deepcharuco/weights/families/DICT_4X4.pt", "--family", "DICT_4X4",
+                     "--boards", "3")
+    distiller = distill.Distiller(args, torch.device("cpu"))
+    assert not distiller.with_ids and len(distiller.drawer.boards) == 3
+    assert {b.dictionary.rsplit("_", 1)[0] for b in distiller.drawer.boards} == {"DICT_4X4"}
+    assert len({(b.squares_x, b.squares_y) for b in distiller.drawer.boards}) > 1
+    _, terms = distiller.loss(*distiller.batch(0))
+    assert set(terms) == {"kl_points", "ce_points"}  # its ID head was never trained: nothing to learn from it
+    distill.run(args)
+    _, board, data = load_charuconet(tmp_path / "run" / "last.pt")
+    assert data["heads"] == "points" and type(board).__name__ == "PointsOnlyBoard"
+    without = tiny_args(tmp_path / "other", "--teacher", "deepcharuco/weights/families/DICT_4X4.pt")
+    with pytest.raises(distill.DeepCharucoError, match="--family"):  # its checkpoint does not say which family
+        distill.Distiller(without, torch.device("cpu"))
