@@ -44,7 +44,7 @@ def per_call_seconds(call, seconds: float) -> float:
 
 def architecture(name: str, num_corners: int = 16):
     """The ChArUcoNetConfig ``name`` stands for: "paper", "lite", "fast" or "fast:W4-W8-W16-W32-HEAD"."""
-    from deepcharuco.models.charuconet import ChArUcoNetConfig, named_config
+    from deepcharuco.networks.charuconet import ChArUcoNetConfig, named_config
 
     if name.startswith("fast:"):
         *widths, head = (int(v) for v in name[5:].split("-"))
@@ -79,9 +79,9 @@ def compare_architectures(names: list[str], sizes: list[tuple[int, int]], second
     import torch
     from dataclasses import replace
 
-    from deepcharuco.models.charuconet import ChArUcoNet, PointHeadOnly, fold_batch_norm
-    from deepcharuco.onnx_export import network_specs, onnx_bytes
-    from deepcharuco.onnx_runner import _session
+    from deepcharuco.networks.charuconet import ChArUcoNet, PointHeadOnly, fold_batch_norm
+    from deepcharuco.networks.onnx_export import network_specs, onnx_bytes
+    from deepcharuco.networks.onnx_runner import _session
 
     print(f"# ChArUcoNet architectures, random weights, ONNX Runtime on {cpu_description()}; median ms a call, "
           f"interleaved; x: the first one's time / this one's")

@@ -23,10 +23,10 @@ Validation every --val-every steps on --val-batches batches drawn once from --va
 training step's): the student's corners (cells at point confidence >= 0.5, within 3 px) against the exact labels
 (recall, precision, F1) and against the teacher's corners (``recall_vs_teacher``, ``precision_vs_teacher``); the
 teacher's own F1 against the labels (``teacher_f1``, the mark to reach); with ID heads, the paper's corner accuracy
-of the student's decoded IDs (`deepcharuco.metrics.match_corners`). The score
+of the student's decoded IDs (`deepcharuco.detection.metrics.match_corners`). The score
 (F1 against the labels, averaged with the corner accuracy where there are IDs) keeps ``best.pt``. Checkpoints
-(``last.pt``, every --checkpoint-minutes, at the end and on Ctrl-C / SIGTERM) are `deepcharuco.models`
-checkpoints: `load_charuconet` and ``python -m deepcharuco.export`` read them. ``log.csv`` has a row per
+(``last.pt``, every --checkpoint-minutes, at the end and on Ctrl-C / SIGTERM) are `deepcharuco.networks`
+checkpoints: `load_charuconet` and ``deepcharuco export`` read them. ``log.csv`` has a row per
 --log-every steps and per validation.
 """
 
@@ -38,7 +38,6 @@ import io
 import math
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,17 +45,17 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepcharuco.board import MARKER_FAMILIES, BoardSpec, dictionary_size
-from deepcharuco.cli import output_folder, pick_device, run_command
-from deepcharuco.detection import Detection
-from deepcharuco.errors import DeepCharucoError
-from deepcharuco.metrics import match_corners
-from deepcharuco.models.cells import decode_cells, encode_cells, point_candidates
-from deepcharuco.models.charuconet import WIDTH_NAMES, ChArUcoNet, named_config
-from deepcharuco.models.checkpoint import (CheckpointError, id_head_trained, load_charuconet, read_checkpoint,
-                                           save_checkpoint)
-from deepcharuco.onnx_runner import _session
-from deepcharuco.runtime import float_onnx
+from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec, dictionary_size
+from deepcharuco.cli.common import output_folder, pick_device, run_command
+from deepcharuco.core.detection import Detection
+from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.detection.metrics import match_corners
+from deepcharuco.networks.cells import decode_cells, encode_cells, point_candidates
+from deepcharuco.networks.charuconet import WIDTH_NAMES, ChArUcoNet, named_config
+from deepcharuco.networks.checkpoint import (CheckpointError, id_head_trained, load_charuconet, read_checkpoint,
+                                             save_checkpoint)
+from deepcharuco.networks.onnx_runner import _session
+from deepcharuco.networks.runtime import float_onnx
 from train.charuconet import POINT_CONFIDENCE, match_points
 from train.draw import DrawConfig, FrameDrawer
 from train.loop import _Stop

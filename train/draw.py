@@ -6,7 +6,7 @@ A frame (``size`` = (W, H) pixels, pixel centres at integers as everywhere in th
 
 - the board: its area-exact texture (`BoardSpec.render_texture`) at ``TEXELS_PER_SQUARE`` texels a square and at
   every halving of that (mip levels, each rendered area-exact, so none is aliased or shifted), seen by a pinhole
-  camera (focal length, principal point) from a random pose (`deepcharuco.synthetic.look_at_pose`: tilts, roll,
+  camera (focal length, principal point) from a random pose (`deepcharuco.boards.synthetic.look_at_pose`: tilts, roll,
   distance from the square's size in pixels, anywhere in and around the frame), through a radial lens (below),
   sampled by ``grid_sample`` from the level whose texels are about a fine pixel;
 - printed with random paper and ink levels under a linear light gradient, on a background: one of
@@ -33,8 +33,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from deepcharuco.board import BoardSpec, BoardTexture
-from deepcharuco.synthetic import look_at_pose, texture_homography
+from deepcharuco.boards.board import BoardSpec, BoardTexture
+from deepcharuco.boards.synthetic import look_at_pose, texture_homography
 from train.augment import AugmentConfig, augment
 
 TEXELS_PER_SQUARE = 64  # the finest mip level; boards are drawn with squares of at most ~ 60 fine pixels

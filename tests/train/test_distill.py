@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from deepcharuco.models.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
-from deepcharuco.deep_detector import Detector
-from deepcharuco.models.checkpoint import load_charuconet, read_checkpoint, save_bundle
-from deepcharuco.board import BoardSpec
-from deepcharuco.shipped import DEFAULT_WEIGHTS
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.networks.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
+from deepcharuco.networks.checkpoint import load_charuconet, read_checkpoint, save_bundle
+from deepcharuco.networks.shipped import DEFAULT_WEIGHTS
 from train import distill
 from train.draw import FrameDrawer, DrawConfig
 
@@ -108,8 +108,8 @@ def test_the_checkpoint_loads_through_the_runtime_loader(tmp_path):
         for ours, theirs in zip(model(image), fold_batch_norm(trained.eval())(image)):
             torch.testing.assert_close(ours, theirs, atol=1e-4, rtol=1e-4)
     # The ONNX export the runtime makes of it gives PyTorch's logits, at a size that is no multiple of 32.
-    from deepcharuco.onnx_runner import OnnxRunner
-    from deepcharuco.runtime import float_onnx
+    from deepcharuco.networks.onnx_runner import OnnxRunner
+    from deepcharuco.networks.runtime import float_onnx
 
     runner = OnnxRunner(float_onnx(model), None, threads=1)
     points, ids = runner.charuconet(image.numpy())
@@ -145,7 +145,7 @@ def test_the_fast_architecture():
     recorded in its config, batch norm folded exactly, and under a fifth of lite's multiply-adds for the point
     network (9.3x fewer as built)."""
     from benchmarks.network import count_macs
-    from deepcharuco.models.charuconet import PointHeadOnly
+    from deepcharuco.networks.charuconet import PointHeadOnly
 
     config = ChArUcoNetConfig.fast(16)
     assert ChArUcoNetConfig.from_dict(config.to_dict()) == config and config.to_dict()["arch"] == "fast"
