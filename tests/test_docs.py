@@ -1,5 +1,6 @@
 """The project's documents are self-contained: no reference to a file outside the repository (users have
-only the repository), and every relative link in them resolves."""
+only the repository), every relative link in them resolves, and every source path and ``python -m`` command they
+name exists."""
 
 import re
 import subprocess
@@ -50,6 +51,36 @@ def test_relative_links_resolve(document):
         if "://" in target:
             continue
         assert (path.parent / target).exists(), f"{document} links to {target}, which does not exist"
+
+
+# A path into the project's source folders as documents write it (`deepcharuco/detection/placement.py`).
+SOURCE_PATH = re.compile(r"(?<![\w./-])((?:deepcharuco|evaluate|train|datagen|benchmarks|blender_scenes|tests|docs)/"
+                         r"[\w/-]*\w\.(?:py|md))\b")
+COMMAND = re.compile(r"python -m ((?:deepcharuco|evaluate|train|datagen|benchmarks)(?:\.\w+)*)")
+DOCUMENTS = ["README.md", "deepcharuco/weights/MODEL_CARD.md", *sorted(f"docs/{p.name}" for p in (ROOT / "docs").glob("*.md"))]
+
+
+def named_in(document: str, pattern: re.Pattern) -> set[str]:
+    return set(pattern.findall((ROOT / document).read_text()))
+
+
+@pytest.mark.parametrize("document", DOCUMENTS)
+def test_source_paths_and_commands_resolve(document):
+    """The files and modules a document sends users to exist (CHANGELOG.md is history: it keeps old names)."""
+    import importlib.util
+
+    missing = sorted(path for path in named_in(document, SOURCE_PATH) if not (ROOT / path).exists())
+    assert not missing, f"{document} names files that do not exist: {missing}"
+    unknown = sorted(module for module in named_in(document, COMMAND) if importlib.util.find_spec(module) is None)
+    assert not unknown, f"{document} names commands whose module does not exist: {unknown}"
+
+
+def test_the_path_check_sees_a_moved_module():
+    assert SOURCE_PATH.findall("see `deepcharuco/placement.py` and deepcharuco/detection/placement.py.") == [
+        "deepcharuco/placement.py", "deepcharuco/detection/placement.py"]
+    assert not (ROOT / "deepcharuco/placement.py").exists()
+    assert COMMAND.findall("python -m deepcharuco.detect IMAGE; python -m evaluate.report") == [
+        "deepcharuco.detect", "evaluate.report"]
 
 
 def test_the_readme_picture_shows_what_its_caption_says():
