@@ -21,6 +21,11 @@ import numpy as np
 
 from deepcharuco.core.vectors import lengths, pairwise_distances
 
+try:  # `squarest_cells`' loop compiled (pip install deepcharuco[fast]); else Python's, the same choice
+    from deepcharuco.detection import decode_kernel as compiled_kernel
+except ImportError:
+    compiled_kernel = None
+
 NEIGHBOURS = 8  # nearest candidates a corner pairs up: its 4 lattice neighbours and 4 diagonals
 # d may miss b + c - a by this fraction of the shorter side (perspective, lens distortion, jitter).
 CLOSURE_TOLERANCE = 0.25
@@ -99,11 +104,25 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
         lengths(ahead) * lengths(behind), 1e-12)).max(axis=1)
     area = quad_areas(corners)
     # Each quad's four directed sides a -> b as integers a * n + b (n: one more than the largest index): (Q, 4).
-    sides = (quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)).tolist()
-    cosine, area = cosine.tolist(), area.tolist()
+    sides = quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)
+    order = np.argsort(cosine, kind="stable")
+    if compiled_kernel is not None:
+        _, compact = np.unique(sides, return_inverse=True)  # the sides as IDs 0 .. S-1 for the kernel's tables
+        keep = compiled_kernel.squarest_keep(compact.reshape(sides.shape).astype(np.int64), cosine, area, order,
+                                             SQUARER_BY, SAME_AREA, CONTAINED_AREA)
+    else:
+        keep = _squarest_keep(sides, cosine, area, order)
+    return quads[keep]
+
+
+def _squarest_keep(sides: np.ndarray, cosine: np.ndarray, area: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """`squarest_cells`' choice in Python: (Q, 4) int64 each quad's directed sides, (Q,) float64 largest |cos| of a
+    corner angle and area, (Q,) the order to visit them in (squarest first) -> (Q,) bool kept
+    (`decode_kernel.squarest_keep` decides exactly this)."""
+    sides, cosine, area = sides.tolist(), cosine.tolist(), area.tolist()
     kept: dict[int, list[int]] = {}  # the quads kept so far on each directed side (visited squarest first)
-    keep = np.zeros(len(quads), bool)
-    for q in np.argsort(cosine, kind="stable").tolist():
+    keep = np.zeros(len(sides), bool)
+    for q in order.tolist():
         rivals = [r for side in sides[q] if side in kept for r in kept[side]]  # most quads have none: no test
         if rivals:
             squarer, own, size = cosine[q] - SQUARER_BY, area[q], SAME_AREA * area[q]
@@ -117,7 +136,7 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     for q in np.flatnonzero(keep).tolist():
         smaller, squarer = CONTAINED_AREA * area[q], cosine[q] + SQUARER_BY
         keep[q] = not any(area[r] <= smaller and cosine[r] <= squarer for side in sides[q] for r in kept[side] if r != q)
-    return quads[keep]
+    return keep
 
 
 def quad_areas(corners: np.ndarray) -> np.ndarray:

@@ -38,6 +38,11 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.checks import check_choice
 from deepcharuco.networks.shipped import WEIGHTS_DIR
 
+try:  # the reads' loops compiled (pip install deepcharuco[fast]); else numpy's, the same values
+    from deepcharuco.detection import decode_kernel as compiled_kernel
+except ImportError:
+    compiled_kernel = None
+
 SAMPLES_PER_BIT = 2  # per side: 4 bilinear samples over the middle half of each bit cell
 BIT_FILL = 0.5  # the samples span this fraction of a bit cell (its edges blur into the neighbours)
 # Grey levels between paper ring and marker border below which a square is unreadable. At the paper's
@@ -178,13 +183,15 @@ def read_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: f
 
 def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """`read_squares` with the "sampled" reader."""
+    """`read_squares` with the "sampled" reader: every sample of every square through its homography
+    (`_square_maps`), ONE ``cv2.remap`` for all of them, each square's cells, border and ring reduced
+    (`_reduce_reads`); by `decode_kernel` where numba is installed, else numpy (the same values)."""
     count = len(homographies)
     grid = size + 2
     if count == 0:
         return np.zeros((0, size, size), np.float32), np.zeros(0, np.float32)
     bit_points, ring_points = _sample_grid(size, ratio)
-    local = np.concatenate([bit_points.reshape(-1, 2), ring_points])  # (P, 2)
+    local = _local_points(size, ratio)  # (P, 2) float32
     homographies = np.asarray(homographies, np.float64)
     # A square whose four corners lie in front of the camera and inside the image holds all its samples.
     unit = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], np.float64)
@@ -195,27 +202,54 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     inside = (corners[:, :, 2] > 0).all(axis=1) & np.isfinite(corner_xy).all(axis=(1, 2)) \
         & (corner_xy >= 0).all(axis=(1, 2)) & (corner_xy[:, :, 0] <= width - 1).all(axis=1) \
         & (corner_xy[:, :, 1] <= height - 1).all(axis=1)
-    # Every sample through every square's homography as one (P, 3) x (3, 3R) product: (P, R, 3), divided and
-    # sampled as (P, R) maps where they lie (a (R, P, 2) copy of the points cost twice the sampling).
-    stacked = homographies[inside].astype(np.float32).transpose(2, 0, 1).reshape(3, -1)
-    mapped = (np.c_[local, np.ones(len(local))].astype(np.float32) @ stacked).reshape(len(local), -1, 3)
-    values = np.zeros((count, len(local)), np.float32)
+    bits = np.zeros((count, grid, grid), np.float32)
+    dark = np.zeros(count, np.float32)
+    bright = np.zeros(count, np.float32)
     if inside.any():
-        w = mapped[:, :, 2]
-        values[inside] = sample_maps(gray, mapped[:, :, 0] / w, mapped[:, :, 1] / w).T
-    samples = bit_points.shape[1]
+        inner = np.ascontiguousarray(homographies[inside].astype(np.float32))
+        compiled = compiled_kernel is not None
+        x, y = compiled_kernel.square_maps(inner, local) if compiled else _square_maps(inner, local)
+        values = sample_maps(gray, x, y)  # (R', P): rows of samples, one remap for all
+        reduce = compiled_kernel.reduce_reads if compiled else _reduce_reads
+        bits[inside], dark[inside], bright[inside] = reduce(values, grid, bit_points.shape[1])
+    contrast = bright - dark
+    readable = (contrast >= MIN_CONTRAST) & inside
+    return bits[:, 1:-1, 1:-1].astype(np.float32), np.where(readable, contrast, 0.0).astype(np.float32)
+
+
+@cache
+def _local_points(size: int, ratio: float) -> np.ndarray:
+    """(P, 2) float32 `_sample_grid`'s bit samples, then its ring, as one array (read-only)."""
+    bit_points, ring_points = _sample_grid(size, ratio)
+    local = np.ascontiguousarray(np.concatenate([bit_points.reshape(-1, 2), ring_points]).astype(np.float32))
+    local.flags.writeable = False
+    return local
+
+
+def _square_maps(homographies: np.ndarray, local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 3, 3) float32 unit frames -> image, (P, 2) float32 points -> (x (R, P), y (R, P)) float32 pixels:
+    (h00 u + h01 v + h02) / (h20 u + h21 v + h22), each product and sum rounded to float32 left to right
+    (`decode_kernel.square_maps` computes exactly this)."""
+    u, v = local[:, 0], local[:, 1]
+    h = homographies[:, :, :, None]  # (R, 3, 3, 1): each entry broadcast over the points
+    w = h[:, 2, 0] * u + h[:, 2, 1] * v + h[:, 2, 2]
+    x = (h[:, 0, 0] * u + h[:, 0, 1] * v + h[:, 0, 2]) / w
+    y = (h[:, 1, 0] * u + h[:, 1, 1] * v + h[:, 1, 2]) / w
+    return x, y
+
+
+def _reduce_reads(values: np.ndarray, grid: int, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, P) float32 samples (`_local_points`' order) -> (bits (R, grid, grid) float32 each cell's mean sample,
+    dark (R,) the median of the border cells, bright (R,) the median of the ring's samples)
+    (`decode_kernel.reduce_reads` computes exactly this)."""
+    count = len(values)
     sampled = values[:, :grid * grid * samples].reshape(count, grid, grid, samples)
     bits = sampled[..., 0]  # the mean over each bit's samples, summed in np.mean's order
     for k in range(1, samples):
         bits = bits + sampled[..., k]
     bits = bits / np.float32(samples)
-    ring = values[:, grid * grid * samples:]
     border = np.concatenate([bits[:, 0, :], bits[:, -1, :], bits[:, 1:-1, 0], bits[:, 1:-1, -1]], axis=1)
-    dark = _row_medians(border)
-    bright = _row_medians(ring)
-    contrast = bright - dark
-    readable = (contrast >= MIN_CONTRAST) & inside
-    return bits[:, 1:-1, 1:-1].astype(np.float32), np.where(readable, contrast, 0.0).astype(np.float32)
+    return bits, _row_medians(border), _row_medians(values[:, grid * grid * samples:])
 
 
 def rectify_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio: float) -> np.ndarray:

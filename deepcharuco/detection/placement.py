@@ -160,14 +160,58 @@ def _translations(offsets: np.ndarray) -> np.ndarray:
     return moves
 
 
+class CellReads:
+    """The marker reads of each cell's five squares (the cell and its edge neighbours, `NEIGHBOUR_OFFSETS`), kept by
+    cell: `corners_from_markers`' second pass through the cells (every one) reads only those its first (the squarest)
+    did not. A square's read depends on its cell's corners alone, so a kept read is the read it would make again.
+    For one image, one reader and one set of candidate ``pixels``."""
+
+    def __init__(self):
+        self.keys = np.zeros(0, np.int64)  # sorted cell keys (`_cell_keys`)
+        self.bits: np.ndarray | None = None  # (K, 5, n, n) float32, in the keys' order
+        self.contrast = np.zeros((0, len(NEIGHBOUR_OFFSETS)), np.float32)
+
+    def read(self, quads: np.ndarray, count: int, read: callable) -> tuple[np.ndarray, np.ndarray]:
+        """(Q, 4) cells among ``count`` candidates -> (bits (Q * 5, n, n), contrast (Q * 5,)) as `read_squares` gives
+        them, rows cell by cell; ``read(rows)`` reads the squares of the cells ``rows`` (Q,) bool not kept yet."""
+        keys = _cell_keys(quads, count)
+        at = np.searchsorted(self.keys, keys).clip(max=max(len(self.keys) - 1, 0))
+        kept = (self.keys[at] == keys) if len(self.keys) else np.zeros(len(keys), bool)
+        new_bits, new_contrast = read(~kept)
+        side = len(NEIGHBOUR_OFFSETS)
+        new_bits = new_bits.reshape(-1, side, *new_bits.shape[1:])
+        new_contrast = new_contrast.reshape(-1, side)
+        if self.bits is None:
+            self.bits = np.zeros((0, *new_bits.shape[1:]), np.float32)
+        bits = np.empty((len(keys), *new_bits.shape[1:]), np.float32)
+        contrast = np.empty((len(keys), side), np.float32)
+        bits[kept], contrast[kept] = self.bits[at[kept]], self.contrast[at[kept]]
+        bits[~kept], contrast[~kept] = new_bits, new_contrast
+        order = np.argsort(np.concatenate([self.keys, keys[~kept]]), kind="stable")
+        self.keys = np.concatenate([self.keys, keys[~kept]])[order]
+        self.bits = np.concatenate([self.bits, new_bits])[order]
+        self.contrast = np.concatenate([self.contrast, new_contrast])[order]
+        return bits.reshape(-1, *bits.shape[2:]), contrast.reshape(-1)
+
+
+def _cell_keys(quads: np.ndarray, count: int) -> np.ndarray:
+    """(Q, 4) cells (ordered corners a, b, d, c among ``count`` candidates) -> (Q,) int64 one key each."""
+    quads = np.asarray(quads, np.int64)
+    if count ** 4 >= 2 ** 63:
+        raise ValueError(f"{count} candidates: too many for int64 cell keys")
+    return ((quads[:, 0] * count + quads[:, 1]) * count + quads[:, 2]) * count + quads[:, 3]
+
+
 def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, quads: np.ndarray,
-                     read_gray: np.ndarray | None = None, reader: str | None = None) -> MarkerView | None:
+                     read_gray: np.ndarray | None = None, reader: str | None = None, reads: CellReads | None = None
+                     ) -> MarkerView | None:
     """The view of ``board`` that the markers in the cells ``quads`` (Q, 4) (`lattice.find_cells`) between
     ``pixels`` (N, 2) corner candidates agree on, or None.
 
     ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
     ``pixels`` (most confident first) were found in; ``read_gray``: the same image at a higher resolution to read the markers in
-    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs). The view returned maps to
+    (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs); ``reads``: reads of cells made before in
+    the same image by the same reader among the same ``pixels``, reused and added to. The view returned maps to
     ``gray``'s pixels."""
     if len(quads) == 0:
         return None
@@ -181,7 +225,12 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     squares = np.einsum("qij,sjk->qsik", cells, shifts).reshape(-1, 3, 3)
     markers = board_markers(board)
     read_gray, to_read = _reading_image(gray, read_gray)
-    bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio, reader)
+    if reads is None:
+        bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio, reader)
+    else:
+        by_cell = squares.reshape(len(quads), len(NEIGHBOUR_OFFSETS), 3, 3)
+        bits, contrast = reads.read(quads, len(pixels), lambda rows: read_squares(
+            read_gray, to_read @ by_cell[rows].reshape(-1, 3, 3), markers.size, markers.ratio, reader))
     matches = match_markers(bits, contrast, markers, reader=reader)
     if len(np.unique(matches.marker)) < MIN_MARKERS:
         return None
@@ -443,8 +492,9 @@ def _searched(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray, candidat
     # cell where those find no verified view.
     every = find_cells(strongest)
     squarest = squarest_cells(strongest, every)
+    reads = CellReads()  # the squarest cells' reads, reused when every cell is read
     for quads in (squarest, every) if len(squarest) < len(every) else (every,):
-        found = find_marker_view(gray, board, strongest, quads, read_gray, reader)
+        found = find_marker_view(gray, board, strongest, quads, read_gray, reader, reads)
         verified = None if found is None else \
             _verified_corners(gray, board, board_xy, candidates, found, refits, read_gray, reader)
         if verified is not None:

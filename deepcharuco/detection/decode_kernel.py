@@ -1,0 +1,134 @@
+"""The marker reads' and the cells' per-element loops compiled by numba: the same arithmetic as their numpy paths
+(`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._squarest_keep`), in one pass over the data
+instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's few thousand square
+reads (`docs/detector.md`, "A compiled decoder").
+
+Imported only where numba is installed (``pip install deepcharuco[fast]``); the callers use the numpy paths
+otherwise, and tests/test_decode_kernel.py checks both give the same detections. The first call compiles (a few
+seconds, cached on disk beside this file where it is writable).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def square_maps(homographies, local):
+    """(R, 3, 3) float32 unit frames -> image, (P, 2) float32 points of the unit frame -> (x (R, P), y (R, P)) float32
+    pixels, each point through each homography: (h00 x + h01 y + h02) / (h20 x + h21 y + h22), in float32, summed
+    left to right as `marker_reader._square_maps` does."""
+    count, points = homographies.shape[0], local.shape[0]
+    x = np.empty((count, points), np.float32)
+    y = np.empty((count, points), np.float32)
+    for r in range(count):
+        h = homographies[r]
+        for p in range(points):
+            u, v = local[p, 0], local[p, 1]
+            w = h[2, 0] * u + h[2, 1] * v + h[2, 2]
+            x[r, p] = (h[0, 0] * u + h[0, 1] * v + h[0, 2]) / w
+            y[r, p] = (h[1, 0] * u + h[1, 1] * v + h[1, 2]) / w
+    return x, y
+
+
+@njit(cache=True)
+def _median(values):
+    """The median of a short 1-D float32 array, sorted in place (insertion sort: a few dozen values), as
+    `marker_reader._row_medians` gives it (the float32 mean of the two middle values for an even count)."""
+    for i in range(1, len(values)):
+        value = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > value:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = value
+    half = len(values) // 2
+    if len(values) % 2:
+        return values[half]
+    return (values[half - 1] + values[half]) / np.float32(2)
+
+
+@njit(cache=True)
+def reduce_reads(values, grid, samples):
+    """(R, P) float32 samples of `marker_reader._sample_grid`'s points (each bit cell's ``samples`` in row-major cell
+    order, then the paper ring) -> (bits (R, grid, grid) float32: each cell's mean sample, summed in order; dark (R,)
+    float32: the median of the border cells; bright (R,) float32: the median of the ring's samples)."""
+    count = values.shape[0]
+    ring_start = grid * grid * samples
+    ring_count = values.shape[1] - ring_start
+    bits = np.empty((count, grid, grid), np.float32)
+    dark = np.empty(count, np.float32)
+    bright = np.empty(count, np.float32)
+    border = np.empty(4 * grid - 4, np.float32)
+    ring = np.empty(ring_count, np.float32)
+    for r in range(count):
+        for cell in range(grid * grid):
+            total = values[r, cell * samples]
+            for k in range(1, samples):
+                total = total + values[r, cell * samples + k]
+            bits[r, cell // grid, cell % grid] = total / np.float32(samples)
+        b = 0
+        for col in range(grid):
+            border[b] = bits[r, 0, col]
+            border[b + 1] = bits[r, grid - 1, col]
+            b += 2
+        for row in range(1, grid - 1):
+            border[b] = bits[r, row, 0]
+            border[b + 1] = bits[r, row, grid - 1]
+            b += 2
+        dark[r] = _median(border)
+        for k in range(ring_count):
+            ring[k] = values[r, ring_start + k]
+        bright[r] = _median(ring)
+    return bits, dark, bright
+
+
+@njit(cache=True)
+def squarest_keep(sides, cosine, area, order, squarer_by, same_area, contained_area):
+    """`lattice._squarest_keep` compiled: (Q, 4) int64 each quad's directed sides as compact IDs (0 .. S-1), (Q,)
+    float64 largest |cos| of a corner angle and area, (Q,) the visiting order (squarest first) -> (Q,) bool kept."""
+    quads = sides.shape[0]
+    side_ids = 0
+    for q in range(quads):
+        for s in range(4):
+            side_ids = max(side_ids, sides[q, s] + 1)
+    # the quads kept on each directed side, as linked lists: head[side] -> entry, entry -> (quad, next entry)
+    head = np.full(side_ids, -1, np.int64)
+    entry_quad = np.empty(4 * quads, np.int64)
+    entry_next = np.empty(4 * quads, np.int64)
+    entries = 0
+    keep = np.zeros(quads, np.bool_)
+    for q in order:
+        squarer, own, size = cosine[q] - squarer_by, area[q], same_area * area[q]
+        beaten = False
+        for s in range(4):
+            e = head[sides[q, s]]
+            while e >= 0 and not beaten:
+                r = entry_quad[e]
+                if cosine[r] < squarer and abs(area[r] - own) <= size:
+                    beaten = True
+                e = entry_next[e]
+            if beaten:
+                break
+        if beaten:
+            continue
+        keep[q] = True
+        for s in range(4):
+            entry_quad[entries] = q
+            entry_next[entries] = head[sides[q, s]]
+            head[sides[q, s]] = entries
+            entries += 1
+    kept = keep.copy()
+    for q in range(quads):
+        if not kept[q]:
+            continue
+        smaller, squarer = contained_area * area[q], cosine[q] + squarer_by
+        for s in range(4):
+            e = head[sides[q, s]]
+            while e >= 0 and keep[q]:
+                r = entry_quad[e]
+                if r != q and area[r] <= smaller and cosine[r] <= squarer:
+                    keep[q] = False
+                e = entry_next[e]
+    return keep

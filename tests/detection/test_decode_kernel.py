@@ -1,0 +1,163 @@
+"""The compiled decoding (`decode_kernel`, numba) and its numpy path give the same corners; the search's second pass
+reuses the first pass's reads (`placement.CellReads`) without changing them."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from deepcharuco import BoardSpec, Camera, Detector, lattice, marker_reader, placement
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "evaluate" / "captures_sample"
+
+
+def photos() -> list[tuple[str, Path, Path]]:
+    """(name, image, board.yaml) of the shipped real photos and the example frame."""
+    found = [(f"{folder.name}/{image.name}", image, folder / "board.yaml")
+             for folder in sorted(SAMPLES.iterdir()) if (folder / "board.yaml").is_file()
+             for image in sorted(folder.glob("*.jpg"))]
+    return found + [("example", ROOT / "deepcharuco" / "examples" / "board_320x240.png", None)]
+
+
+def drawn(condition: str) -> tuple[np.ndarray, BoardSpec]:
+    """The paper's board drawn at 640x480 under a tilted view: sharp, dark (3 % of the light, sensor noise) or
+    motion-blurred (k = 9) and dim."""
+    board = BoardSpec()
+    camera = Camera.from_fov(640, 480, hfov_deg=60.0)
+    rvec, tvec = look_at_pose(board, distance=0.35, tilt_x_deg=25, tilt_y_deg=-20, roll_deg=15)
+    image = render_board_view(board, camera.K, rvec, tvec, camera.image_size).astype(np.float32)
+    rng = np.random.default_rng(51)
+    if condition == "dark":
+        image = image * 0.03 + rng.normal(0, 0.6, image.shape)
+    elif condition == "blurred":
+        image = cv2.blur(image, (9, 1)) * 0.3 + rng.normal(0, 1.0, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8), board
+
+
+def detect_both(monkeypatch, image: np.ndarray, board: BoardSpec):
+    """The deep detector's detection of ``image`` with the compiled decoding, then with numpy's."""
+    detector = Detector(board)
+    compiled = detector.detect(image)
+    with monkeypatch.context() as patch:
+        patch.setattr(marker_reader, "compiled_kernel", None)
+        patch.setattr(lattice, "compiled_kernel", None)
+        plain = detector.detect(image)
+    return compiled, plain
+
+
+def assert_same(compiled, plain) -> None:
+    assert np.array_equal(compiled.ids, plain.ids)
+    assert np.array_equal(compiled.corners, plain.corners)  # bit for bit
+    assert np.array_equal(compiled.scores, plain.scores)
+
+
+@pytest.mark.parametrize("name,image,board", photos(), ids=[p[0] for p in photos()])
+def test_compiled_and_numpy_decoding_agree_on_real_photos(monkeypatch, name, image, board):
+    pytest.importorskip("numba")
+    gray = cv2.imread(str(image), cv2.IMREAD_GRAYSCALE)
+    board = BoardSpec() if board is None else BoardSpec.load(board)
+    compiled, plain = detect_both(monkeypatch, gray, board)
+    assert_same(compiled, plain)
+
+
+def test_the_real_photos_hold_boards_the_detector_finds(monkeypatch):
+    """The agreement above is on found boards, not on empty detections alike."""
+    pytest.importorskip("numba")
+    found = 0
+    for _, image, board in photos():
+        board = BoardSpec() if board is None else BoardSpec.load(board)
+        found += len(Detector(board).detect(cv2.imread(str(image), cv2.IMREAD_GRAYSCALE))) >= 4
+    assert found >= len(photos()) // 2
+
+
+@pytest.mark.parametrize("condition", ["sharp", "dark", "blurred"])
+def test_compiled_and_numpy_decoding_agree_on_drawn_views(monkeypatch, condition):
+    pytest.importorskip("numba")
+    image, board = drawn(condition)
+    compiled, plain = detect_both(monkeypatch, image, board)
+    assert len(compiled) >= 6  # found in every condition: the comparison is of corners
+    assert_same(compiled, plain)
+
+
+def random_squares(rng: np.random.Generator, count: int, size: tuple[int, int]) -> np.ndarray:
+    """(count, 3, 3) float32 unit square -> image maps of random quads inside an image of ``size`` (w, h)."""
+    quads = []
+    for _ in range(count):
+        centre = rng.uniform(20, np.array(size) - 20)
+        corners = centre + rng.uniform(4, 15) * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) \
+            + rng.normal(0, 2, (4, 2))
+        unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+        quads.append(cv2.getPerspectiveTransform(unit, corners.astype(np.float32)))
+    return np.asarray(quads, np.float32)
+
+
+def test_kernels_compute_the_numpy_paths_values():
+    kernel = pytest.importorskip("deepcharuco.detection.decode_kernel")
+    rng = np.random.default_rng(7)
+    size, ratio = 6, 0.7
+    homographies = random_squares(rng, 300, (640, 480))
+    local = marker_reader._local_points(size, ratio)
+    maps = kernel.square_maps(homographies, local)
+    plain_maps = marker_reader._square_maps(homographies, local)
+    for compiled, plain in zip(maps, plain_maps):
+        assert compiled.dtype == plain.dtype == np.float32 and np.array_equal(compiled, plain)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (0, 0), 2)
+    values = marker_reader.sample_maps(image, *maps)
+    samples = marker_reader._sample_grid(size, ratio)[0].shape[1]
+    for compiled, plain in zip(kernel.reduce_reads(values, size + 2, samples),
+                               marker_reader._reduce_reads(values, size + 2, samples)):
+        assert compiled.dtype == plain.dtype and np.array_equal(compiled, plain)
+
+
+def test_squarest_cells_kernel_keeps_the_same_cells():
+    kernel = pytest.importorskip("deepcharuco.detection.decode_kernel")
+    rng = np.random.default_rng(3)
+    # a sheared, jittered lattice and clutter: many quads, rivals on shared sides
+    x, y = np.meshgrid(np.arange(12), np.arange(9))
+    lattice_points = np.stack([x.ravel() * 20 + y.ravel() * 6, y.ravel() * 17], axis=1) + rng.normal(0, 1.5, (108, 2))
+    pixels = np.concatenate([lattice_points + 40, rng.uniform(0, 320, (40, 2))]).astype(np.float32)
+    quads = lattice.find_cells(pixels)
+    kept = lattice.squarest_cells(pixels, quads)
+    assert 0 < len(kept) < len(quads)
+    points = pixels.astype(np.float64)[quads]
+    ahead, behind = np.roll(points, -1, axis=1) - points, np.roll(points, 1, axis=1) - points
+    cosine = (np.abs(np.sum(ahead * behind, axis=2)) / np.maximum(
+        np.linalg.norm(ahead, axis=2) * np.linalg.norm(behind, axis=2), 1e-12)).max(axis=1)
+    area = lattice.quad_areas(points)
+    sides = quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)
+    order = np.argsort(cosine, kind="stable")
+    _, compact = np.unique(sides, return_inverse=True)
+    compiled = kernel.squarest_keep(compact.reshape(sides.shape).astype(np.int64), cosine, area, order,
+                                    lattice.SQUARER_BY, lattice.SAME_AREA, lattice.CONTAINED_AREA)
+    plain = lattice._squarest_keep(sides, cosine, area, order)
+    assert np.array_equal(compiled, plain)
+    assert np.array_equal(quads[plain], kept)
+
+
+def test_cell_reads_reuse_reads_and_read_only_new_cells():
+    rng = np.random.default_rng(11)
+    image, board = drawn("sharp")
+    markers = marker_reader.board_markers(board)
+    pixels = rng.uniform(30, 450, (160, 2)).astype(np.float32)
+    quads = rng.permutation(160).reshape(40, 4)  # 40 distinct cells
+    squares = random_squares(rng, 40 * 5, (640, 480)).astype(np.float64).reshape(40, 5, 3, 3)
+
+    read_rows = []
+
+    def read(rows):
+        read_rows.append(int(rows.sum()))
+        return marker_reader.read_squares(image, squares[rows].reshape(-1, 3, 3), markers.size, markers.ratio)
+
+    direct = marker_reader.read_squares(image, squares.reshape(-1, 3, 3), markers.size, markers.ratio)
+    assert (direct[1] > 0).sum() >= 10  # readable squares among them (19): the reads compared are not all zero
+    reads = placement.CellReads()
+    first = rng.permutation(40)[:25]
+    bits, contrast = reads.read(quads[first], len(pixels), lambda rows: marker_reader.read_squares(
+        image, squares[first][rows].reshape(-1, 3, 3), markers.size, markers.ratio))
+    assert np.array_equal(bits, direct[0].reshape(40, 5, *bits.shape[1:])[first].reshape(bits.shape))
+    bits, contrast = reads.read(quads, len(pixels), read)
+    assert read_rows == [15]  # only the cells the first call did not read
+    assert np.array_equal(bits, direct[0]) and np.array_equal(contrast, direct[1])
