@@ -27,7 +27,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco import BoardSpec, OpenCVDetector, lattice, marker_reader
+from deepcharuco import BoardSpec, OpenCVDetector
+from deepcharuco.detection import lattice, marker_reader
 import deepcharuco.detection.deep_detector as deep_detector
 from deepcharuco.detection.placement import corners_from_markers
 from deepcharuco.networks.onnx_runner import single_threaded_blas

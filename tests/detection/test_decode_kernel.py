@@ -7,10 +7,13 @@ import cv2
 import numpy as np
 import pytest
 
-from deepcharuco import BoardSpec, Camera, Detector, lattice, marker_reader, placement
-from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from conftest import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
+from deepcharuco import BoardSpec, Camera, Detector
+from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.detection import lattice, marker_reader, placement
+
+
 SAMPLES = ROOT / "evaluate" / "captures_sample"
 
 
