@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from deepcharuco.deep_detector import Detector
-from evaluate.machine import cpu_description, gpu_name
+from evaluate.speed.machine import cpu_description, gpu_name
 
 
 def parse_size(text: str) -> tuple[int, int]:

@@ -25,9 +25,9 @@ import numpy as np
 from deepcharuco import BoardSpec
 from deepcharuco.detect import CHUNK_FRAMES, VIDEO_SEARCH_EVERY, make_finders
 from deepcharuco.parallel import DetectorPool, available_cpus
-from evaluate.machine import cpu_description, gpu_name
-from evaluate.protocols import darken
-from evaluate.realistic import Placement, clutter, video_frames, with_board
+from evaluate.paper.protocols import darken
+from evaluate.speed.machine import cpu_description, gpu_name
+from evaluate.speed.realistic import Placement, clutter, video_frames, with_board
 
 DARK_K = 7
 

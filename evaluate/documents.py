@@ -6,7 +6,7 @@ from pathlib import Path
 
 from deepcharuco.files import write_atomic
 from deepcharuco.html_page import html_page, image_format
-from evaluate.experiments import LABELS
+from evaluate.paper.experiments import LABELS
 
 PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}
 
@@ -111,19 +111,19 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
                     "(shake, shadows, clutter, distractor boards, 0.2-1000 lux), by illuminance at the board: mean "
                     "corner accuracy, pose accuracy (eps_re < 3 px), confidently wrong poses.", rows, []))
     if results.get("false_positives"):
-        from evaluate.false_positives import sections as false_positive_sections
+        from evaluate.paper.false_positives import sections as false_positive_sections
 
         out += false_positive_sections(results["false_positives"], LABELS)
     if results.get("unseen_boards"):
-        from evaluate.unseen_boards import sections as unseen_sections
+        from evaluate.paper.unseen_boards import sections as unseen_sections
 
         out += unseen_sections(results["unseen_boards"], LABELS)
     if results.get("corner_precision"):
-        from evaluate.corner_precision import sections as precision_sections
+        from evaluate.calibration.corner_precision import sections as precision_sections
 
         out += precision_sections(results["corner_precision"])
     if results.get("calibration"):
-        from evaluate.calibration_eval import calibration_sections
+        from evaluate.calibration.calibration_eval import calibration_sections
 
         out += calibration_sections(results["calibration"], LABELS)
     if results.get("real_captures"):

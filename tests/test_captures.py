@@ -15,8 +15,8 @@ from evaluate.captures import (
     CaptureError, evaluate_capture_set, evaluate_captures, open_capture_set, report_folders, sample_folders,
 )
 from evaluate.captures import reader
-from evaluate.protocols import motion_blur
 from evaluate.captures.truth import build_truth
+from evaluate.paper.protocols import motion_blur
 from conftest import VIEW_POSES
 
 BOARD = BoardSpec()

@@ -53,8 +53,8 @@ def test_relative_links_resolve(document):
 
 
 def test_the_readme_picture_shows_what_its_caption_says():
-    """docs/dark_frame.jpg (python -m evaluate.readme_figure): OpenCV finds nothing, the deep detector every corner."""
-    from evaluate.readme_figure import BOARD, figure
+    """docs/dark_frame.jpg (python -m evaluate.paper.readme_figure): OpenCV finds nothing, the deep detector every corner."""
+    from evaluate.paper.readme_figure import BOARD, figure
 
     picture, found = figure()
     assert found == {"OpenCV + cornerSubPix": 0, "Deep ChArUco": BOARD.num_corners}

@@ -7,7 +7,7 @@ Plans and runs the stages that the README's Training section lists as separate c
     charuconet python -m train.charuconet    one stage, or two from scratch (the shipped recipe's plain then ID-weighted)
     refinenet  python -m train.refinenet
     bundle     python -m train.bundle        both networks + the score threshold chosen on validation frames
-    eval-data  python -m evaluate.sequences  the paper's sequences rendered with the evaluation board(s)
+    eval-data  python -m evaluate.paper.sequences  the paper's sequences rendered with the evaluation board(s)
     evaluate   (in-process)                  the paper's protocols, deep vs OpenCV, on those sequences
     card       (in-process)                  MODEL_CARD.md with the numbers measured here
 
@@ -639,7 +639,7 @@ class Pipeline:
             stages.append(Stage(
                 f"eval-data {board_name}", f"render the evaluation sequences with {board_name} (never in training)",
                 f"{s.eval_sequences} sequences x {s.eval_frames} frames", eta["eval-data"] / len(self.eval_boards),
-                [*self.module("evaluate.sequences"), "--board", str(self.eval_board_file(board_name, board)),
+                [*self.module("evaluate.paper.sequences"), "--board", str(self.eval_board_file(board_name, board)),
                  "--out", str(folder), "--frames", str(s.eval_frames), "--seed", str(1000 + self.args.seed),
                  "--width", str(self.image_size[0]), "--height", str(self.image_size[1]),
                  "--only", *SEQUENCE_PRIORITY[:s.eval_sequences], "--resume",
@@ -945,11 +945,11 @@ def slug(name: str) -> str:
 
 
 def evaluation_boards(target: Target) -> dict[str, BoardSpec]:
-    """Boards to evaluate on: for a family, the family's boards of `evaluate.unseen_boards` (or a 6x5 board of
+    """Boards to evaluate on: for a family, the family's boards of `evaluate.paper.unseen_boards` (or a 6x5 board of
     the family's dictionary) and, for DICT_5X5, the paper's board; for --board, that board."""
     if target.board is not None:
         return {f"{target.board.squares_x}x{target.board.squares_y} {target.board.dictionary}": target.board}
-    from evaluate.unseen_boards import UNSEEN_BOARDS
+    from evaluate.paper.unseen_boards import UNSEEN_BOARDS
 
     dictionary = MARKER_FAMILIES[target.family][-1]  # the largest: the _50/_100/_250 ones are its prefixes
     boards = {name: board for name, board in UNSEEN_BOARDS.items() if marker_family(board.dictionary) == target.family}
@@ -966,10 +966,10 @@ def evaluate_model(weights: Path, boards: dict[str, BoardSpec], root: Path, size
     `Detector(board=...)` uses it) next to OpenCV + cornerSubPix on the same frames; and the bundle's speed."""
     from deepcharuco.deep_detector import Detector
     from deepcharuco.opencv_detector import OpenCVDetector
-    from evaluate import experiments
-    from evaluate.data import load_frames, select_well_lit
-    from evaluate.protocols import LEVELS
-    from evaluate.unseen_boards import board_summary
+    from evaluate.paper import experiments
+    from evaluate.paper.data import load_frames, select_well_lit
+    from evaluate.paper.protocols import LEVELS
+    from evaluate.paper.unseen_boards import board_summary
 
     results = {}
     for name, board in boards.items():
@@ -1085,10 +1085,10 @@ def _metric(part: dict, key: str) -> str:
 
 
 def hardware() -> str:
-    """What the stages ran on, for the model card: its timings compare only on the same CPU (`evaluate.machine`)."""
+    """What the stages ran on, for the model card: its timings compare only on the same CPU (`evaluate.speed.machine`)."""
     import torch
 
-    from evaluate.machine import cpu_description
+    from evaluate.speed.machine import cpu_description
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
     return f"{os.cpu_count()}-core {cpu_description()}, {gpu}; torch {torch.__version__}"

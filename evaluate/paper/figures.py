@@ -8,8 +8,8 @@ import numpy as np
 
 from deepcharuco.draw import draw_detection
 from deepcharuco.html_page import png, pyplot
-from evaluate.experiments import LABELS
-from evaluate.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
+from evaluate.paper.experiments import LABELS
+from evaluate.paper.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
 
 STYLE = {"deep": ("tab:blue", "-o"), "deep_subpix": ("tab:cyan", "--^"), "deep_norefine": ("tab:purple", ":s"),
          "deep_paper": ("tab:green", "-.d"), "deep_markers": ("tab:olive", "--v"),
