@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from deepcharuco.files import write_atomic
-from deepcharuco.html_page import html_page, image_format
+from deepcharuco.html_page import html_page
 from evaluate.paper.experiments import LABELS
+from evaluate.paper.figures import figure_file_name
 
 PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}
 
@@ -148,10 +149,6 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
     return out
 
 
-def _file_name(name: str, data: bytes) -> str:
-    return f"{name}.{'jpg' if image_format(data) == 'jpeg' else 'png'}"
-
-
 def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
     lines = ["# Deep ChArUco evaluation report", "", f"`{results.get('command', '')}`", ""]
     for title, text, rows, names in sections(results):
@@ -162,10 +159,10 @@ def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path
             lines += ["| " + " | ".join(r) + " |" for r in rows[1:]]
             lines.append("")
         for name in names:
-            lines += [f"![{name}](figures/{_file_name(name, figures.get(name, b''))})", ""]
+            lines += [f"![{name}](figures/{figure_file_name(name, figures.get(name, b''))})", ""]
     (path.parent / "figures").mkdir(exist_ok=True)
     for name, data in figures.items():
-        write_atomic(path.parent / "figures" / _file_name(name, data), data)
+        write_atomic(path.parent / "figures" / figure_file_name(name, data), data)
     write_atomic(path, "\n".join(lines))
     return path
 

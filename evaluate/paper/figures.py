@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.draw import draw_detection
-from deepcharuco.html_page import png, pyplot
+from deepcharuco.html_page import image_format, png, pyplot
 from evaluate.paper.experiments import LABELS
 from evaluate.paper.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
 
@@ -17,6 +17,10 @@ STYLE = {"deep": ("tab:blue", "-o"), "deep_subpix": ("tab:cyan", "--^"), "deep_n
 TRUTH_COLOUR = (60, 60, 255)  # BGR red
 
 
+def figure_file_name(name: str, data: bytes) -> str:
+    """The file a figure is written to beside a markdown page: ``name.jpg`` for JPEG bytes (the real-captures
+    gallery), else ``name.png``; the report and ``python -m evaluate.captures`` name their files alike."""
+    return f"{name}.{'jpg' if image_format(data) == 'jpeg' else 'png'}"
 
 
 def synthetic_figure(synthetic: dict, effect: str) -> bytes:
