@@ -11,7 +11,7 @@ Test sets (each a folder of shards, schema in docs/conventions.md):
   --data       held-out random renders (python -m datagen.render --seed 1000): accuracy by lux;
   --captures   capture folders (photos and/or videos of a board, board.yaml: evaluate/captures/reader.py), the
                "Real captures" section; default: the shipped sample (evaluate/captures_sample); a folder of
-               auto-labelled shards (python -m evaluate.captures.autolabel) gets the paper's per-video table.
+               auto-labelled shards (python -m evaluate.paper.autolabel) gets the paper's per-video table.
 The default folders are rendered when missing (a few minutes on 2 cores, once), unless --no-render
 (then a missing default folder's section is left out); a folder given explicitly must hold shards.
 """
@@ -231,7 +231,7 @@ def run_report(args: argparse.Namespace) -> dict:
 
 def autolabel_check(sequences_dir: Path, board: BoardSpec, quiet: bool) -> dict:
     """The paper's auto-labelling recipe run on every rendered sequence, compared with the render truth."""
-    from evaluate.captures.autolabel import autolabel_sequence_errors
+    from evaluate.paper.autolabel import autolabel_sequence_errors
 
     return autolabel_sequence_errors(sequences_dir, board, quiet=quiet)
 

@@ -1,4 +1,4 @@
-"""The paper's auto-labelling recipe (evaluate.captures.autolabel): exact synthetic captures, its refusals,
+"""The paper's auto-labelling recipe (evaluate.paper.autolabel): exact synthetic captures, its refusals,
 and a rendered sequence compared with the render truth (one Blender render in a subprocess)."""
 
 import os
@@ -13,7 +13,7 @@ import pytest
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, Camera, project_corners, write_camera
 from deepcharuco.synthetic import look_at_pose, render_board_view
-from evaluate.captures.autolabel import AutolabelError, autolabel, autolabel_sequence_errors, compare_to_truth, main
+from evaluate.paper.autolabel import AutolabelError, autolabel, autolabel_sequence_errors, compare_to_truth, main
 
 ROOT = Path(__file__).resolve().parents[1]
 BOARD = BoardSpec()
