@@ -1,4 +1,5 @@
-"""evaluate/'s subpackages import one way, bottom first:
+"""evaluate/'s subpackages and train.pipeline's modules import one way, bottom first (train/pipeline/__init__.py
+gives its order):
 
     evaluate.paper -> evaluate.captures -> evaluate.speed -> evaluate.calibration -> evaluate (report, documents)
 
@@ -42,3 +43,14 @@ def test_the_layer_check_finds_an_upward_import():
     assert upward_imports(graph, EVALUATE_LAYERS) == [("evaluate.captures.__main__", "evaluate.documents")]
     assert layer_of("evaluate.paper", EVALUATE_LAYERS) == 0 and layer_of("evaluate.report", EVALUATE_LAYERS) == 4
     assert layer_of("evaluate_more.x", EVALUATE_LAYERS) is None
+
+
+PIPELINE_LAYERS = tuple(f"train.pipeline.{name}" for name in (
+    "records", "plan", "rates", "checks", "evaluation", "stages", "card", "run", "cluster", "command")) + ("train.pipeline",)
+
+
+def test_the_pipeline_modules_import_in_their_order():
+    graph = import_graph()
+    assert set(PIPELINE_LAYERS) <= set(graph)  # every module of train/pipeline/ is named in the order
+    assert {m for m in graph if m.startswith("train.pipeline.")} <= set(PIPELINE_LAYERS) | {"train.pipeline.__main__"}
+    assert upward_imports(graph, PIPELINE_LAYERS) == []
