@@ -33,8 +33,8 @@ import deepcharuco.detection.deep_detector as deep_detector
 from deepcharuco.detection.placement import corners_from_markers
 from deepcharuco.networks.onnx_runner import single_threaded_blas
 from evaluate.captures.reader import video_frames
-from evaluate.machine import cpu_description
-from evaluate.protocols import darken
+from evaluate.speed.machine import cpu_description
+from evaluate.paper.protocols import darken
 
 DARK_K = 7
 

@@ -7,7 +7,7 @@
 calibration session with its frames_review.csv, ...; each with its board.yaml). Without it, the backgrounds
 are procedural clutter only and no real video is timed.
 
-Frames (`evaluate.realistic`, seed ``--seed``): the paper's board drawn into cluttered backgrounds (procedural
+Frames (`evaluate.speed.realistic`, seed ``--seed``): the paper's board drawn into cluttered backgrounds (procedural
 clutter, and real webcam frames without a board from ``--realdata``) at 30-95 % of the width at
 320x240 and at 10-30 % and 50-95 % at the larger sizes; the same frames darkened (the paper's darkness k=7,
 ~3 % of the light); frames with no board at all; a 3x3 board (4 corners, DICT_5X5_100) at 8-15 % of a
@@ -16,7 +16,7 @@ each real video under ``--realdata`` (searched whole, and tracked with `BoardTra
 detect`` does for videos), lit and darkened.
 
 Each detector runs what a user runs (detect + estimate_pose with the frame's K);
-`evaluate.protocols.time_pipelines` interleaves them (A B C A B C ...) so that load on the machine hits all
+`evaluate.paper.protocols.time_pipelines` interleaves them (A B C A B C ...) so that load on the machine hits all
 alike. Per row: fps, the ratio to OpenCV (+ cornerSubPix) in the same run, the share of true corners found
 within 3 px, the corners reported that are wrong (frames without a board: every corner is), and where the
 deep detector's time goes (ms a frame per stage, `deepcharuco.core.stage_times`).
@@ -38,10 +38,10 @@ from deepcharuco.core.stage_times import StageTimes, stage
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.tracking import BoardTracker
-from evaluate.machine import cpu_description, gpu_name
-from evaluate.protocols import TestFrame, darken, score_corners, time_pipelines
-from evaluate.realistic import Placement, clutter, fit, real_backgrounds, video_frames, with_board, without_board
-from evaluate.unseen_boards import UNSEEN_BOARDS
+from evaluate.paper.protocols import TestFrame, darken, score_corners, time_pipelines
+from evaluate.paper.unseen_boards import UNSEEN_BOARDS
+from evaluate.speed.machine import cpu_description, gpu_name
+from evaluate.speed.realistic import Placement, clutter, fit, real_backgrounds, video_frames, with_board, without_board
 
 DARK_K = 7
 SMALL, LARGE, FILLING = Placement(0.10, 0.30), Placement(0.50, 0.95), Placement(0.30, 0.95)

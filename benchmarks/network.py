@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from deepcharuco.detection.deep_detector import Detector
-from evaluate.machine import cpu_description, gpu_name
+from evaluate.speed.machine import cpu_description, gpu_name
 
 
 def parse_size(text: str) -> tuple[int, int]:

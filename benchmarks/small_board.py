@@ -3,7 +3,7 @@
     python benchmarks/small_board.py [--frames 12] [--seed 1]
 
 A 3x3 DICT_5X5_100 board (4 corners, 4 markers) drawn at 8-15 % of the width of 2592x1944 frames of procedural
-clutter (`evaluate.realistic`, as `benchmarks/detect.py`'s 5 MP row draws them), then the same frames darkened
+clutter (`evaluate.speed.realistic`, as `benchmarks/detect.py`'s 5 MP row draws them), then the same frames darkened
 (k = 7). For OpenCV + cornerSubPix, the deep detector and hybrid, in one run: frames found, frames whose every corner
 lies within 3 px of the truth, and ms a frame. Seed 0 drew the frames the small-board rules were chosen on
 (`deepcharuco.detection.placement.code_errors`, `deepcharuco.detection.search_regions.board_like_boxes`); other seeds measure.
@@ -19,8 +19,8 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.detection.opencv_detector import OpenCVDetector
-from evaluate.protocols import darken
-from evaluate.realistic import Placement, clutter, with_board
+from evaluate.paper.protocols import darken
+from evaluate.speed.realistic import Placement, clutter, with_board
 
 TINY_BOARD = BoardSpec(squares_x=3, squares_y=3, square_length=0.04, marker_length=0.03, dictionary="DICT_5X5_100")
 FIVE_MP = (2592, 1944)

@@ -26,9 +26,9 @@ from deepcharuco import BoardSpec
 from deepcharuco.cli.detect import CHUNK_FRAMES, VIDEO_SEARCH_EVERY, make_finders
 from deepcharuco.core.platform import available_cpus
 from deepcharuco.detection.parallel import DetectorPool
-from evaluate.machine import cpu_description, gpu_name
-from evaluate.protocols import darken
-from evaluate.realistic import Placement, clutter, video_frames, with_board
+from evaluate.paper.protocols import darken
+from evaluate.speed.machine import cpu_description, gpu_name
+from evaluate.speed.realistic import Placement, clutter, video_frames, with_board
 
 DARK_K = 7
 

@@ -56,7 +56,7 @@ def configure_cycles(scene: bpy.types.Scene, width: int, height: int, pixel_aspe
     cycles.adaptive_threshold = 0.02
     cycles.use_denoising = bool(denoise)  # off for training frames: the sensor model adds the noise that matters
     if denoise:
-        # For a render that many frames share (evaluate.sequences): its Monte Carlo noise would be
+        # For a render that many frames share (evaluate.paper.sequences): its Monte Carlo noise would be
         # frozen into all of them. Guided by the albedo pass, which carries the board's print, OIDN
         # keeps corners sharp: 16 spp + OIDN labels as well as 64 spp without (measured there).
         cycles.denoiser = "OPENIMAGEDENOISE"

@@ -25,7 +25,7 @@ FAMILIES = MARKER_FAMILIES
 
 
 # Grids no training board of a family has, in either orientation: the report's unseen boards
-# (`evaluate.unseen_boards.UNSEEN_BOARDS`; a test checks they are all here), so that a family model
+# (`evaluate.paper.unseen_boards.UNSEEN_BOARDS`; a test checks they are all here), so that a family model
 # is measured on boards its training never showed, whatever their marker size, IDs or polarity.
 HELD_OUT_GRIDS: dict[str, tuple[tuple[int, int], ...]] = {
     "DICT_4X4": ((4, 5),),

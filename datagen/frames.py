@@ -22,7 +22,7 @@ percentile pixel has that luminance.
 
 The steps are separate functions — `render_labelled` (Cycles + labels), `luminance_scale` (to
 cd/m^2 at a lux), `expose` (the sensor) — so that a frame's render can be exposed many times:
-`evaluate.sequences` films a static scene under changing light from one render.
+`evaluate.paper.sequences` films a static scene under changing light from one render.
 """
 
 from __future__ import annotations

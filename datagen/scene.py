@@ -123,7 +123,7 @@ class SceneSpec:
     render_seed: int
     samples: int
     tags: dict = field(default_factory=dict)
-    denoise: bool = False  # OpenImageDenoise on the render: for a render many frames share (evaluate.sequences)
+    denoise: bool = False  # OpenImageDenoise on the render: for a render many frames share (evaluate.paper.sequences)
     # A slightly bent print (`bend_profile`): the sag at the middle as a fraction of the bent length
     # (> 0 bulges towards the camera's side, the printed face's -Z), bent along board X (axis 0) or Y (1).
     bend: float = 0.0

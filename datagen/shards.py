@@ -278,7 +278,7 @@ def update_index(directory: str | Path) -> dict:
 
 
 FRAME_SHARD_FIX = ("delete it and rerun the command that made its folder with --resume (python -m datagen.render "
-                   "or evaluate.sequences: it renders exactly the missing shards)")
+                   "or evaluate.paper.sequences: it renders exactly the missing shards)")
 PATCH_SHARD_FIX = "delete the folder and rerun python -m datagen.patches"
 
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deepcharuco.calibration.html_page import html_page, image_format
+from deepcharuco.calibration.html_page import html_page
 from deepcharuco.core.files import write_atomic
-from evaluate.experiments import LABELS
+from evaluate.paper.experiments import LABELS
+from evaluate.paper.figures import figure_file_name
 
 PAPER_FPS = {"deep": 66.5, "deep_subpix": 98.6, "deep_norefine": 100.7, "opencv": 99.4, "opencv_norefine": 101.5}
 
@@ -111,19 +112,19 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
                     "(shake, shadows, clutter, distractor boards, 0.2-1000 lux), by illuminance at the board: mean "
                     "corner accuracy, pose accuracy (eps_re < 3 px), confidently wrong poses.", rows, []))
     if results.get("false_positives"):
-        from evaluate.false_positives import sections as false_positive_sections
+        from evaluate.paper.false_positives import sections as false_positive_sections
 
         out += false_positive_sections(results["false_positives"], LABELS)
     if results.get("unseen_boards"):
-        from evaluate.unseen_boards import sections as unseen_sections
+        from evaluate.paper.unseen_boards import sections as unseen_sections
 
         out += unseen_sections(results["unseen_boards"], LABELS)
     if results.get("corner_precision"):
-        from evaluate.corner_precision import sections as precision_sections
+        from evaluate.calibration.corner_precision import sections as precision_sections
 
         out += precision_sections(results["corner_precision"])
     if results.get("calibration"):
-        from evaluate.calibration_eval import calibration_sections
+        from evaluate.calibration.calibration_eval import calibration_sections
 
         out += calibration_sections(results["calibration"], LABELS)
     if results.get("real_captures"):
@@ -148,10 +149,6 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]] | None, list
     return out
 
 
-def _file_name(name: str, data: bytes) -> str:
-    return f"{name}.{'jpg' if image_format(data) == 'jpeg' else 'png'}"
-
-
 def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path:
     lines = ["# Deep ChArUco evaluation report", "", f"`{results.get('command', '')}`", ""]
     for title, text, rows, names in sections(results):
@@ -162,10 +159,10 @@ def write_markdown(path: Path, results: dict, figures: dict[str, bytes]) -> Path
             lines += ["| " + " | ".join(r) + " |" for r in rows[1:]]
             lines.append("")
         for name in names:
-            lines += [f"![{name}](figures/{_file_name(name, figures.get(name, b''))})", ""]
+            lines += [f"![{name}](figures/{figure_file_name(name, figures.get(name, b''))})", ""]
     (path.parent / "figures").mkdir(exist_ok=True)
     for name, data in figures.items():
-        write_atomic(path.parent / "figures" / _file_name(name, data), data)
+        write_atomic(path.parent / "figures" / figure_file_name(name, data), data)
     write_atomic(path, "\n".join(lines))
     return path
 

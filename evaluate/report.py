@@ -5,13 +5,13 @@
     python -m evaluate.report --captures realdata/*     # capture folders of real photos and videos (evaluate.captures)
 
 Test sets (each a folder of shards, schema in docs/conventions.md):
-  --sequences  rendered twins of the paper's 26 evaluation videos (python -m evaluate.sequences);
+  --sequences  rendered twins of the paper's 26 evaluation videos (python -m evaluate.paper.sequences);
                the per-sequence table, the pose-accuracy curve, and the 20 well-lit images of
                the synthetic blur/darkness tests (one per sequence, its first frame);
   --data       held-out random renders (python -m datagen.render --seed 1000): accuracy by lux;
   --captures   capture folders (photos and/or videos of a board, board.yaml: evaluate/captures/reader.py), the
                "Real captures" section; default: the shipped sample (evaluate/captures_sample); a folder of
-               auto-labelled shards (python -m evaluate.autolabel) gets the paper's per-video table.
+               auto-labelled shards (python -m evaluate.paper.autolabel) gets the paper's per-video table.
 The default folders are rendered when missing (a few minutes on 2 cores, once), unless --no-render
 (then a missing default folder's section is left out); a folder given explicitly must hold shards.
 """
@@ -34,10 +34,12 @@ from deepcharuco.core.files import write_atomic
 from deepcharuco.core.platform import available_cpus, describe_os_error
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from evaluate import captures as real_captures
-from evaluate import calibration_eval, corner_precision, documents, experiments, false_positives, figures, unseen_boards
-from evaluate.data import TestSetError, board_of, load_frames, select_well_lit
-from evaluate.machine import cpu_description
-from evaluate.protocols import LEVELS
+from evaluate import documents
+from evaluate.calibration import calibration_eval, corner_precision
+from evaluate.paper import experiments, false_positives, figures, unseen_boards
+from evaluate.paper.data import TestSetError, board_of, load_frames, select_well_lit
+from evaluate.paper.protocols import LEVELS
+from evaluate.speed.machine import cpu_description
 
 DEFAULT_SEQUENCES = Path("data/sequences")
 DEFAULT_DATA = Path("data/test")
@@ -55,7 +57,7 @@ def ensure_rendered(folder: Path, default: Path, command: list[str], allowed: bo
     if folder != default:
         raise TestSetError(f"{folder} {'holds no shard-*.h5 files' if folder.is_dir() else 'does not exist'}: give a "
                            f"folder of test shards (python -m datagen.render --seed {TEST_SEED} --out {folder}, or "
-                           f"python -m evaluate.sequences --out {folder}), or leave the option out")
+                           f"python -m evaluate.paper.sequences --out {folder}), or leave the option out")
     if not allowed:
         return False
     module = command[0]
@@ -64,7 +66,7 @@ def ensure_rendered(folder: Path, default: Path, command: list[str], allowed: bo
     if module == "datagen.render":
         from datagen.render import main as render_main
     else:
-        from evaluate.sequences import main as render_main
+        from evaluate.paper.sequences import main as render_main
     if render_main(command[1:] + (["--quiet"] if quiet else [])) != 0:
         raise TestSetError(f"rendering {folder} failed (see above)")
     return True
@@ -110,14 +112,14 @@ def run_report(args: argparse.Namespace) -> dict:
     render_allowed = not args.no_render
     sequences_dir, data_dir = Path(args.sequences), Path(args.data)
     have_sequences = ensure_rendered(sequences_dir, DEFAULT_SEQUENCES,
-                                     ["evaluate.sequences", "--out", str(sequences_dir)],  # its default seed
+                                     ["evaluate.paper.sequences", "--out", str(sequences_dir)],  # its default seed
                                      render_allowed, args.quiet)
     have_data = ensure_rendered(data_dir, DEFAULT_DATA,
                                 ["datagen.render", "--n", str(DEFAULT_TEST_FRAMES), "--seed", str(TEST_SEED),
                                  "--out", str(data_dir), "--shard-size", "60"], render_allowed, args.quiet)
     if not have_sequences and not have_data and not args.captures:
         raise TestSetError(f"no test data: {sequences_dir} and {data_dir} hold no shards (and --no-render was given or "
-                           f"they are not the default folders). Render them with python -m evaluate.sequences --out "
+                           f"they are not the default folders). Render them with python -m evaluate.paper.sequences --out "
                            f"{sequences_dir} and python -m datagen.render --seed {TEST_SEED} --out {data_dir}")
     first = sequences_dir if have_sequences else data_dir if have_data else Path(args.captures)
     board = BoardSpec.load(args.board) if args.board else board_of(first)
@@ -184,18 +186,18 @@ def run_report(args: argparse.Namespace) -> dict:
                                        **{n: s.to_dict() for s, n in zip(scores, names)}})
 
     if not args.no_calibration and calibration_eval.available(args.calibration):
-        # Rendered calibration sequences (python -m evaluate.calibration_sequences), when there are any.
+        # Rendered calibration sequences (python -m evaluate.calibration.calibration_sequences), when there are any.
         results["calibration"] = calibration_eval.calibration_experiment(
             {n: detectors[n] for n in ("deep", "opencv") if n in detectors}, args.calibration, board, args.quiet)
 
     if not args.no_unseen_boards and unseen_boards.available(Path(args.unseen_boards)):
-        # Boards the weights never saw (python -m evaluate.unseen_boards renders them), when rendered.
+        # Boards the weights never saw (python -m evaluate.paper.unseen_boards renders them), when rendered.
         results["unseen_boards"] = unseen_boards.unseen_boards_experiment(
             Path(args.unseen_boards), args.weights, args.refine_weights, args.device,
             synthetic_images=synthetic_count, every=4 if quick else 1, seed=args.seed, quiet=args.quiet)
     elif not args.no_unseen_boards:
         notes.append(f"No boards-never-seen section: {args.unseen_boards} holds no rendered sets "
-                     "(python -m evaluate.unseen_boards renders them, ~10 min a board).")
+                     "(python -m evaluate.paper.unseen_boards renders them, ~10 min a board).")
 
     if capture_sets:  # real photos and videos (evaluate.captures): the shipped sample unless --captures names others
         results["real_captures"], real_pictures = real_captures.evaluate_captures(
@@ -229,7 +231,7 @@ def run_report(args: argparse.Namespace) -> dict:
 
 def autolabel_check(sequences_dir: Path, board: BoardSpec, quiet: bool) -> dict:
     """The paper's auto-labelling recipe run on every rendered sequence, compared with the render truth."""
-    from evaluate.autolabel import autolabel_sequence_errors
+    from evaluate.paper.autolabel import autolabel_sequence_errors
 
     return autolabel_sequence_errors(sequences_dir, board, quiet=quiet)
 
@@ -277,11 +279,11 @@ def main(argv: list[str] | None = None) -> int:
                              "folder of auto-labelled shards")
     parser.add_argument("--no-captures", action="store_true", help="skip the real-captures section")
     parser.add_argument("--calibration", default="data/calibration",
-                        help="calibration sequences (python -m evaluate.calibration_sequences), evaluated when present "
+                        help="calibration sequences (python -m evaluate.calibration.calibration_sequences), evaluated when present "
                              "(default: %(default)s)")
     parser.add_argument("--no-calibration", action="store_true", help="skip the calibration section")
     parser.add_argument("--unseen-boards", default=str(unseen_boards.DEFAULT_ROOT),
-                        help="sequences of boards never seen in training (python -m evaluate.unseen_boards), evaluated "
+                        help="sequences of boards never seen in training (python -m evaluate.paper.unseen_boards), evaluated "
                              "when present (default: %(default)s)")
     parser.add_argument("--no-unseen-boards", action="store_true", help="skip the boards-never-seen section")
     parser.add_argument("--look-alike-views", type=int, default=10,
@@ -289,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
                              "--quick 4)")
     parser.add_argument("--no-false-positives", action="store_true", help="skip the false-positive section")
     parser.add_argument("--no-corner-precision", action="store_true",
-                        help="skip the sub-pixel corner error section (evaluate.corner_precision)")
+                        help="skip the sub-pixel corner error section (evaluate.calibration.corner_precision)")
     parser.add_argument("--board", default=None, help="BoardSpec file (default: the test shards' board)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",

@@ -76,16 +76,16 @@ def test_source_paths_and_commands_resolve(document):
 
 
 def test_the_path_check_sees_a_moved_module():
-    assert SOURCE_PATH.findall("see `deepcharuco/placement.py` and deepcharuco/detection/placement.py.") == [
-        "deepcharuco/placement.py", "deepcharuco/detection/placement.py"]
-    assert not (ROOT / "deepcharuco/placement.py").exists()
+    assert SOURCE_PATH.findall("see `deepcharuco/detection/placement.py` and deepcharuco/detection/placement.py.") == [
+        "deepcharuco/detection/placement.py", "deepcharuco/detection/placement.py"]
+    assert not (ROOT / "deepcharuco/detection/placement.py").exists()
     assert COMMAND.findall("python -m deepcharuco.detect IMAGE; python -m evaluate.report") == [
-        "deepcharuco.detect", "evaluate.report"]
+        "deepcharuco.cli.detect", "evaluate.report"]
 
 
 def test_the_readme_picture_shows_what_its_caption_says():
-    """docs/dark_frame.jpg (python -m evaluate.readme_figure): OpenCV finds nothing, the deep detector every corner."""
-    from evaluate.readme_figure import BOARD, figure
+    """docs/dark_frame.jpg (python -m evaluate.paper.readme_figure): OpenCV finds nothing, the deep detector every corner."""
+    from evaluate.paper.readme_figure import BOARD, figure
 
     picture, found = figure()
     assert found == {"OpenCV + cornerSubPix": 0, "Deep ChArUco": BOARD.num_corners}

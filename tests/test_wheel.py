@@ -38,7 +38,7 @@ def test_the_wheel_installs_alone_without_torch_and_detects(tmp_path):
         "--out", "my_board", cwd=work)
     assert (work / "my_board.pdf").read_bytes().startswith(b"%PDF-") and (work / "my_board.yaml").is_file()
     # A rig (scipy's least_squares under the index's numpy and OpenCV): three cameras' drawn frames.
-    from evaluate.rig_views import RIG_BOARD, drawn_rig
+    from evaluate.calibration.rig_views import RIG_BOARD, drawn_rig
 
     folders = drawn_rig(RIG_BOARD, seed=11, instants=14).save_frames(work)
     RIG_BOARD.save(work / "rig_board.yaml")

@@ -199,7 +199,7 @@ def render_cell(rng: np.random.Generator, size: int, degradation: Degradation = 
     image = np.clip(np.round(image), 0, 255).astype(np.uint8)
     if motion and not motion_first:
         image = cv2.filter2D(image, -1, _motion_kernel(rng, motion), borderType=cv2.BORDER_REPLICATE)
-    if darkness == 2:  # x 0.6^k, rounded, as evaluate.protocols.darken
+    if darkness == 2:  # x 0.6^k, rounded, as evaluate.paper.protocols.darken
         image = np.round(image * 0.6 ** rng.uniform(0, degradation.max_darkness_k)).astype(np.uint8)
     if rng.random() < 0.2:
         ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(40, 96))])
@@ -366,7 +366,7 @@ def export(out: Path, weights: Path) -> Path:
                                                        f"--seed {state['seed']}"})
 
 
-# Validation boards for choosing the reader: none of them is an evaluate.unseen_boards board (those measure, they
+# Validation boards for choosing the reader: none of them is an evaluate.paper.unseen_boards board (those measure, they
 # do not tune); every family and print the runtime meets.
 VALIDATION_BOARDS = (
     dict(squares_x=9, squares_y=6, square_length=0.03, marker_length=0.021, dictionary="DICT_5X5_250"),
@@ -415,7 +415,7 @@ def compare_readers(views: list, readers: tuple[str, ...] = ("sampled", "learned
     from deepcharuco import Detector
     from deepcharuco.detection import marker_reader
     from deepcharuco.detection.metrics import match_corners
-    from evaluate.protocols import darken, motion_blur
+    from evaluate.paper.protocols import darken, motion_blur
 
     detectors: dict = {}
     result = {reader: {name: [] for name, _, _ in VALIDATION_CONDITIONS} for reader in readers}

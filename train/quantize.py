@@ -35,8 +35,8 @@ from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector, network_input
 from deepcharuco.networks.checkpoint import read_checkpoint, save_atomically
 from deepcharuco.networks.runtime import INT8_KEY, float_onnx, onnxruntime_available, weights_fingerprint
-from evaluate.data import load_frames
-from evaluate.protocols import LEVELS, TestFrame, apply_effect, synthetic_curve
+from evaluate.paper.data import load_frames
+from evaluate.paper.protocols import LEVELS, TestFrame, apply_effect, synthetic_curve
 
 MAX_DROP = 0.01
 CALIBRATION_EFFECTS = (("blur", 0), ("blur", 5), ("blur", 10), ("darkness", 3), ("darkness", 6), ("darkness", 9))

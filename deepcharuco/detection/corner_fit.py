@@ -56,7 +56,7 @@ SIGMA_RANGE_PX = (0.15, 10.0)  # a fit whose blur leaves this range has not foun
 LOG_BLUR_LIMITS = (float(np.log(0.5 * SIGMA_RANGE_PX[0])), float(np.log(2 * SIGMA_RANGE_PX[1])))  # the fit's bounds
 MAX_MOVE_PX = 1.5  # a corner the fit moves farther than this from its start keeps its start
 # A corner's covariance: (NOISE_GAIN * noise^2 + MISFIT_GAIN * misfit) * spread + FLOOR_PX^2 (`CornerFit`), chosen on
-# the validation views (python -m evaluate.corner_precision --seed 0, docs/detector.md): the spread of error / sigma
+# the validation views (python -m evaluate.calibration.corner_precision --seed 0, docs/detector.md): the spread of error / sigma
 # is 0.91-1.12 in good light, darkness (k = 5, 7) and motion blur (k = 5, 9) there.
 NOISE_GAIN = 1.5
 MISFIT_GAIN = 0.5

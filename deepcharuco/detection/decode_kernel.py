@@ -4,7 +4,7 @@ instead of numpy's many passes and temporaries, which are most of those paths' t
 reads (`docs/detector.md`, "A compiled decoder").
 
 Imported only where numba is installed (``pip install deepcharuco[fast]``); the callers use the numpy paths
-otherwise, and tests/test_decode_kernel.py checks both give the same detections. The first call compiles (a few
+otherwise, and tests/detection/test_decode_kernel.py checks both give the same detections. The first call compiles (a few
 seconds, cached on disk beside this file where it is writable).
 """
 

@@ -98,7 +98,7 @@ class OpenCVDetector:
     def _subpix(self, gray: np.ndarray, corners: np.ndarray, marker_points: np.ndarray) -> np.ndarray:
         # A window that reaches a marker corner pulls the estimate towards it: keep 2 px clear, but no smaller than
         # MIN_WINDOW: a 3x3 window on squares under ~15 px left 10 % of the corners > 0.5 px off (validation views
-        # of evaluate.corner_precision, seed 0: small squares p90 0.69 -> 0.24 px, oblique 0.22 -> 0.15, the rest
+        # of evaluate.calibration.corner_precision, seed 0: small squares p90 0.69 -> 0.24 px, oblique 0.22 -> 0.15, the rest
         # unchanged).
         nearest = np.linalg.norm(corners[:, None, :] - marker_points[None, :, :], axis=2).min(axis=1)
         windows = np.clip((nearest - 2.0).astype(int), min(MIN_WINDOW, self.max_window), self.max_window)

@@ -88,7 +88,7 @@ WEAK_REACH_PX = 3.0
 # (`junction.pattern_evidence` >= PATTERN_MIN_T, a t-statistic: the pattern's contrast on both sides of the best
 # fitting shadow edge) and no found corner lies within PATTERN_APART corner spacings of it; the detector places them
 # by the pattern (`junction.locate_by_pattern`), not RefineNet, which the shadow's edge pulls off. Validation (15
-# boards of DICT_4X4/5X5/6X6, 5 inverted, none of the report's: data seeds 3101-3103 and 3201-3212, `evaluate.sequences
+# boards of DICT_4X4/5X5/6X6, 5 inverted, none of the report's: data seeds 3101-3103 and 3201-3212, `evaluate.paper.sequences
 # --only shadow-1 shadow-2 shadow-3 --frames 40`; and 131 family renders, `datagen.render --family
 # DICT_4X4,DICT_5X5,DICT_6X6 --seed 9137 --n 150`, with occluders and lens distortion), without -> with:
 # a shadow's edge drawn (`datagen.shadow_edge`) through each visible corner of the sequences' first frames, 909 in

@@ -11,8 +11,8 @@ from pathlib import Path
 from deepcharuco.calibration.html_page import html_page
 from deepcharuco.cli.common import output_folder, run_command
 from deepcharuco.core.files import write_atomic
-from evaluate import documents
 from evaluate.captures.present import DEFAULT_GALLERY, DEFAULT_STEP, capture_sections, evaluate_captures, sample_folders
+from evaluate.paper.figures import figure_file_name
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _write_markdown(path: Path, command: str, page: list, pictures: dict[str, bytes]) -> None:
-    """The sections as markdown, the gallery's JPEGs in figures/ beside it (as `documents.write_markdown`)."""
+    """The sections as markdown, the gallery's JPEGs in figures/ beside it (as `evaluate.documents.write_markdown`)."""
     lines = ["# Real captures", "", f"`{command}`", ""]
     (path.parent / "figures").mkdir(exist_ok=True)
     for title, text, rows, names in page:
@@ -43,7 +43,7 @@ def _write_markdown(path: Path, command: str, page: list, pictures: dict[str, by
             lines += ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
             lines += ["| " + " | ".join(r) + " |" for r in rows[1:]] + [""]
         for name in names:
-            file_name = documents._file_name(name, pictures[name])
+            file_name = figure_file_name(name, pictures[name])
             write_atomic(path.parent / "figures" / file_name, pictures[name])
             lines += [f"![{name}](figures/{file_name})", ""]
     write_atomic(path, "\n".join(lines))

@@ -36,7 +36,7 @@ from deepcharuco.geometry.camera import Camera
 from deepcharuco.geometry.pose import estimate_pose
 from evaluate.captures.reader import MIN_FOUND, CaptureFrame, CaptureSet
 from evaluate.captures.truth import FrameTruth, SetTruth, build_truth
-from evaluate.protocols import (
+from evaluate.paper.protocols import (
     POSE_THRESHOLD_PX, WRONG_ROTATION_DEG, WRONG_TRANSLATION_FRACTION, DetectorLike, rotation_error_deg,
 )
 
@@ -291,7 +291,7 @@ def evaluate_capture_set(captures: CaptureSet, detectors: dict[str, DetectorLike
 def _check_still(truth: SetTruth, frame: CaptureFrame, found: Detection, frame_truth: FrameTruth) -> None:
     """Auto-labels hold only while the board stays where the averaged frames saw it: withdraw a video's
     when OpenCV puts its corners (median) more than the recipe's 1 px from them in a later frame."""
-    from evaluate.autolabel import MAX_MOTION_PX
+    from evaluate.paper.autolabel import MAX_MOTION_PX
 
     known = frame_truth.visible[found.ids] if len(found) else np.zeros(0, bool)
     if known.sum() == 0:

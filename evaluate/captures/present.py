@@ -156,7 +156,7 @@ def capture_sections(real: dict) -> list[tuple[str, str, list[list[str]] | None,
 
 
 def report_folders(folders: list[str] | None, disabled: bool = False) -> tuple[str | None, list[Path]]:
-    """``evaluate.report``'s ``--captures`` -> (the folder of auto-labelled shards (python -m evaluate.autolabel),
+    """``evaluate.report``'s ``--captures`` -> (the folder of auto-labelled shards (python -m evaluate.paper.autolabel),
     evaluated as the paper's per-video table, or None; the capture-set folders). Without ``--captures``: the
     shipped sample; with ``--no-captures`` (``disabled``): none."""
     if disabled:
@@ -168,5 +168,5 @@ def report_folders(folders: list[str] | None, disabled: bool = False) -> tuple[s
     shards = [f for f in folders if Path(f).is_dir() and any(Path(f).glob("shard-*.h5"))]
     if len(shards) > 1:
         raise CaptureError(f"--captures names {len(shards)} folders of auto-labelled shards ({', '.join(shards)}): "
-                           f"give one (python -m evaluate.autolabel --out writes them all to one folder)")
+                           f"give one (python -m evaluate.paper.autolabel --out writes them all to one folder)")
     return (shards[0] if shards else None), [Path(f) for f in folders if f not in shards]

@@ -1,5 +1,5 @@
 """Truth for a capture set, in order: its labels file; the paper's auto-labelling of each video whose camera
-and board stand still (`evaluate.autolabel`); otherwise none. `SetTruth.description` says which, and why."""
+and board stand still (`evaluate.paper.autolabel`); otherwise none. `SetTruth.description` says which, and why."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.detection import Detection
 from deepcharuco.geometry.pose import estimate_pose
-from evaluate.autolabel import AVERAGE_FRAMES, AutolabelError, autolabel
 from evaluate.captures.reader import (
     CaptureError, CaptureFrame, CaptureSet, Medium, absent_frames, read_labels, video_frames,
 )
+from evaluate.paper.autolabel import AVERAGE_FRAMES, AutolabelError, autolabel
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from deepcharuco import BoardSpec
 from deepcharuco.calibration.intrinsics import calibrate
 from deepcharuco.calibration.terms import terms_name
 from deepcharuco.calibration.views import FrameDetection, SelectionOptions
-from evaluate.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of
+from evaluate.calibration.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of
 
 BOARD = BoardSpec()
 SIZE = (320, 240)
@@ -23,7 +23,7 @@ K = np.array([[FOCAL, 0, 162.0], [0, FOCAL, 114.0], [0, 0, 1]])
 
 
 def _views(dist: np.ndarray, seed: int, count: int = 30, noise_px: float = 0.1) -> list[FrameDetection]:
-    """A hand-waved board (evaluate.calibration_sequences' waving, its own path per seed) seen through (K, dist):
+    """A hand-waved board (evaluate.calibration.calibration_sequences' waving, its own path per seed) seen through (K, dist):
     the corners inside the image, exactly where cv2.projectPoints puts them, + ``noise_px`` Gaussian noise."""
     path_rng, noise = np.random.default_rng(3 + seed), np.random.default_rng(seed)
     path = WavingPath.draw(path_rng)

@@ -14,7 +14,7 @@ from deepcharuco.calibration.rig import calibrate_rig
 from deepcharuco.calibration.rig_model import (RigError, RigView, intrinsic_vector, project, rotation_angle_deg,
                                                rotations_from_vectors)
 from deepcharuco.cli.calibrate import main
-from evaluate.rig_views import RIG_BOARD, board_poses, drawn_rig, rig_cameras
+from evaluate.calibration.rig_views import RIG_BOARD, board_poses, drawn_rig, rig_cameras
 
 SIZE = (640, 480)
 
@@ -339,7 +339,7 @@ def test_one_detector_finds_each_of_several_boards(tmp_path, capsys):
 def test_rendered_rig_has_the_drawn_rigs_truth_and_resumes(tmp_path):
     import json
 
-    from evaluate.rig_renders import run as render_rig
+    from evaluate.calibration.rig_renders import run as render_rig
 
     size = (160, 120)
     assert render_rig(RIG_BOARD, tmp_path, seed=3, cameras=2, instants=6, size=size, conditions=["good"],

@@ -12,7 +12,7 @@ from deepcharuco.boards.synthetic import render_board_view
 from deepcharuco.calibration.intrinsics import calibrate
 from deepcharuco.calibration.views import CalibrationError, FrameDetection, SelectionOptions, sharpness, usable_reason
 from deepcharuco.cli.calibrate import detect_frames, main
-from evaluate.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of, true_camera
+from evaluate.calibration.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of, true_camera
 
 BOARD = BoardSpec()
 SIZE = (320, 240)
@@ -232,7 +232,7 @@ def test_an_output_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys)
 
 def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, waved):
     from datagen.shards import FrameLabels, write_shard
-    from evaluate.calibration_eval import calibration_experiment, calibration_sections
+    from evaluate.calibration.calibration_eval import calibration_experiment, calibration_sections
 
     images, K, dist = waved
     meta = {"has_board": True, "sequence": "k1-0.3-good",
@@ -334,7 +334,7 @@ def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved):
 
 
 def test_a_wrong_corner_at_the_edge_cannot_bend_k3():
-    # The deep detector's corners on the rendered k1 = +0.1 validation sequence (evaluate.calibration_sequences,
+    # The deep detector's corners on the rendered k1 = +0.1 validation sequence (evaluate.calibration.calibration_sequences,
     # seed 0, good light; the true camera stored beside them): one corner lies 17 px off at the image's edge.
     # Solved with k3 free from the start, k2 and k3 bent the edges to meet it (fx +0.7 %, cy +4 px, RMS 0.185 px);
     # judged first with k3 at 0, it is dropped and the lens recovered.

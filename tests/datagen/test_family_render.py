@@ -50,7 +50,7 @@ def test_family_boards_cover_the_issue_ranges():
 
 
 def test_the_report_unseen_boards_are_never_drawn_for_training():
-    from evaluate.unseen_boards import UNSEEN_BOARDS
+    from evaluate.paper.unseen_boards import UNSEEN_BOARDS
     rng = np.random.default_rng(1)
     for board in UNSEEN_BOARDS.values():
         family = marker_family(board.dictionary)

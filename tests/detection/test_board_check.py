@@ -104,7 +104,7 @@ def test_detector_geometry_modes(default_views, camera, backend):
     """On a clean synthetic view the shipped weights find >= 12 corners with the check, all right, and the
     pose follows, on every backend; a detection of fewer than 6 corners gets no pose when the check is on."""
     from deepcharuco import Detector
-    from evaluate.protocols import rotation_error_deg
+    from evaluate.paper.protocols import rotation_error_deg
 
     image, rvec, tvec, truth = default_views[0]
     repaired = Detector(geometry="repair", backend=backend).detect(image)

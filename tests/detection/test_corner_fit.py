@@ -205,7 +205,7 @@ def test_calibration_weighs_corners_by_their_covariances():
 
 
 def test_corner_precision_experiment_scores_every_placer_on_the_same_corners():
-    from evaluate import corner_precision
+    from evaluate.calibration import corner_precision
 
     results = corner_precision.run(seed=0, frames=1, boards=["paper 5x5 DICT_5X5_50"], conditions=["good", "lens"],
                                    quiet=True)

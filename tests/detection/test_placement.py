@@ -10,7 +10,7 @@ from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, paint_markers, render_board_view
 from deepcharuco.detection import placement
 from deepcharuco.networks.cells import CellCandidates
-from evaluate.false_positives import look_alikes
+from evaluate.paper.false_positives import look_alikes
 
 # 12x9 squares of DICT_4X4_1000 at ~15 px: at blur k = 10 few markers read best as themselves.
 SMALL_MARKERS = BoardSpec(squares_x=12, squares_y=9, square_length=0.02, marker_length=0.015,
@@ -253,7 +253,7 @@ def test_code_chance_needs_two_close_codes_and_half_the_readable_ones():
 
 
 def test_a_3x3_board_in_a_5_megapixel_frame_is_found_by_its_codes():
-    from evaluate.realistic import Placement, clutter, with_board
+    from evaluate.speed.realistic import Placement, clutter, with_board
 
     rng = np.random.default_rng(5)
     detector = Detector(board=TINY)

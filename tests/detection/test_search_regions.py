@@ -10,7 +10,7 @@ from deepcharuco.core.stage_times import StageTimes, stage, tally
 from deepcharuco.detection.search_regions import (CONFIDENCE, DIM_CONFIDENCE, DIM_MIN_CELLS, DIM_WHITE, MIN_CELLS, area_share,
                                                   board_like_boxes, is_dim, to_full)
 from deepcharuco.networks.cells import CELL, cell_confidence
-from evaluate.realistic import Placement, clutter, with_board, without_board
+from evaluate.speed.realistic import Placement, clutter, with_board, without_board
 
 
 def test_a_dense_patch_of_corner_like_cells_is_board_like_scattered_ones_are_not():

@@ -1,4 +1,4 @@
-"""The paper's auto-labelling recipe (evaluate.autolabel): exact synthetic captures, its refusals,
+"""The paper's auto-labelling recipe (evaluate.paper.autolabel): exact synthetic captures, its refusals,
 and a rendered sequence compared with the render truth (one Blender render in a subprocess)."""
 
 import os
@@ -14,7 +14,7 @@ from conftest import ROOT
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, Camera, project_corners, write_camera
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
-from evaluate.autolabel import AutolabelError, autolabel, autolabel_sequence_errors, compare_to_truth, main
+from evaluate.paper.autolabel import AutolabelError, autolabel, autolabel_sequence_errors, compare_to_truth, main
 
 BOARD = BoardSpec()
 
@@ -132,7 +132,7 @@ def test_function_refusals_and_still_board_motion(camera_file):
 def rendered_sequence(tmp_path_factory):
     pytest.importorskip("bpy", reason="the renderer needs the [render] extra (bpy)")
     out = tmp_path_factory.mktemp("sequence")
-    result = subprocess.run([sys.executable, "-m", "evaluate.sequences", "--only", "lux-10-a", "--frames", "34",
+    result = subprocess.run([sys.executable, "-m", "evaluate.paper.sequences", "--only", "lux-10-a", "--frames", "34",
                              "--samples", "2", "--out", str(out), "--quiet"], cwd=ROOT, capture_output=True, text=True,
                             env={**os.environ, "SOURCE_DATE_EPOCH": "1700000000"})
     assert result.returncode == 0, result.stderr[-3000:]

@@ -1,4 +1,4 @@
-"""evaluate.calibration_sequences: the waving path (plain numpy) and the rendered shards (Blender)."""
+"""evaluate.calibration.calibration_sequences: the waving path (plain numpy) and the rendered shards (Blender)."""
 
 import os
 import subprocess
@@ -12,7 +12,7 @@ from conftest import ROOT
 
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, OpenCVDetector
-from evaluate.calibration_sequences import (
+from evaluate.calibration.calibration_sequences import (
     CALIBRATION_SEQUENCES, NAMES, SWEEP_S, WavingPath, hand_waved_pose, pose_of, read_truth, true_camera,
 )
 
@@ -50,7 +50,7 @@ def test_nine_sequences_three_per_camera():
 def rendered(tmp_path_factory):
     pytest.importorskip("bpy", reason="the renderer needs the [render] extra (bpy)")
     out = tmp_path_factory.mktemp("calibration")
-    result = subprocess.run([sys.executable, "-m", "evaluate.calibration_sequences", "--out", str(out), "--frames",
+    result = subprocess.run([sys.executable, "-m", "evaluate.calibration.calibration_sequences", "--out", str(out), "--frames",
                              str(FRAMES), "--samples", "2", "--cameras", "2", "--quiet"], cwd=ROOT, capture_output=True,
                             text=True, env={**os.environ, "SOURCE_DATE_EPOCH": "1700000000"})
     assert result.returncode == 0, result.stderr[-3000:]
@@ -94,7 +94,7 @@ def test_opencv_finds_the_corners_where_the_labels_are(rendered):
 
 
 def test_conditions_choose_the_shards_and_the_renders():
-    from evaluate.calibration_sequences import CONDITIONS, CalibrationJob, renders_per_camera
+    from evaluate.calibration.calibration_sequences import CONDITIONS, CalibrationJob, renders_per_camera
 
     common = dict(out="x", seed=0, frames=10, board=BOARD, width=320, height=240, samples=2, device="cpu", threads=1)
     full, still = CalibrationJob(**common), CalibrationJob(**common, conditions=("good", "1lux"))

@@ -16,7 +16,7 @@ from evaluate.captures import (
 )
 from evaluate.captures import reader
 from evaluate.captures.truth import build_truth
-from evaluate.protocols import motion_blur
+from evaluate.paper.protocols import motion_blur
 from conftest import VIEW_POSES
 
 BOARD = BoardSpec()

@@ -1,7 +1,7 @@
 import numpy as np
 
 from deepcharuco import Camera, write_camera
-from evaluate.compare_cameras import comparison_rows, main, ray_disagreement, stated_rms
+from evaluate.calibration.compare_cameras import comparison_rows, main, ray_disagreement, stated_rms
 
 
 def test_identical_cameras_agree_and_a_shifted_one_does_not(tmp_path):

@@ -12,13 +12,14 @@ from conftest import VIEW_POSES, make_view
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, Detection, OpenCVDetector, estimate_pose
 from deepcharuco.networks import ChArUcoNet, ChArUcoNetConfig, RefineNet, RefineNetConfig, save_checkpoint
-from evaluate import report, unseen_boards
-from evaluate.data import TestSetError, frames_fingerprint, load_frames, select_well_lit
-from evaluate.machine import cpu_description
-from evaluate.protocols import (
+from evaluate import report
+from evaluate.paper import unseen_boards
+from evaluate.paper.data import TestSetError, frames_fingerprint, load_frames, select_well_lit
+from evaluate.paper.protocols import (
     TestFrame, accuracy_vs_threshold, apply_effect, darken, motion_blur, score_corners, score_pose, summarize_poses,
     synthetic_curve, time_pipelines,
 )
+from evaluate.speed.machine import cpu_description
 
 BOARD = BoardSpec()
 
@@ -129,7 +130,7 @@ def test_timing_ranks_pipelines_by_their_cost(frames):
 
 
 def write_test_shards(folder, frames, camera, sequences):
-    """Shards shaped like evaluate.sequences' output: frames with sequence names and lux."""
+    """Shards shaped like evaluate.paper.sequences' output: frames with sequence names and lux."""
     rng = np.random.default_rng(0)
     for index, (name, lux_levels) in enumerate(sequences.items()):
         labels = []
@@ -178,7 +179,7 @@ def test_report_end_to_end(frames, camera, tmp_path, checkpoint):
             "--synthetic-images", "4", "--timing-seconds", "0.2", "--gallery", "2", "--no-autolabel-check", "--no-render",
             "--no-calibration",  # a data/calibration in the checkout must not slow this down (test_calibrate covers it)
             "--no-captures",  # nor the shipped real-capture sample (test_captures covers it)
-            "--no-unseen-boards",  # nor a data/unseen (evaluate.unseen_boards; test_any_board covers the detector)
+            "--no-unseen-boards",  # nor a data/unseen (evaluate.paper.unseen_boards; test_any_board covers the detector)
             "--no-false-positives",  # test_false_positives covers it with the shipped weights
             "--no-corner-precision"]  # test_corner_fit covers it
     assert report.main(argv) == 0

@@ -6,7 +6,7 @@ import pytest
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.detection.placement import MAX_CHANCE, chance_of_agreement
-from evaluate.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
+from evaluate.paper.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
 
 
 def test_look_alikes_exclude_dictionaries_that_print_the_same_board():

@@ -1,4 +1,4 @@
-"""The rendered twins of the paper's evaluation videos (evaluate.sequences).
+"""The rendered twins of the paper's evaluation videos (evaluate.paper.sequences).
 
 Plans (no Blender) for every sequence; then three short sequences rendered with Blender in a
 subprocess (~20 s): labels against OpenCV, light, shadow and shake, determinism and resume.
@@ -19,7 +19,7 @@ from conftest import ROOT
 from datagen.frames import blur_extent_px
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec, OpenCVDetector
-from evaluate.sequences import (
+from evaluate.paper.sequences import (
     LIT_FRAMES, MAX_ATTEMPTS, SEQUENCE_NAMES, SEQUENCES, board_in_view, evaluation_config, main, plan_sequence,
 )
 
@@ -30,10 +30,10 @@ EPOCH = {"SOURCE_DATE_EPOCH": "1700000000"}
 
 
 def sequences_cli(*args, check=True):
-    result = subprocess.run([sys.executable, "-m", "evaluate.sequences", *map(str, args)], cwd=ROOT,
+    result = subprocess.run([sys.executable, "-m", "evaluate.paper.sequences", *map(str, args)], cwd=ROOT,
                             capture_output=True, text=True, env={**os.environ, **EPOCH})
     if check and result.returncode != 0:
-        raise AssertionError(f"evaluate.sequences failed ({result.returncode}):\n{result.stderr[-3000:]}")
+        raise AssertionError(f"evaluate.paper.sequences failed ({result.returncode}):\n{result.stderr[-3000:]}")
     return result
 
 

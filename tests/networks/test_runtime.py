@@ -12,7 +12,7 @@ from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 from deepcharuco.networks.runtime import (INT8_KEY, int8_model, make_runner, onnxruntime_available, resolve_backend,
                                           weights_fingerprint)
-from evaluate.protocols import TestFrame
+from evaluate.paper.protocols import TestFrame
 from train import quantize as quantize_module
 
 EXAMPLE = cv2.imread(str(DEFAULT_WEIGHTS.parents[1] / "examples" / "board_320x240.png"), cv2.IMREAD_GRAYSCALE)

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +20,10 @@ from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.detection.placement import WEAK_CONFIDENCE
 from deepcharuco.networks import load_charuconet
 from deepcharuco.networks.checkpoint import PointsOnlyBoard, read_checkpoint
-from train import pipeline
 from train.bundle import choose_threshold
 from train.charuconet import ChArUcoNetTask, match_points
 from train.loop import TrainConfig, train
+from train.pipeline import checks, command, plan, rates, stages
 
 SHIPPED = ROOT / "deepcharuco" / "weights" / "detector.pt"
 SMALL_BOARD = BoardSpec(squares_x=4, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50")
@@ -137,7 +138,7 @@ def test_pipeline_end_to_end_survives_kills(tmp_path):
     assert ("== stage 3/8" in fifth.stdout) == (resumed_at < 30)
     assert sorted(p.name for p in renders.glob("shard-*.h5")) == [f"shard-0000{i}.h5" for i in range(4)]
     assert read_checkpoint(run / "detector.pt", "charuconet")["threshold"] == bundle["threshold"]
-    assert pipeline._checkpoint_step(run / "charuconet" / "last.pt") == 30
+    assert checks.checkpoint_step(run / "charuconet" / "last.pt") == 30
 
     # 6. datagen.patches stopped by SIGTERM (the pipeline passes it on) removes its staging folder.
     patches = subprocess.Popen([sys.executable, "-m", "datagen.patches", "--renders", str(renders), "--out",
@@ -158,7 +159,7 @@ def cut_off(path: Path) -> None:
 # --------------------------------------------------------------------------------------------- refusals
 
 def run_main(argv: list[str], capsys) -> tuple[int, str]:
-    code = pipeline.main(argv)
+    code = command.main(argv)
     return code, capsys.readouterr().err
 
 
@@ -190,16 +191,16 @@ def test_refusals_name_the_problem_and_the_fix(tmp_path, capsys, unwritable_dir)
     assert not (tmp_path / "run").exists()  # refused before anything was made
 
 
-def make_pipeline(argv: list[str]) -> pipeline.Pipeline:
-    args = pipeline.build_parser().parse_args(argv)
-    return pipeline.Pipeline(args, pipeline.check_target(args))
+def make_pipeline(argv: list[str]) -> stages.Pipeline:
+    args = command.build_parser().parse_args(argv)
+    return stages.Pipeline(args, plan.check_target(args))
 
 
 def test_resuming_with_other_settings_is_refused(tmp_path, capsys):
     board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
     run = tmp_path / "run"
     first = make_pipeline(["--board", str(board_file), "--out", str(run), *TINY])
-    first.sizes = pipeline.Sizes(**{**pipeline.asdict(pipeline.FULL["all"]), **first.fixed_sizes()})
+    first.sizes = plan.Sizes(**{**asdict(plan.FULL["all"]), **first.fixed_sizes()})
     first.save_plan()
     code, err = run_main(["--board", str(board_file), "--out", str(run), *TINY, "--seed", "5"], capsys)
     assert code == 2 and "holds a run made with other settings (seed)" in err and "choose another --out" in err
@@ -221,7 +222,7 @@ def test_plan_only_writes_nothing_and_damaged_records_are_said(tmp_path, capsys)
     assert not (tmp_path / "new").exists()
     run = tmp_path / "run"
     first = make_pipeline(["--board", str(board_file), "--out", str(run), *TINY])
-    first.sizes = pipeline.Sizes(**{**pipeline.asdict(pipeline.FULL["all"]), **first.fixed_sizes()})
+    first.sizes = plan.Sizes(**{**asdict(plan.FULL["all"]), **first.fixed_sizes()})
     first.save_plan()
     (run / "plan.json").write_text((run / "plan.json").read_text()[:40])
     (run / "rates.json").write_text('{"render_s_per_frame": {"val')
@@ -237,7 +238,7 @@ def test_plan_only_writes_nothing_and_damaged_records_are_said(tmp_path, capsys)
 
 
 def test_help_lists_defaults():
-    text = pipeline.build_parser().format_help()
+    text = command.build_parser().format_help()
     for shown in ("(default: 320x240)", "(default: lite)", "(default: shipped)", "(default: auto)", "(default: 40)",
                   "--budget", "--cluster {slurm,k8s}", "--family", "--board"):
         assert shown in text, shown
@@ -248,22 +249,22 @@ def test_help_lists_defaults():
 
 @pytest.mark.parametrize("text, seconds", [("6h", 21600), ("90m", 5400), ("1h30m", 5400), ("45s", 45), ("2.5h", 9000)])
 def test_durations(text, seconds):
-    assert pipeline.parse_duration(text) == seconds
+    assert plan.parse_duration(text) == seconds
 
 
 def test_budget_shrinks_what_was_not_given_and_says_so():
-    rates = {**pipeline.ASSUMED_RATES, "charuconet_s_per_step": 0.6, "refinenet_s_per_step": 0.05}
-    full = pipeline.FULL["points"]
-    assert sum(pipeline.eta_of(full, rates, 1, "points", False).values()) > 3600
-    sizes, notes = pipeline.fit_to_budget(full, {"refinenet_steps": 1500}, rates, 3600, 1, "points", False)
-    assert sum(pipeline.eta_of(sizes, rates, 1, "points", False).values()) <= 3600
+    rates = {**plan.ASSUMED_RATES, "charuconet_s_per_step": 0.6, "refinenet_s_per_step": 0.05}
+    full = plan.FULL["points"]
+    assert sum(plan.eta_of(full, rates, 1, "points", False).values()) > 3600
+    sizes, notes = plan.fit_to_budget(full, {"refinenet_steps": 1500}, rates, 3600, 1, "points", False)
+    assert sum(plan.eta_of(sizes, rates, 1, "points", False).values()) <= 3600
     assert sizes.frames < full.frames and sizes.charuconet_steps < full.charuconet_steps
     assert sizes.refinenet_steps == 1500  # given on the command line: kept
     assert any(n.startswith("frames:") for n in notes) and any(n.startswith("charuconet steps:") for n in notes)
-    unlimited, none = pipeline.fit_to_budget(full, {}, rates, None, 1, "points", False)
+    unlimited, none = plan.fit_to_budget(full, {}, rates, None, 1, "points", False)
     assert unlimited == full and none == []
-    with pytest.raises(pipeline.PipelineError, match="less than the smallest plan"):
-        pipeline.fit_to_budget(full, {}, rates, 60, 1, "points", False)
+    with pytest.raises(plan.PipelineError, match="less than the smallest plan"):
+        plan.fit_to_budget(full, {}, rates, 60, 1, "points", False)
 
 
 def test_cluster_scripts_shard_the_render_and_run_training_under_torchrun(tmp_path, capsys):
@@ -271,7 +272,7 @@ def test_cluster_scripts_shard_the_render_and_run_training_under_torchrun(tmp_pa
     run = tmp_path / "run"
     seed_rates(run)
     for kind in ("slurm", "k8s"):
-        code = pipeline.main(["--board", str(board_file), "--out", str(run), *TINY, "--cluster", kind,
+        code = command.main(["--board", str(board_file), "--out", str(run), *TINY, "--cluster", kind,
                               "--num-shards", "4", "--nproc-per-node", "2"])
         assert code == 0, capsys.readouterr().err
     slurm = (run / "cluster" / "render.slurm").read_text()
@@ -359,15 +360,15 @@ def test_match_points_pairs_each_truth_once():
 
 
 def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unseen_boards(tmp_path, capsys):
-    plan = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "run"), "--budget", "2h"])
-    plan.sizes, plan.rates = pipeline.FULL["points"], {**pipeline.ASSUMED_RATES, **RECORDED}
-    stages = {stage.name: stage for stage in plan.stages()}
-    assert list(plan.eval_boards) == ["4x5 DICT_4X4_1000 inverted"]
+    family = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "run"), "--budget", "2h"])
+    family.sizes, family.rates = plan.FULL["points"], {**plan.ASSUMED_RATES, **RECORDED}
+    stages = {stage.name: stage for stage in family.stages()}
+    assert list(family.eval_boards) == ["4x5 DICT_4X4_1000 inverted"]
     render, charuconet = " ".join(stages["render"].command), " ".join(stages["charuconet"].command)
     assert "--family DICT_4X4" in render and "--n 5000" in render and "--board" not in render
     assert "--heads points" in charuconet and "--id-positive-weight" not in charuconet and str(SHIPPED) in charuconet
     assert "eval-data 4x5 DICT_4X4_1000 inverted" in stages
-    assert "--family DICT_4X4" in plan.reproduce_command() and "--budget" not in plan.reproduce_command()
+    assert "--family DICT_4X4" in family.reproduce_command() and "--budget" not in family.reproduce_command()
     assert "--shadow-probability" not in render  # datagen.render's own unless given
     shadows = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "shadows"), "--shadow-probability", "0.8"])
     assert "--shadow-probability 0.8" in " ".join(shadows.render_args())
@@ -376,18 +377,18 @@ def test_family_plan_trains_the_point_head_on_family_renders_and_evaluates_unsee
     assert "5x5 DICT_5X5_50 (the paper's)" in five.eval_boards and "11x8 DICT_5X5_1000" in five.eval_boards
     scratch = make_pipeline(["--board", str(SMALL_BOARD.save(tmp_path / "b.yaml")), "--out", str(tmp_path / "s"),
                              "--init", "none"])
-    scratch.sizes, scratch.rates = pipeline.FULL["all"], plan.rates
+    scratch.sizes, scratch.rates = plan.FULL["all"], family.rates
     names = [stage.name for stage in scratch.stages()]
     assert names[2:4] == ["charuconet-a", "charuconet-b"]  # the shipped recipe: plain loss, then the ID term weighted
     assert "--shadow-edges" not in " ".join(next(s for s in scratch.stages() if s.name == "patches").command)
     edges = make_pipeline(["--board", str(tmp_path / "b.yaml"), "--out", str(tmp_path / "e"), "--init", "none",
                            "--shadow-edges", "0.4"])
-    edges.sizes, edges.rates = pipeline.FULL["all"], plan.rates
+    edges.sizes, edges.rates = plan.FULL["all"], family.rates
     edge_stages = {stage.name: stage for stage in edges.stages()}
     assert "--shadow-edges 0.4" in " ".join(edge_stages["patches"].command) and "--shadow-edges 0.4" in edges.reproduce_command()
     assert all("--shadow-edges 0.4" in " ".join(edge_stages[name].command) for name in ("charuconet-a", "charuconet-b"))
     assert "--shadow-edges" not in " ".join(edge_stages["refinenet"].command)  # its patches carry them
-    assert pipeline.main(["--family", "DICT_4X4", "--out", str(tmp_path / "bad"), "--shadow-edges", "1.5"]) == 2
+    assert command.main(["--family", "DICT_4X4", "--out", str(tmp_path / "bad"), "--shadow-edges", "1.5"]) == 2
     assert "--shadow-edges 1.5: give a share of the crops and patches in [0, 1]" in capsys.readouterr().err
 
 
@@ -396,8 +397,8 @@ def test_zero_refinenet_steps_keep_the_initial_refinenet(tmp_path, capsys):
     weights' RefineNet bundled as it is; refused from scratch, where there is none to keep."""
     keep = make_pipeline(["--family", "DICT_4X4", "--out", str(tmp_path / "run"), "--frames", "100",
                           "--charuconet-steps", "50", "--refinenet-steps", "0", "--synthetic-patches", "0"])
-    keep.sizes = pipeline.Sizes(**{**pipeline.asdict(pipeline.FULL["points"]), **keep.fixed_sizes()})
-    keep.rates = {**pipeline.ASSUMED_RATES, **RECORDED}
+    keep.sizes = plan.Sizes(**{**asdict(plan.FULL["points"]), **keep.fixed_sizes()})
+    keep.rates = {**plan.ASSUMED_RATES, **RECORDED}
     stages = {stage.name: stage for stage in keep.stages()}
     assert "patches" not in stages and "refinenet" not in stages
     bundle = stages["bundle"].command
@@ -412,9 +413,9 @@ def test_zero_refinenet_steps_keep_the_initial_refinenet(tmp_path, capsys):
 
 
 def test_rate_probes_time_real_steps():
-    assert 0 < pipeline.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu") < 60
-    assert 0 < pipeline.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu") < 60
-    assert 0 < pipeline.probe_patches() < 1
+    assert 0 < rates.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu") < 60
+    assert 0 < rates.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu") < 60
+    assert 0 < rates.probe_patches() < 1
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="parent-death signal is Linux's")
@@ -422,7 +423,7 @@ def test_a_stage_dies_with_a_killed_pipeline(tmp_path):
     """A SIGKILLed pipeline cannot pass the signal on: its stage must still stop (not train on, orphaned)."""
     script = (
         "import subprocess, sys, time\n"
-        "from train.pipeline import stop_with_parent\n"
+        "from train.pipeline.run import stop_with_parent\n"
         "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], preexec_fn=stop_with_parent)\n"
         "print(child.pid, flush=True)\n"
         "time.sleep(120)\n"

@@ -1,12 +1,12 @@
 """Boards the detector was never trained on: the paper's protocols re-run on other boards.
 
-    python -m evaluate.unseen_boards                # render the sets once (~10 min a board on 2 cores), evaluate
+    python -m evaluate.paper.unseen_boards                # render the sets once (~10 min a board on 2 cores), evaluate
     python -m evaluate.report                       # shows the section whenever data/unseen holds the sets
 
 The shipped weights were trained on renders of the paper's 5x5 DICT_5X5_50 board only. Each
 board below differs in grid, dictionary, marker/square ratio or print polarity, and is found
 by its markers (`Detector` geometry "markers"). For each board the rendered twins of the
-paper's 26 videos are made again with that board printed in the scene (`evaluate.sequences
+paper's 26 videos are made again with that board printed in the scene (`evaluate.paper.sequences
 --board`, 40 frames a sequence), and the report's experiments run on them: the synthetic
 blur/darkness protocol on 20 well-lit first frames, and pose accuracy over the sequences,
 next to OpenCV + cornerSubPix on the same frames.
@@ -23,9 +23,9 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import write_atomic
 from deepcharuco.detection.opencv_detector import OpenCVDetector
-from evaluate import experiments
-from evaluate.data import frames_fingerprint, load_frames, select_well_lit
-from evaluate.protocols import LEVELS
+from evaluate.paper import experiments
+from evaluate.paper.data import frames_fingerprint, load_frames, select_well_lit
+from evaluate.paper.protocols import LEVELS
 
 DEFAULT_ROOT = Path("data/unseen")
 SEQUENCE_FRAMES = 40  # 30 well-lit static frames, then 10 of the sequence's condition
@@ -48,7 +48,7 @@ def folder_of(root: Path, name: str) -> Path:
 
 def render_sets(root: Path = DEFAULT_ROOT, frames: int = SEQUENCE_FRAMES, quiet: bool = False) -> None:
     """Render (or finish rendering) every board's sequences under ``root``; finished sets are kept."""
-    from evaluate.sequences import main as render_sequences
+    from evaluate.paper.sequences import main as render_sequences
 
     for name, board in UNSEEN_BOARDS.items():
         folder = folder_of(root, name)
@@ -58,7 +58,7 @@ def render_sets(root: Path = DEFAULT_ROOT, frames: int = SEQUENCE_FRAMES, quiet:
         if any(folder.glob("shard-*.h5")):
             arguments.append("--resume")
         if not quiet:
-            print(f"rendering {name}: python -m evaluate.sequences {' '.join(arguments)}", file=sys.stderr, flush=True)
+            print(f"rendering {name}: python -m evaluate.paper.sequences {' '.join(arguments)}", file=sys.stderr, flush=True)
         if render_sequences(arguments + (["--quiet"] if quiet else [])) != 0:
             raise DeepCharucoError(f"rendering the sequences of {name} into {folder} failed (see above)")
 
@@ -175,13 +175,13 @@ def sections(unseen: dict, labels: dict) -> list[tuple[str, str, list[list[str]]
     prints = [f"{name} {result['data_fingerprint']}" for name, result in unseen["boards"].items()
               if result.get("data_fingerprint")]
     if prints:
-        text += (" The frames' fingerprints (`evaluate.data.frames_fingerprint`: the same on a re-render from the "
+        text += (" The frames' fingerprints (`evaluate.paper.data.frames_fingerprint`: the same on a re-render from the "
                  "same seed on one machine; another CPU may render other pixels): " + ", ".join(prints) + ".")
     return [("Boards never seen in training", text, rows, [])]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.unseen_boards", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m evaluate.paper.unseen_boards", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--root", default=str(DEFAULT_ROOT), help="folder of the boards' sequence sets")
     parser.add_argument("--frames", type=int, default=SEQUENCE_FRAMES, help="frames per rendered sequence")

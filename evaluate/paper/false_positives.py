@@ -23,7 +23,7 @@ from tqdm import tqdm
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.boards.synthetic import look_at_pose, paint_markers, render_board_view
 from deepcharuco.geometry.camera import Camera
-from evaluate.protocols import DetectorLike
+from evaluate.paper.protocols import DetectorLike
 
 OTHER_DICTIONARIES = ("DICT_4X4_250", "DICT_5X5_250", "DICT_6X6_250", "DICT_7X7_250", "DICT_APRILTAG_36h11")
 MAX_PHOTO_CORNER_RATE = 0.02  # the target: at most 2 % of board-free photos with any corner reported

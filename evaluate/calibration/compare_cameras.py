@@ -1,4 +1,4 @@
-"""Camera files side by side: ``python -m evaluate.compare_cameras REFERENCE.yaml OTHER.yaml ...``.
+"""Camera files side by side: ``python -m evaluate.calibration.compare_cameras REFERENCE.yaml OTHER.yaml ...``.
 
 For real captures there is no true camera, only calibrations to compare (e.g. this project's
 `deepcharuco.cli.calibrate` with each detector against another tool's file). Each row: the intrinsics,
@@ -83,7 +83,7 @@ def comparison_rows(paths: list[str | Path], names: list[str] | None = None) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.compare_cameras", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m evaluate.calibration.compare_cameras", description=__doc__.split("\n\n")[0])
     parser.add_argument("cameras", nargs="+", help="camera files; the first is the reference")
     parser.add_argument("--names", nargs="+", default=None, help="a name for each file (default: the file names)")
     args = parser.parse_args(argv)

@@ -1,9 +1,9 @@
-"""``python -m evaluate.rig_renders``: Blender renders of a board waved through a rig of cameras, with exact truth.
+"""``python -m evaluate.calibration.rig_renders``: Blender renders of a board waved through a rig of cameras, with exact truth.
 
-The rig and the board's poses are `evaluate.rig_views`' for the same seed (the same cameras, lenses and waving);
+The rig and the board's poses are `evaluate.calibration.rig_views`' for the same seed (the same cameras, lenses and waving);
 each view is rendered by Cycles through its camera's lens (`datagen.frames.render_labelled`: a wider pinhole render
 resampled through the distortion, so a corner lies where ``cv2.projectPoints`` puts it) in a room with lamps and a
-matte or glossy print (`evaluate.calibration_sequences.calibration_config`), then taken by the sensor model
+matte or glossy print (`evaluate.calibration.calibration_sequences.calibration_config`), then taken by the sensor model
 (`datagen.sensor`: photon and read noise, auto-exposure, 8 bits):
 
 - ``good``: 400 lux on the board;
@@ -31,8 +31,8 @@ from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.cli.common import output_folder, run_command
-from evaluate.calibration_sequences import DARK_LUX, GOOD_LUX, calibration_config
-from evaluate.rig_views import RIG_BOARD, board_poses, rig_cameras
+from evaluate.calibration.calibration_sequences import DARK_LUX, GOOD_LUX, calibration_config
+from evaluate.calibration.rig_views import RIG_BOARD, board_poses, rig_cameras
 
 CONDITIONS = ("good", "1lux", "shake")
 SPEED_M_S = (0.5, 1.5)
@@ -49,9 +49,9 @@ def plan(board: BoardSpec, seed: int, cameras: int, instants: int, size: tuple[i
     """The rig, the board's poses and motion, the scene and every render's seed: all drawn before any render, so a
     resumed run draws the same."""
     from datagen.scene import sample_scene
-    from evaluate.sequences import MOTION_LUX
+    from evaluate.paper.sequences import MOTION_LUX
 
-    rng = np.random.default_rng(seed)  # `evaluate.rig_views.drawn_rig`'s draws, in its order
+    rng = np.random.default_rng(seed)  # `evaluate.calibration.rig_views.drawn_rig`'s draws, in its order
     intrinsics, rotations, translations, target = rig_cameras(rng, cameras, size)
     board_r, board_t = board_poses(rng, board, target, instants)
     more = np.random.default_rng([seed, 7])
@@ -142,7 +142,7 @@ def run(board: BoardSpec, out: Path, *, seed: int, cameras: int, instants: int, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.rig_renders", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m evaluate.calibration.rig_renders", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--out", default="data/rig_renders", help="folder of the renders and truth.json")
     parser.add_argument("--seed", type=int, default=1)
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--instants", type=int, default=40)
     parser.add_argument("--size", default="640x480")
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
-    parser.add_argument("--board", default=None, help="board file (default: evaluate.rig_views.RIG_BOARD)")
+    parser.add_argument("--board", default=None, help="board file (default: evaluate.calibration.rig_views.RIG_BOARD)")
     parser.add_argument("--threads", type=int, default=0, help="Cycles threads (0: all cores)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)

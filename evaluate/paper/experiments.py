@@ -19,8 +19,8 @@ from collections.abc import Iterable
 import numpy as np
 from tqdm import tqdm
 
-from evaluate.data import group_by_sequence
-from evaluate.protocols import (
+from evaluate.paper.data import group_by_sequence
+from evaluate.paper.protocols import (
     LEVELS, POSE_THRESHOLD_PX, THRESHOLDS_PX, DetectorLike, PoseScore, TestFrame, accuracy_vs_threshold, score_pose,
     summarize_poses, synthetic_curve, time_pipelines,
 )

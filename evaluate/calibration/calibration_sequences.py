@@ -1,4 +1,4 @@
-"""Rendered calibration videos with a known distorted camera: ``python -m evaluate.calibration_sequences``.
+"""Rendered calibration videos with a known distorted camera: ``python -m evaluate.calibration.calibration_sequences``.
 
 Truth for `deepcharuco.cli.calibrate`: a board waved by hand in front of a still camera whose lens
 distortion is known. One camera per k1 in `K1_VALUES` (k2 = k1^2, which keeps the lens one to one,
@@ -8,7 +8,7 @@ of horizontal field of view), and three videos of it, one shard each (shard inde
 - ``k1<k1>-good`` (e.g. ``k1-0.40-good``): 400 lux, the board held still at each view;
 - ``k1<k1>-1lux``: the same views (the same renders) at 1 lux: the sensor's gain and noise;
 - ``k1<k1>-shake``: the board moving along its path and the hand shaking (the shake of
-  `evaluate.sequences`' motion videos), each frame rendered with real motion blur over its
+  `evaluate.paper.sequences`' motion videos), each frame rendered with real motion blur over its
   exposure, at 60-200 lux; labelled at the shutter centre.
 
 ``--conditions`` renders some of them (good light and 1 lux share their renders; shake needs its own):
@@ -50,7 +50,7 @@ import deepcharuco
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.cli.common import output_folder
 from deepcharuco.core.errors import DeepCharucoError
-from evaluate.sequences import SceneJob
+from evaluate.paper.sequences import SceneJob
 
 K1_VALUES = (-0.4, -0.15, 0.1)
 CONDITIONS = ("good", "1lux", "shake")
@@ -59,7 +59,7 @@ DARK_LUX = 1.0
 SWEEP_S = 30.0  # one pass of the waving path; frames sample it
 TILT_DEG = 40.0
 REACH = (0.32, 0.30)  # the board centre's sweep either side of the image centre, in image widths / heights
-SEED_OFFSET = 100  # camera c draws from default_rng([seed, 100 + c, ...]): never evaluate.sequences' streams
+SEED_OFFSET = 100  # camera c draws from default_rng([seed, 100 + c, ...]): never evaluate.paper.sequences' streams
 
 
 @dataclass(frozen=True)
@@ -175,7 +175,7 @@ def calibration_config(width: int, height: int, samples: int) -> "SceneConfig":
 class CalibrationJob(SceneJob):
     """A run of the calibration sequences (picklable for the worker processes)."""
 
-    command: ClassVar[str] = "evaluate.calibration_sequences"
+    command: ClassVar[str] = "evaluate.calibration.calibration_sequences"
     conditions: tuple[str, ...] = CONDITIONS
 
     def content(self) -> dict:
@@ -198,7 +198,7 @@ def _camera_world(board_matrix: np.ndarray, board_to_camera: np.ndarray) -> np.n
 
 
 def _shaken(shake, t: float) -> np.ndarray:
-    """(4, 4) camera-at-rest from shaken-camera transform at time t (`evaluate.sequences._shake`)."""
+    """(4, 4) camera-at-rest from shaken-camera transform at time t (`evaluate.paper.sequences._shake`)."""
     rotation_vector, offset = shake(t)
     transform = np.eye(4)
     transform[:3, :3] = cv2.Rodrigues(np.asarray(rotation_vector, np.float64))[0]
@@ -231,7 +231,7 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
     from datagen.sensor import SensorParams
     from datagen.shards import FrameLabels, write_shard
     from datagen.workers import report_progress
-    from evaluate.sequences import MOTION_LUX, _shake
+    from evaluate.paper.sequences import MOTION_LUX, _shake
 
     sequences = [s for s in CALIBRATION_SEQUENCES if s.camera == camera and s.condition in job.conditions]
     size = (job.width, job.height)
@@ -243,7 +243,7 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
     scene = sample_scene(rng, job.board.size_m, calibration_config(*wide_size, job.samples))
     # The wall behind the board only: the camera travels where the sampler's floor and clutter could be.
     # Denoised: one render serves a good-light and a 1-lux frame, and Monte Carlo noise at a few samples would
-    # otherwise be most of a good-light frame's noise (evaluate.sequences does the same for its lit frames).
+    # otherwise be most of a good-light frame's noise (evaluate.paper.sequences does the same for its lit frames).
     scene = replace(scene, K=K_wide, shapes=[s for s in scene.shapes if s.role == "room"][:1], denoise=True)
     path = WavingPath.draw(rng)
     times = frame_times(job.frames, rng)
@@ -291,7 +291,7 @@ def render_camera(job: CalibrationJob, camera: int) -> int:
             frames.append(FrameLabels(image=image, corners=corners, visible=visible, K=K.astype(np.float32),
                                       rvec=rvec.astype(np.float32), tvec=tvec.astype(np.float32), meta=meta))
         generator = {"package": "deepcharuco", "version": deepcharuco.__version__,
-                     "command": "evaluate.calibration_sequences", "args": job.content(), "sequence": sequence.name,
+                     "command": "evaluate.calibration.calibration_sequences", "args": job.content(), "sequence": sequence.name,
                      "device": job.device}
         write_shard(job.out, sequence.number, frames, job.board, generator)
     return len(sequences) * job.frames
@@ -327,7 +327,7 @@ def run(job: CalibrationJob, cameras: list[int], *, resume: bool, workers: int =
     remove_stale_temporaries(out, job.numbers(todo))
     renders = renders_per_camera(job)
     if not quiet:
-        print(f"evaluate.calibration_sequences: {len(todo)} camera(s) x {len(job.conditions)} sequence(s) "
+        print(f"evaluate.calibration.calibration_sequences: {len(todo)} camera(s) x {len(job.conditions)} sequence(s) "
               f"({', '.join(job.conditions)}) of {job.frames} frames ({renders} renders each) into {out}", file=sys.stderr)
     if todo:
         run_shard_tasks(render_camera, [(job, c) for c in todo], [job.numbers([c])[0] for c in todo], out, noun="camera",
@@ -337,7 +337,7 @@ def run(job: CalibrationJob, cameras: list[int], *, resume: bool, workers: int =
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m evaluate.calibration_sequences", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="python -m evaluate.calibration.calibration_sequences", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Render calibration videos of a hand-waved board through known distorted cameras (k1 "
                     f"{', '.join(f'{k:+.2f}' for k in K1_VALUES)}): good light, 1 lux, shake; one shard each.",
         epilog=f"Sequences (shard index = position): {', '.join(NAMES)}.")
@@ -378,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     if not args.quiet:
-        print(f"evaluate.calibration_sequences: {index['frames']} frame(s) in {len(index['shards'])} sequence(s) in "
+        print(f"evaluate.calibration.calibration_sequences: {index['frames']} frame(s) in {len(index['shards'])} sequence(s) in "
               f"{args.out} ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
     return 0
 

@@ -1,11 +1,11 @@
-"""``python -m evaluate.rig_eval``: rig calibration measured against truth, the deep detector beside OpenCV's.
+"""``python -m evaluate.calibration.rig_eval``: rig calibration measured against truth, the deep detector beside OpenCV's.
 
 Two kinds of data:
 
-- drawn rigs (`evaluate.rig_views`: exact truth of every camera's intrinsics, distortion and pose), in good light,
+- drawn rigs (`evaluate.calibration.rig_views`: exact truth of every camera's intrinsics, distortion and pose), in good light,
   dark and under shake: per detector, each camera's rotation error (degrees) and centre error (mm per metre of the
   rig's baseline) against the truth, fx/fy error (%), and the views and shared instants kept; with ``--rendered``
-  the same of Blender-rendered rigs (`evaluate.rig_renders`: good light, 1 lux, shake);
+  the same of Blender-rendered rigs (`evaluate.calibration.rig_renders`: good light, 1 lux, shake);
 - with ``--realdata DIR``, the four synchronised caliscope webcams (``DIR/caliscope_calibration``; no truth of the
   extrinsics exists): per detector the RMS per camera, the square length of the board as the rig triangulates it
   (every corner seen by two cameras or more at one instant, triangulated from all of them; neighbouring corners'
@@ -35,7 +35,7 @@ from deepcharuco.calibration.views import CalibrationError, FrameDetection, Sele
 from deepcharuco.cli.calibrate_rig import solve_rig
 from deepcharuco.core.opencv_api import undistort_points
 from deepcharuco.geometry.camera import Camera, read_camera
-from evaluate.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
+from evaluate.calibration.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
 
 DETECTORS = ("opencv", "deep")
 
@@ -171,7 +171,7 @@ def _drawn_line(row: dict) -> str:
 
 
 def rendered_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool = True) -> list[dict]:
-    """The Blender-rendered rig in ``folder`` (`evaluate.rig_renders`): each condition's views through both
+    """The Blender-rendered rig in ``folder`` (`evaluate.calibration.rig_renders`): each condition's views through both
     detectors and the same solve, against the truth."""
     record = json.loads((folder / "truth.json").read_text())
     board = BoardSpec.from_dict(record["board"])
@@ -209,7 +209,7 @@ def rendered_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: 
 
 def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool = True) -> list[dict]:
     """The caliscope rig (module docstring)."""
-    from evaluate.realistic import video_frames
+    from evaluate.speed.realistic import video_frames
 
     session = folder / "caliscope_calibration"
     board = BoardSpec.load(session / "board.yaml")
@@ -248,7 +248,7 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.rig_eval", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m evaluate.calibration.rig_eval", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="*", default=[1, 2], help="drawn rigs to measure (0: validation)")
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--detectors", nargs="+", choices=DETECTORS, default=list(DETECTORS))
     parser.add_argument("--realdata", type=Path, default=None, help="folder holding caliscope_calibration/")
     parser.add_argument("--rendered", type=Path, nargs="*", default=[],
-                        help="folders of Blender-rendered rigs (python -m evaluate.rig_renders)")
+                        help="folders of Blender-rendered rigs (python -m evaluate.calibration.rig_renders)")
     parser.add_argument("--rig-corners-alike", action="store_true",
                         help="the rig's bundle adjustment weighs every corner alike (as before 2026-11-26), each "
                              "camera's own calibration still by the corners' covariances")
@@ -269,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     results = {"drawn": drawn_experiment(args.seeds, args.conditions, args.instants, args.detectors, args.quiet, weigh)}
     for folder in args.rendered:
         if not (folder / "truth.json").is_file():
-            parser.error(f"--rendered {folder} holds no truth.json: render it with python -m evaluate.rig_renders")
+            parser.error(f"--rendered {folder} holds no truth.json: render it with python -m evaluate.calibration.rig_renders")
         results.setdefault("rendered", []).extend(rendered_experiment(folder, args.detectors, args.quiet, weigh))
     if args.realdata is not None:
         results["caliscope"] = real_experiment(args.realdata, args.detectors, args.quiet, weigh)

@@ -22,7 +22,7 @@ from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from deepcharuco.geometry.pose import project_corners
 from evaluate.captures.reader import REVIEW_FILE, VIDEO_SUFFIXES, Medium, read_review
 from evaluate.captures.reader import video_frames as capture_video_frames
-from evaluate.protocols import TestFrame
+from evaluate.paper.protocols import TestFrame
 
 WORDS = ("ACME", "exit", "42", "calibration", "Tuesday", "#7", "warning", "lab B", "0.5 mm", "ok")
 

@@ -26,7 +26,7 @@ from datagen.lens import distort_image, distortion_maps, wide_camera
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.boards.synthetic import render_board_view
 from deepcharuco.geometry.camera import Camera
-from evaluate.protocols import DARKNESS_BASE
+from evaluate.paper.protocols import DARKNESS_BASE
 
 CONDITIONS = ("good", "dark", "shake")
 # The rigs' board: an A2-sized 9 x 6 board of 60 mm squares, as rigs covering a room use.

@@ -6,10 +6,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from deepcharuco.calibration.html_page import png, pyplot
+from deepcharuco.calibration.html_page import image_format, png, pyplot
 from deepcharuco.cli.draw import draw_detection
-from evaluate.experiments import LABELS
-from evaluate.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
+from evaluate.paper.experiments import LABELS
+from evaluate.paper.protocols import POSE_THRESHOLD_PX, PoseScore, TestFrame
 
 STYLE = {"deep": ("tab:blue", "-o"), "deep_subpix": ("tab:cyan", "--^"), "deep_norefine": ("tab:purple", ":s"),
          "deep_paper": ("tab:green", "-.d"), "deep_markers": ("tab:olive", "--v"),
@@ -17,6 +17,10 @@ STYLE = {"deep": ("tab:blue", "-o"), "deep_subpix": ("tab:cyan", "--^"), "deep_n
 TRUTH_COLOUR = (60, 60, 255)  # BGR red
 
 
+def figure_file_name(name: str, data: bytes) -> str:
+    """The file a figure is written to beside a markdown page: ``name.jpg`` for JPEG bytes (the real-captures
+    gallery), else ``name.png``; the report and ``python -m evaluate.captures`` name their files alike."""
+    return f"{name}.{'jpg' if image_format(data) == 'jpeg' else 'png'}"
 
 
 def synthetic_figure(synthetic: dict, effect: str) -> bytes:

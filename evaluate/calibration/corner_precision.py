@@ -1,6 +1,6 @@
 """Sub-pixel corner error against exact truth, by condition, for every way this project places a corner.
 
-Frames: each of `BOARDS` drawn into procedural clutter (`evaluate.realistic.with_board`: a random light gain,
+Frames: each of `BOARDS` drawn into procedural clutter (`evaluate.speed.realistic.with_board`: a random light gain,
 sensor noise of 2 grey levels, exact truth) at 640x480, then put through one of `CONDITIONS`:
 
 - ``good``: as drawn, the board 35-80 % of the frame's width, tilted up to 35 degrees;
@@ -20,7 +20,7 @@ spread of error / predicted sigma, sqrt(mean(e^T C^-1 e) / 2), should be 1.
 
 Seed 0 is validation (where `corner_fit`'s constants were chosen); seed 1 measures.
 
-    python -m evaluate.corner_precision --seed 1 --frames 6 --out report/corner_precision.json
+    python -m evaluate.calibration.corner_precision --seed 1 --frames 6 --out report/corner_precision.json
 """
 
 from __future__ import annotations
@@ -46,9 +46,9 @@ from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.detection.junction import locate_by_pattern
 from deepcharuco.detection.metrics import CORRECT_RADIUS_PX
 from deepcharuco.detection.opencv_detector import OpenCVDetector
-from evaluate.protocols import TestFrame, darken, motion_blur
-from evaluate.realistic import Placement, clutter, with_board
-from evaluate.unseen_boards import UNSEEN_BOARDS
+from evaluate.paper.protocols import TestFrame, darken, motion_blur
+from evaluate.paper.unseen_boards import UNSEEN_BOARDS
+from evaluate.speed.realistic import Placement, clutter, with_board
 
 SIZE = (640, 480)
 # The report's boards (the unseen boards' three, the paper's) and a legacy layout; this order seeds each frame.
@@ -262,7 +262,7 @@ def sections(results: dict) -> list[tuple[str, str, list[list[str]], list[str]]]
     for line in table(results).splitlines()[2:]:
         rows.append([c.strip() for c in line.strip("|").split("|")])
     text = (f"Corner error (px, median / 90th percentile) against exact truth on drawn views "
-            f"(evaluate.corner_precision, seed {results['seed']}, {results['frames_per_cell']} frames per board and "
+            f"(evaluate.calibration.corner_precision, seed {results['seed']}, {results['frames_per_cell']} frames per board and "
             f"condition, boards: {', '.join(results['boards'])}), on the corners every placer found. OpenCV's "
             "corners are without OpenCV 4.11's half-pixel shift. \"deep (shipped)\" is RefineNet followed by the "
             "printed-pattern fit (deepcharuco/detection/corner_fit.py), with the shipped weights for each board whatever "
@@ -307,13 +307,13 @@ def table(results: dict) -> str:
 
 
 def calibration_check(seed: int, conditions: list[str], instants: int = 40, quiet: bool = False) -> list[dict]:
-    """Each camera of a drawn two-camera rig (`evaluate.rig_views`, exact intrinsics) calibrated on its own from the
+    """Each camera of a drawn two-camera rig (`evaluate.calibration.rig_views`, exact intrinsics) calibrated on its own from the
     shipped detector's corners weighed by their covariances and not, RefineNet's corners alone, and OpenCV +
     cornerSubPix's: fx / fy error (%), cx / cy error (px), RMS (px) per camera, or why there is no calibration."""
     from deepcharuco.calibration.intrinsics import calibrate
     from deepcharuco.calibration.views import CalibrationError, SelectionOptions, border_margin
-    from evaluate.rig_eval import detect_all
-    from evaluate.rig_views import RIG_BOARD, drawn_rig
+    from evaluate.calibration.rig_eval import detect_all
+    from evaluate.calibration.rig_views import RIG_BOARD, drawn_rig
 
     board = RIG_BOARD
     placers = {"deep": (Detector(board=board), "refinenet", (True, False)),
@@ -340,7 +340,7 @@ def calibration_check(seed: int, conditions: list[str], instants: int = 40, quie
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.corner_precision", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m evaluate.calibration.corner_precision", description=__doc__.split("\n")[0])
     parser.add_argument("--seed", type=int, default=1, help="0 is validation, 1 measures (default 1)")
     parser.add_argument("--frames", type=int, default=6, help="frames per board and condition (default 6)")
     parser.add_argument("--boards", nargs="+", choices=list(BOARDS), default=list(BOARDS), metavar="BOARD",

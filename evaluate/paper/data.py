@@ -12,7 +12,7 @@ import numpy as np
 from datagen.shards import ShardReader, list_shards
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
-from evaluate.protocols import TestFrame
+from evaluate.paper.protocols import TestFrame
 
 WELL_LIT_LUX = 100.0  # the paper's "good lighting" (its normal-light videos are 3..700 lux)
 STATIC_BLUR_PX = 0.5  # "random static pose, minimum motion blur"
@@ -35,7 +35,7 @@ def load_frames(directory: str | Path, board: BoardSpec | None = None, limit: in
     paths = list_shards(directory) if directory.is_dir() else []
     if not paths:
         raise TestSetError(f"no shard-*.h5 files in {directory}: render a test set with python -m datagen.render "
-                           f"--seed 1000 --out {directory} (or python -m evaluate.sequences --out {directory})")
+                           f"--seed 1000 --out {directory} (or python -m evaluate.paper.sequences --out {directory})")
     frames: list[TestFrame] = []
     for path in paths:
         reader = ShardReader(path)

@@ -1,4 +1,4 @@
-"""Auto-labelling of captures, the paper's recipe: ``python -m evaluate.autolabel VIDEO --camera cam.yaml``.
+"""Auto-labelling of captures, the paper's recipe: ``python -m evaluate.paper.autolabel VIDEO --camera cam.yaml``.
 
 A capture films a static board with a still camera. Its truth is OpenCV's detection
 (+ cornerSubPix) on the average of its first 30 frames — averaging removes the sensor noise —
@@ -12,7 +12,7 @@ OpenCV runs on each of them, and a frame's displacement is the median distance o
 from the average's (a median, so one badly refined corner in a noisy frame is not motion).
 
 VIDEO is a video file, a folder of images (sorted by name) or an HDF5 shard. A shard brings its
-own K, and when it is a render (`evaluate.sequences`, `datagen.render`) it carries the render
+own K, and when it is a render (`evaluate.paper.sequences`, `datagen.render`) it carries the render
 truth: then the auto-labels are compared with it (`compare_to_truth`), which measures the
 recipe itself.
 """
@@ -39,7 +39,7 @@ from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.geometry.camera import read_camera
 from deepcharuco.geometry.pose import estimate_pose
-from evaluate.protocols import rotation_error_deg
+from evaluate.paper.protocols import rotation_error_deg
 
 AVERAGE_FRAMES = 30
 MAX_MOTION_PX = 1.0
@@ -428,7 +428,7 @@ def _check_out(out: Path, index: int, capture: Capture) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m evaluate.autolabel", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="python -m evaluate.paper.autolabel", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Label a capture of a static ChArUco board the paper's way: OpenCV + cornerSubPix on the average "
                     "of its first frames is the truth of every frame. Writes one shard (schema: docs/conventions.md).")
     parser.add_argument("video", metavar="VIDEO", help="video file, folder of images (sorted by name), or shard-*.h5")
@@ -465,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
             capture.shard_index if capture.shard_index is not None else _next_index(out))
         _check_out(out, index, capture)
         output_folder(out)
-        generator = {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "evaluate.autolabel",
+        generator = {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "evaluate.paper.autolabel",
                      "args": {"source": capture.source, "average": args.average, "max_motion": args.max_motion,
                               "camera": args.camera, "board": board.to_dict()},
                      "autolabel": {"ids": labels.ids.tolist(), "reprojection_error": labels.reprojection_error,

@@ -1,4 +1,4 @@
-"""Rendered twins of the paper's 26 evaluation videos: ``python -m evaluate.sequences``.
+"""Rendered twins of the paper's 26 evaluation videos: ``python -m evaluate.paper.sequences``.
 
 The paper filmed a static board with a still webcam: 20 videos at 10 light levels (two each),
 3 with a moving shadow, 3 with camera shake. Here each video is a sequence of ``--frames``
@@ -392,10 +392,10 @@ class SceneJob:
 class SequenceJob(SceneJob):
     """A run of the paper's 26 sequences."""
 
-    command: ClassVar[str] = "evaluate.sequences"
+    command: ClassVar[str] = "evaluate.paper.sequences"
 
     def generator(self, sequence: Sequence) -> dict:
-        return {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "evaluate.sequences",
+        return {"package": "deepcharuco", "version": deepcharuco.__version__, "command": "evaluate.paper.sequences",
                 "args": self.content(), "sequence": sequence.name, "device": self.device}
 
     def config(self) -> SceneConfig:
@@ -428,7 +428,7 @@ def run(job: SequenceJob, selected: list[Sequence], *, resume: bool, workers: in
     total = sum(estimated_work(s, job.frames) for s in todo)
     if not quiet:
         skipped = len(selected) - len(todo)
-        print(f"evaluate.sequences: {len(todo)} sequence(s) of {job.frames} frames to render into {out}"
+        print(f"evaluate.paper.sequences: {len(todo)} sequence(s) of {job.frames} frames to render into {out}"
               + (f" ({skipped} already there)" if skipped else "")
               + f"; progress in frame renders, a shared lit render counting {STATIC_SAMPLES_FACTOR}", file=sys.stderr)
     run_shard_tasks(render_sequence, [(job, s.number) for s in todo], [s.number for s in todo], out, noun="sequence",
@@ -449,7 +449,7 @@ def select(names: list[str] | None) -> list[Sequence]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m evaluate.sequences", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="python -m evaluate.paper.sequences", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Render twins of the paper's 26 evaluation videos (a static board, a still camera: 10 light levels "
                     "x 2 scenes, 3 moving shadows, 3 camera shakes), one HDF5 shard per sequence.",
         epilog=f"Sequences (shard index = position): {', '.join(SEQUENCE_NAMES)}.")
@@ -486,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
         started = time.perf_counter()
         index = run(job, selected, resume=args.resume, workers=args.workers, quiet=args.quiet)
         if not args.quiet:
-            print(f"evaluate.sequences: {index['frames']} frame(s) in {len(index['shards'])} sequence(s) in "
+            print(f"evaluate.paper.sequences: {index['frames']} frame(s) in {len(index['shards'])} sequence(s) in "
                   f"{args.out} ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
 
     return run_command(body)

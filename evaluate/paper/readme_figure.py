@@ -1,10 +1,10 @@
 """The README's picture: OpenCV and the deep detector on the same dark view of a board.
 
-    python -m evaluate.readme_figure --out docs/dark_frame.jpg
+    python -m evaluate.paper.readme_figure --out docs/dark_frame.jpg
 
 A 7x5 DICT_6X6_250 board (a board the networks never trained on, found by its markers with the shipped
 DICT_6X6 family model) drawn at 640x480 through an undistorted 60-degree camera, darkened as the paper's
-protocol does at k = 8 (`evaluate.protocols.darken`: ~2 % of the light) with sensor noise, then each detector's
+protocol does at k = 8 (`evaluate.paper.protocols.darken`: ~2 % of the light) with sensor noise, then each detector's
 corners and pose drawn on a brightened copy (the image itself is nearly black). Deterministic: seed 0.
 """
 
@@ -21,7 +21,7 @@ from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from deepcharuco.cli.common import run_command
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.core.files import write_atomic
-from evaluate.protocols import darken
+from evaluate.paper.protocols import darken
 
 BOARD = BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250")
 DARKNESS_K = 8
@@ -55,7 +55,7 @@ def figure(seed: int = 0) -> tuple[np.ndarray, dict[str, int]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.readme_figure", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m evaluate.paper.readme_figure", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="docs/dark_frame.jpg", help="the picture (JPEG)")
     parser.add_argument("--seed", type=int, default=0, help="the sensor noise's seed")
     args = parser.parse_args(argv)

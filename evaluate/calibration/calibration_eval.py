@@ -1,5 +1,5 @@
 """The evaluation report's calibration section: each detector calibrates each rendered calibration
-sequence (`evaluate.calibration_sequences`) with `deepcharuco.calibration`, against the known camera.
+sequence (`evaluate.calibration.calibration_sequences`) with `deepcharuco.calibration`, against the known camera.
 
 Errors per detector per sequence: fx and fy in % of the truth, cx and cy in px, the distortion's
 effect at the image corners (how far the solved distortion moves each of the four corner pixels,
@@ -8,7 +8,7 @@ puts the true ray of each pixel on a grid over the image, worst pixel, px). The 
 good light fx/fy within 0.3 %, cx/cy within 1 px, RMS within 10 % of OpenCV's; at 1 lux and under
 shake, the deep detector within 1 % where OpenCV yields none or one more than 3 % off.
 
-    python -m evaluate.calibration_eval --data data/calibration     # the section alone, as JSON + text
+    python -m evaluate.calibration.calibration_eval --data data/calibration     # the section alone, as JSON + text
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
 from deepcharuco.calibration.views import CalibrationError, SelectionOptions, border_margin
 from deepcharuco.cli.calibrate import detect_frames
 from deepcharuco.core.files import write_atomic
-from evaluate.calibration_sequences import read_truth
+from evaluate.calibration.calibration_sequences import read_truth
 
 GOOD_FOCAL_PCT, GOOD_CENTRE_PX, RMS_RATIO = 0.3, 1.0, 1.1
 HARD_FOCAL_PCT, OPENCV_FAIL_PCT = 1.0, 3.0
@@ -191,7 +191,7 @@ def calibration_sections(calibration: dict, labels: dict | None = None) -> list[
     applicable = [t for t in calibration["targets"] if t["met"] is not None]
     met = [t for t in applicable if t["met"]]
     text = ("Each detector calibrates (python -m deepcharuco.calibrate's pipeline, pinhole model) each rendered "
-            "calibration sequence (python -m evaluate.calibration_sequences: a hand-waved board through a known "
+            "calibration sequence (python -m evaluate.calibration.calibration_sequences: a hand-waved board through a known "
             "distorted camera, k1 from -0.4 to +0.1; good light, 1 lux, shake). Errors against the true camera; "
             "'distortion at corners': how far the true distortion moves the image's corner pixels, and the solved "
             "model's error there (worst corner); 'mapping error': worst pixel of a grid, true ray through the solved "
@@ -205,7 +205,7 @@ def calibration_sections(calibration: dict, labels: dict | None = None) -> list[
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evaluate.calibration_eval", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m evaluate.calibration.calibration_eval", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default="data/calibration", help="calibration sequence shards (default: %(default)s)")
     parser.add_argument("--detectors", nargs="+", default=["opencv", "deep"], choices=["opencv", "deep", "hybrid"])
     parser.add_argument("--out", default=None, help="write the results as JSON here")
@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                              "covariances: the detector before 2026-11-25)")
     args = parser.parse_args(argv)
     if not available(args.data):
-        print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration_sequences --out "
+        print(f"error: no shards in {args.data}: render them with python -m evaluate.calibration.calibration_sequences --out "
               f"{args.data}", file=sys.stderr)
         return 2
     from deepcharuco.cli.detect import make_detector
