@@ -1,6 +1,9 @@
+import contextlib
 import importlib.util
 import os
 import re
+import signal
+import subprocess
 
 import cv2
 import numpy as np
@@ -53,6 +56,25 @@ def pytest_make_collect_report(collector):
         report.outcome = "failed"
         report.longrepr = (f"DEEPCHARUCO_REQUIRE_ALL=1 and {collector.nodeid} skipped for a missing dependency: "
                            f"{reason} (install the dev extra: make venv; or unset DEEPCHARUCO_REQUIRE_ALL)")
+
+@contextlib.contextmanager
+def process_group(command: list[str], **popen):
+    """``subprocess.Popen(command, **popen)`` in a process group of its own, which is killed (SIGKILL: the process
+    and every child it started, DataLoader and render workers included) when the block ends, however it ends: a
+    failed assertion, an exception or Ctrl-C leaves no trainer or renderer running after the test."""
+    process = subprocess.Popen(command, start_new_session=True, **popen)
+    try:
+        yield process
+    finally:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:  # the group is gone: it ended, children and all
+            pass
+        process.wait()
+        for stream in (process.stdin, process.stdout, process.stderr):
+            if stream is not None:
+                stream.close()
+
 
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 
