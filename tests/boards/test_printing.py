@@ -13,7 +13,8 @@ from PIL import Image
 from conftest import ROOT
 
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.boards.printing import MM_PER_POINT, PrintError, board_sheet, paper_size, pdf_bytes, png_bytes, raster, svg_text
+from deepcharuco.boards.printing import (MM_PER_POINT, PrintError, board_sheet, paper_size, pdf_bytes, png_bytes,
+                                         raster, svg_text)
 from deepcharuco.cli.board import main as board_main
 from deepcharuco.cli.main import main as deepcharuco_main
 
@@ -175,3 +176,90 @@ assert "torch" not in {{name.split(".")[0] for name, module in sys.modules.items
     assert "lonely.pt is a PyTorch checkpoint and PyTorch is not installed" in done.stderr
     assert "deepcharuco export --bundle" in done.stderr and "Traceback" not in done.stderr
     assert (tmp_path / "b.pdf").is_file()
+
+
+def pdf_fills(path) -> tuple[tuple[float, float], list[tuple[float, float, float, float, float]]]:
+    """The page size (w, h) mm and the filled rectangles (grey 0-1, x, y, w, h in mm from the page's top-left) of a
+    one-page PDF as written: its content stream decoded (ASCII85 and Flate, as ReportLab writes it) and its
+    operators run (q Q cm g re f f*): what a printer draws, not what the sheet asked for."""
+    import base64
+    import zlib
+
+    data = path.read_bytes()
+    box = [float(v) for v in re.search(rb"/MediaBox \[([^\]]*)\]", data)[1].split()]
+    page = ((box[2] - box[0]) * MM_PER_POINT, (box[3] - box[1]) * MM_PER_POINT)
+    contents = re.search(rb"/Contents (\d+) 0 R", data)[1]
+    stream = re.search(rb"\n" + contents + rb" 0 obj\s*<<(.*?)>>\s*stream\r?\n(.*?)endstream", data, re.S)
+    body = stream[2]
+    for name in re.findall(rb"/(\w+)", stream[1].split(b"/Filter", 1)[1]) if b"/Filter" in stream[1] else []:
+        if name == b"ASCII85Decode":
+            body = base64.a85decode(body.strip().removesuffix(b"~>"))
+        elif name == b"FlateDecode":
+            body = zlib.decompress(body)
+        elif name != b"Length":
+            raise AssertionError(f"a filter this test does not read: {name}")
+    ctm, saved, grey, path_rects, fills, operands = np.eye(3), [], 0.0, [], [], []
+    for token in re.findall(rb"\((?:\\.|[^\\)])*\)|[^\s()]+", body):
+        if re.fullmatch(rb"[-+]?(\d+\.?\d*|\.\d+)", token):
+            operands.append(float(token))
+            continue
+        op = token.decode("latin-1")
+        if op == "cm":
+            a, b, c, d, e, f = operands[-6:]
+            ctm = np.array([[a, b, 0], [c, d, 0], [e, f, 1]]) @ ctm
+        elif op == "q":
+            saved.append((ctm.copy(), grey))
+        elif op == "Q":
+            ctm, grey = saved.pop()
+        elif op == "g":
+            grey = operands[-1]
+        elif op == "re":
+            x, y, w, h = operands[-4:]
+            assert abs(ctm[0, 1]) < 1e-12 and abs(ctm[1, 0]) < 1e-12, "a rotated page: not read here"
+            (x0, y0, _), (x1, y1, _) = np.array([[x, y, 1], [x + w, y + h, 1]]) @ ctm
+            path_rects.append((min(x0, x1), max(y0, y1), abs(x1 - x0), abs(y1 - y0)))  # top-left corner, in points
+        elif op in ("f", "f*", "F"):
+            fills += [(grey, x * MM_PER_POINT, page[1] - top * MM_PER_POINT, w * MM_PER_POINT, h * MM_PER_POINT)
+                      for x, top, w, h in path_rects]
+            path_rects = []
+        elif op == "n":
+            path_rects = []
+        operands = []
+    return page, fills
+
+
+def test_the_written_pdf_draws_the_board_at_its_true_size(tmp_path):
+    """Measured in the PDF file `deepcharuco board` writes (its drawing operators, not the sheet in memory): the
+    page is A4, every chessboard square is 30.000 mm and lies on a 30 mm grid, every marker's outline is 22.000 mm
+    (to 0.005 mm: the 7 significant digits ReportLab writes), and drawn from those operators OpenCV finds the
+    board's 24 corners 30 mm apart to 0.01 mm."""
+    board = BOARDS[0]
+    assert board_main([str(board.save(tmp_path / "board.yaml")), "--out", str(tmp_path / "board.pdf")]) == 0
+    page, fills = pdf_fills(tmp_path / "board.pdf")
+    assert page == pytest.approx((297.0, 210.0), abs=1e-3)
+    square, marker = board.square_length * 1000, board.marker_length * 1000
+    black = np.array([f[1:] for f in fills if f[0] == 0])
+    squares = black[(np.abs(black[:, 2:] - square) < 0.5).all(1)]
+    assert len(squares) == (board.squares_x * board.squares_y + 1) // 2, len(squares)  # the black squares
+    assert np.abs(squares[:, 2:] - square).max() < 0.005
+    origin = squares[:, :2].min(0)
+    steps = (squares[:, :2] - origin) / square
+    assert np.abs(steps - np.round(steps)).max() * square < 0.005  # on the square grid
+    bits = black[(black[:, 2:] < square - 0.5).all(1)]
+    cells = np.floor((bits[:, :2] + bits[:, 2:] / 2 - origin) / square).astype(int)
+    outlines = []
+    for cell in np.unique(cells, axis=0):  # each white square's marker: the extent of its black bits
+        inside = bits[(cells == cell).all(1)]
+        outlines.append((inside[:, :2] + inside[:, 2:]).max(0) - inside[:, :2].min(0))
+    assert len(outlines) == board.squares_x * board.squares_y // 2
+    assert np.abs(np.array(outlines) - marker).max() < 0.005, outlines
+    # Drawn from the PDF's rectangles at 8 px/mm and halved (1 mm = 4 px), OpenCV finds the board.
+    image = np.full((round(page[1] * 8), round(page[0] * 8)), 255, np.uint8)
+    for grey, x, y, w, h in fills:
+        image[round(y * 8):round((y + h) * 8), round(x * 8):round((x + w) * 8)] = round(grey * 255)
+    found = OpenCVDetector(board).detect(cv2.resize(image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+    assert len(found) == board.num_corners
+    mm = (found.corners + 0.5) / 4.0
+    expected = board.object_points()[found.ids, :2] * 1000.0
+    offset = (mm - expected).mean(0)
+    assert np.abs(mm - expected - offset).max() < 0.01

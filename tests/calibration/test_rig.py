@@ -67,8 +67,15 @@ def test_bundle_adjustment_recovers_the_rig_and_its_deviations_are_honest():
     assert 0.12 < result.rms < 0.16  # 0.1 px per axis: sqrt(2) x 0.1 in 2-D, less what the fit absorbs
     assert not result.dropped
     for c, camera in enumerate(cameras):
-        fx_error = result.cameras[c].K[0, 0] - camera.K[0, 0]
-        assert abs(fx_error) < 4 * result.std[c]["fx"] and abs(fx_error) < 0.002 * camera.K[0, 0]
+        # Every intrinsic solved, within 3 of its deviations (seed 3: at most 1.6) and fx fy cx cy within 0.6 px
+        # (at most 0.2 px, 2026-11-27).
+        found, true = result.cameras[c], camera
+        errors = {"fx": found.K[0, 0] - true.K[0, 0], "fy": found.K[1, 1] - true.K[1, 1],
+                  "cx": found.K[0, 2] - true.K[0, 2], "cy": found.K[1, 2] - true.K[1, 2],
+                  "k1": found.dist[0] - true.dist[0], "k2": found.dist[1] - true.dist[1], "k3": found.dist[4] - true.dist[4]}
+        assert set(result.std[c]) >= set(errors)
+        assert all(abs(error) < 3 * result.std[c][name] for name, error in errors.items()), (c, errors)
+        assert max(abs(errors[name]) for name in ("fx", "fy", "cx", "cy")) < 0.6, (c, errors)
         if c:
             assert rotation_angle_deg(result.rotations[c] @ rotations[c].T) < 4 * result.std[c]["rotation_deg"] + 1e-3
             error = result.translations[c] - translations[c]
@@ -85,6 +92,29 @@ def test_bundle_adjustment_recovers_the_rig_and_its_deviations_are_honest():
                                            cv2.Rodrigues(result.rotations[c])[0], result.translations[c])
         after = result.cameras[c].project(points, cv2.Rodrigues(moved.rotations[c])[0], moved.translations[c])
         assert np.abs(before - after).max() < 1e-6
+
+
+def test_bundle_adjustment_recovers_the_exact_rig_without_noise():
+    """Exact corners (no noise), a start 1-2 % and 4 px off: every intrinsic, distortion term, camera pose and board
+    pose comes back to the truth. Measured (2026-11-27, 12 instants): K to 6e-8 px, distortion to 1.1e-9, rotation
+    matrices to 1.6e-10, translations to 1.5e-10 m, RMS 7e-10 px; asserted at ~3x that (with 30 instants the solver
+    stops 10x nearer still)."""
+    seed, instants = 3, 12
+    cameras, rotations, translations, views = exact_views(seed=seed, instants=instants, noise=0.0)
+    rng = np.random.default_rng(seed)  # the board poses exact_views drew, drawn again (camera 0 is the rig's frame)
+    target = rig_cameras(rng, 3, SIZE)[3]
+    board_r, board_t = board_poses(rng, RIG_BOARD, target, instants)
+    result = calibrate_rig(views, RIG_BOARD, perturbed(cameras), ["a", "b", "c"], ["k1 k2 k3"] * 3)
+    assert result.rms < 2e-9 and not result.dropped
+    for c, camera in enumerate(cameras):
+        assert np.abs(result.cameras[c].K - camera.K).max() < 2e-7, c  # fx fy cx cy, px
+        assert np.abs(result.cameras[c].dist - camera.dist).max() < 3e-9, c  # k1 k2 and k3 (0), p1 p2 held at 0
+        assert np.abs(result.rotations[c] - rotations[c]).max() < 5e-10 and np.abs(
+            result.translations[c] - translations[c]).max() < 5e-10, c
+    assert len(result.board_poses) == instants
+    for (instant, _), (rvec, tvec) in result.board_poses.items():
+        assert np.abs(rotations_from_vectors(rvec)[0] - board_r[instant]).max() < 5e-10
+        assert np.abs(tvec - board_t[instant]).max() < 5e-10
 
 
 def test_corners_weigh_by_their_covariances_and_their_views_excess():

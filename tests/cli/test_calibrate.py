@@ -81,21 +81,25 @@ def test_cli_with_jobs_writes_the_same_camera_file(tmp_path, waved):
 
 
 def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
-    images, K, _ = waved
+    images, K, dist = waved
     video = _video(tmp_path / "wave.avi", images)
     out = tmp_path / "cams" / "camera.yaml"
     assert main([str(video), "--out", str(out), "--quiet"]) == 0
     camera = read_camera(out)
     assert camera.image_size == SIZE and camera.dist.shape == (5,)
-    assert abs(camera.K[0, 0] / K[0, 0] - 1) < 0.01
+    # The default calibrate on these drawn frames (2026-11-27): fx and fy within 7e-5 of the truth, the principal
+    # point within 0.05 and 0.10 px, k1 within 5e-4, RMS 0.018 px; asserted within ~3x of that.
+    assert abs(camera.K[0, 0] / K[0, 0] - 1) < 2e-4 and abs(camera.K[1, 1] / K[1, 1] - 1) < 2e-4
+    assert np.abs(camera.K[:2, 2] - K[:2, 2]).max() < 0.3 and abs(camera.dist[0] - dist[0]) < 0.0015
     storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     assert storage.getNode("distortion_model").string() == "pinhole"
     # One deviation per parameter solved: fx fy cx cy and the distortion terms chosen (p1 p2 may be held at 0).
     terms = storage.getNode("distortion_terms").string().split()
     assert terms[:2] == ["k1", "k2"] and storage.getNode("std_intrinsics").mat().shape == (4 + len(terms), 1)
     assert storage.getNode("std_intrinsics_names").string().split() == ["fx", "fy", "cx", "cy", *terms]
-    assert storage.getNode("held_out_rms_px").mat().shape == (2, 1)
-    assert storage.getNode("avg_reprojection_error").real() < 0.5
+    held_out = storage.getNode("held_out_rms_px").mat()
+    assert held_out.shape == (2, 1) and held_out.max() < 0.04  # 0.017 px
+    assert storage.getNode("avg_reprojection_error").real() < 0.04
     storage.release()
     report = (tmp_path / "cams" / "camera_report.html").read_text()
     for text in ("RMS reprojection error", "Coverage", "alt=\"distortion\"", "Views kept and dropped", "std dev",
@@ -320,9 +324,10 @@ def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved):
     frames = storage.getNode("view_frames").mat().ravel()
     weights = storage.getNode("view_weights").mat()
     storage.release()
-    assert 0.005 < sigma < 0.3 and residuals.shape[1] == 4  # drawn frames: the pattern fit's corners are ~0.01 px
+    # drawn frames: the pattern fit's corners are ~0.01 px (sigma 0.014 px, residuals at most 0.07 px, 2026-11-27)
+    assert 0.007 < sigma < 0.03 and residuals.shape[1] == 4
     assert set(residuals[:, 0].astype(int)) == set(frames.astype(int))  # one row per used corner of each view
-    assert np.all(np.abs(residuals[:, 2:]) < 1.0)
+    assert np.all(np.abs(residuals[:, 2:]) < 0.15)
     # Each view's weight (calibration.weigh_views): most views are alike and weigh fully.
     assert weights.shape == (len(frames), 1) and np.all((weights > 0) & (weights <= 1)) and np.median(weights) > 0.99
     equal = tmp_path / "equal.yaml"
@@ -330,7 +335,7 @@ def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved):
     storage = cv2.FileStorage(str(equal), cv2.FILE_STORAGE_READ)
     assert storage.getNode("view_weights").empty()
     storage.release()
-    assert abs(read_camera(equal).K[0, 0] / read_camera(out).K[0, 0] - 1) < 0.002
+    assert abs(read_camera(equal).K[0, 0] / read_camera(out).K[0, 0] - 1) < 2.5e-4  # 7.6e-5 apart (2026-11-27)
 
 
 def test_a_wrong_corner_at_the_edge_cannot_bend_k3():

@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, process_group
 
 from datagen.frames import frame_rng
 from datagen.inspect import main as inspect_main
@@ -121,17 +121,28 @@ def test_same_seed_same_pixels_whatever_the_workers(reference, tmp_path):
     assert not np.array_equal(all_frames(tmp_path / "other")[0].image, all_frames(out)[0].image)
 
 
+HANG_S = 1800  # a hang guard for the renders these tests start, not a bound on their speed
+
+
+def wait_for_a_shard(process: subprocess.Popen, folder: Path, poll_s: float = 0.1) -> None:
+    """Until ``folder`` holds a complete shard, however long a loaded machine takes; the render ending first (or
+    hanging past `HANG_S`) fails the test."""
+    waited = 0.0
+    while not (folder.exists() and list_shards(folder)):
+        assert process.poll() is None, f"the render ended (code {process.returncode}) before its first shard"
+        assert waited < HANG_S, f"no shard after {HANG_S} s: the render hangs"
+        time.sleep(poll_s)
+        waited += poll_s
+
+
 def test_resume_after_a_kill_completes_without_duplicates(reference, tmp_path):
     out, seed = reference
     args = ["--n", 6, "--shard-size", 2, "--seed", seed, "--out", tmp_path, *SMALL]
-    process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    deadline = time.time() + 120
-    while not list_shards(tmp_path) if tmp_path.exists() else True:
-        assert time.time() < deadline and process.poll() is None, "no shard appeared"
-        time.sleep(0.1)
-    os.killpg(process.pid, signal.SIGKILL)  # the whole process group, workers included, mid-shard
-    process.wait()
+    with process_group([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) as process:
+        wait_for_a_shard(process, tmp_path)
+        os.killpg(process.pid, signal.SIGKILL)  # the whole process group, workers included, mid-shard
+        process.wait()
     killed_with = [p.name for p in list_shards(tmp_path)]
     assert 1 <= len(killed_with) < 3
     refused = render(*args, check=False)
@@ -152,15 +163,12 @@ def test_ctrl_c_stops_the_render_with_exit_130_and_says_how_to_go_on(reference, 
     args = ["--n", 6, "--shard-size", 2, "--seed", seed, "--out", tmp_path, *SMALL]
     # SIGINT at its default: a test run started in the background (nohup, &) passes it on ignored, and Python then
     # never raises KeyboardInterrupt.
-    process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.time() + 120
-    while not list_shards(tmp_path) if tmp_path.exists() else True:
-        assert time.time() < deadline and process.poll() is None, "no shard appeared"
-        time.sleep(0.1)
-    os.killpg(process.pid, signal.SIGINT)
-    err = process.communicate()[1]
+    with process_group([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) as process:
+        wait_for_a_shard(process, tmp_path)
+        os.killpg(process.pid, signal.SIGINT)
+        err = process.communicate(timeout=HANG_S)[1]
     assert process.returncode == 130, err[-2000:]
     assert "stopped: " in err and "complete shard(s) kept in" in err and "--resume to finish" in err
     assert "Traceback" not in err and not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
@@ -180,20 +188,13 @@ def test_a_killed_worker_ends_the_run_with_a_clear_error(tmp_path):
     args = ["--n", 8, "--shard-size", 1, "--seed", 3, "--out", tmp_path, *SMALL]
     # SIGINT at its default: a test run started in the background (nohup, &) passes it on ignored, and Python then
     # never raises KeyboardInterrupt.
-    process = subprocess.Popen([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        deadline = time.time() + 120
-        while not (tmp_path.exists() and list_shards(tmp_path)):
-            assert time.time() < deadline and process.poll() is None, "no shard appeared"
-            time.sleep(0.02)
+    with process_group([sys.executable, "-m", "datagen.render", *map(str, args)], cwd=ROOT,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) as process:
+        wait_for_a_shard(process, tmp_path, poll_s=0.02)
         for pid in worker_pids(process.pid):
             os.kill(pid, signal.SIGKILL)
-        _, err = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
+        _, err = process.communicate(timeout=HANG_S)
     assert process.returncode == 2 and "killed by SIGKILL" in err and "--resume" in err, err[-2000:]
     assert len(err.strip().splitlines()) == 1, err  # one line, no traceback
     kept = list_shards(tmp_path)

@@ -8,7 +8,6 @@ import resource
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -67,10 +66,8 @@ def test_results_in_task_order_across_recycled_workers(tmp_path):
 ])
 def test_a_dead_or_failing_worker_ends_the_run_with_a_clear_error(tmp_path, action, messages):
     tasks = [(str(tmp_path), 0, "ok"), (str(tmp_path), 1, action)]
-    started = time.monotonic()
-    with pytest.raises(DeepCharucoError) as caught:
+    with pytest.raises(DeepCharucoError) as caught:  # a hang is caught by `no_hang`'s alarm
         run_shard_tasks(write_or_die, tasks, [0, 1], tmp_path, total=2, unit="frame", workers=1, quiet=True)
-    assert time.monotonic() - started < HANG_S
     text = str(caught.value)
     assert all(m in text for m in messages), text
     assert "1 complete shard(s) kept" in text and "--resume" in text

@@ -169,8 +169,14 @@ def test_mirrored_board_covariances_follow_the_mirror():
     mirrored = Detector(board=board).detect(cv2.flip(image, 1))
     direct = Detector(board=plain).detect(image)
     assert np.array_equal(mirrored.ids, direct.ids)
-    # the x-y term flips its sign with the image; the variances stay
-    assert np.allclose(mirrored.covariances[:, 0, 1], -direct.covariances[:, 0, 1], atol=2e-4, rtol=0.3)
+    # A tilted, rolled view shears the covariances: x-y terms of 4e-7 to 3e-6 px^2 beside variances of 1-3e-5 px^2
+    # (measured 2026-11-27), so a sign left unflipped, or a zero, is far outside the tolerance below.
+    variances = direct.covariances[:, [0, 1], [0, 1]]
+    assert np.all(np.abs(direct.covariances[:, 0, 1]) > 0.01 * variances.min(1))
+    # the x-y term flips its sign with the image; the variances stay (the same pixels mirrored: equal to rounding)
+    assert np.allclose(mirrored.covariances * np.array([[1, -1], [-1, 1]]), direct.covariances, rtol=1e-3,
+                       atol=1e-3 * variances.min())
+    assert np.allclose(mirrored.corners, [image.shape[1] - 1, 0] + [-1, 1] * direct.corners, atol=1e-3)
 
 
 def test_detection_checks_covariances():
@@ -214,7 +220,9 @@ def test_corner_precision_experiment_scores_every_placer_on_the_same_corners():
         counts = {summary["n"] for summary in cell["common"].values()}
         assert len(counts) == 1 and counts.pop() >= 8  # the same corners for every placer
         assert cell["common"]["deep (shipped)"]["median"] < cell["common"]["RefineNet"]["median"]
-        assert 0.3 < cell["spread"] < 3.0 and cell["sigma_bins"]
+        # the covariances honest to the project's target (measured 0.90 good, 1.08 lens, 2026-11-27)
+        assert corner_precision.SPREAD_RANGE[0] <= cell["spread"] <= corner_precision.SPREAD_RANGE[1]
+        assert cell["sigma_bins"]
     rows = corner_precision.targets(results)
     assert any(r[0].startswith("corner error good, median") for r in rows)
     assert corner_precision.table(results).count("\n") == 3

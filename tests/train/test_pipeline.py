@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROOT, VIEW_POSES, make_view, needs_bpy
+from conftest import ROOT, VIEW_POSES, make_view, needs_bpy, process_group
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
@@ -44,15 +44,20 @@ def pipeline_command(board_file: Path, run: Path) -> list[str]:
     return [sys.executable, "-m", "train.pipeline", "--board", str(board_file), "--out", str(run), *TINY]
 
 
-def wait_for(condition, process: subprocess.Popen, timeout: float = 240.0) -> None:
-    deadline = time.monotonic() + timeout
+HANG_S = 1800  # a hang guard for the processes these tests start, not a bound on their speed
+
+
+def wait_for(condition, process: subprocess.Popen) -> None:
+    """Until ``condition()``, however long a loaded machine takes; the process ending first, or hanging past
+    `HANG_S` of waiting, fails the test."""
+    waited = 0.0
     while not condition():
         if process.poll() is not None:
             raise AssertionError(f"the pipeline ended (code {process.returncode}) before the moment to stop it:\n"
                                  + process.stdout.read()[-3000:])
-        if time.monotonic() > deadline:
-            raise AssertionError("timed out waiting for the pipeline")
+        assert waited < HANG_S, f"still waiting after {HANG_S} s: the pipeline hangs"
         time.sleep(0.1)
+        waited += 0.1
 
 
 # ------------------------------------------------------------------------------------------- end to end
@@ -69,11 +74,10 @@ def test_pipeline_end_to_end_survives_kills(tmp_path):
     renders = run / "data" / "renders"
 
     # 1. A preemption mid-render: the whole process group killed with SIGKILL after the first shard.
-    first = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                             start_new_session=True)
-    wait_for(lambda: (renders / "shard-00000.h5").is_file(), first)
-    os.killpg(first.pid, signal.SIGKILL)
-    output = first.communicate()[0]
+    with process_group(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as first:
+        wait_for(lambda: (renders / "shard-00000.h5").is_file(), first)
+        os.killpg(first.pid, signal.SIGKILL)
+        output = first.communicate()[0]
     assert "ETA:" in output and "1. render" in output and "8. card" in output and "reproduce: python -m train.pipeline" in output
     assert "rates: render_s_per_frame 1 (test)" in output  # recorded rates are used, not measured again
     assert not (run / "stages" / "render.json").exists()
@@ -81,10 +85,10 @@ def test_pipeline_end_to_end_survives_kills(tmp_path):
 
     # 2. Rerun: the render resumes (its first shard kept); SIGTERM to the pipeline once ChArUcoNet checkpointed
     #    (30 steps, a checkpoint every 3: on a fast machine the trainer may just have finished, then a later stage stops).
-    second = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    wait_for(lambda: (run / "charuconet" / "last.pt").is_file(), second)
-    second.send_signal(signal.SIGTERM)
-    output = second.communicate()[0]
+    with process_group(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as second:
+        wait_for(lambda: (run / "charuconet" / "last.pt").is_file(), second)
+        second.send_signal(signal.SIGTERM)  # to the pipeline alone: it passes it on to its stage
+        output = second.communicate(timeout=HANG_S)[0]
     assert second.returncode == 143, output[-3000:]
     stopped = output.split("stopped during stage ")[1].split(":")[0]
     assert stopped in ("charuconet", "refinenet", "bundle"), output[-3000:]
@@ -141,12 +145,12 @@ def test_pipeline_end_to_end_survives_kills(tmp_path):
     assert checks.checkpoint_step(run / "charuconet" / "last.pt") == 30
 
     # 6. datagen.patches stopped by SIGTERM (the pipeline passes it on) removes its staging folder.
-    patches = subprocess.Popen([sys.executable, "-m", "datagen.patches", "--renders", str(renders), "--out",
-                                str(tmp_path / "patches"), "--synthetic", "2000000", "--seed", "0"], cwd=ROOT,
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    wait_for(lambda: any(tmp_path.glob(".patches.tmp-*/*.h5")), patches)
-    patches.send_signal(signal.SIGTERM)
-    patches.communicate()
+    with process_group([sys.executable, "-m", "datagen.patches", "--renders", str(renders), "--out",
+                        str(tmp_path / "patches"), "--synthetic", "2000000", "--seed", "0"], cwd=ROOT,
+                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as patches:
+        wait_for(lambda: any(tmp_path.glob(".patches.tmp-*/*.h5")), patches)
+        patches.send_signal(signal.SIGTERM)
+        patches.communicate(timeout=HANG_S)
     assert patches.returncode == 143 and not list(tmp_path.glob(".patches.tmp-*"))
 
 
@@ -413,9 +417,11 @@ def test_zero_refinenet_steps_keep_the_initial_refinenet(tmp_path, capsys):
 
 
 def test_rate_probes_time_real_steps():
-    assert 0 < rates.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu") < 60
-    assert 0 < rates.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu") < 60
-    assert 0 < rates.probe_patches() < 1
+    """The probes run a real step of each network and make real patches, and return seconds (how many is the
+    machine's business: no bound on wall-clock time here)."""
+    for seconds in (rates.probe_training_step("charuconet", "lite", 1, (32, 24), "cpu"),
+                    rates.probe_training_step("refinenet", "lite", 2, (24, 24), "cpu"), rates.probe_patches()):
+        assert isinstance(seconds, float) and 0 < seconds < float("inf")
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="parent-death signal is Linux's")
@@ -428,16 +434,15 @@ def test_a_stage_dies_with_a_killed_pipeline(tmp_path):
         "print(child.pid, flush=True)\n"
         "time.sleep(120)\n"
     )
-    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
-    child_pid = int(parent.stdout.readline())
-    parent.kill()
-    parent.wait()
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        try:
-            os.kill(child_pid, 0)
-        except ProcessLookupError:
-            return
-        time.sleep(0.2)
-    os.kill(child_pid, signal.SIGKILL)
-    pytest.fail("the stage outlived its killed pipeline")
+    with process_group([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT) as parent:
+        child_pid = int(parent.stdout.readline())
+        parent.kill()
+        parent.wait()
+        # The kernel signals the stage as its parent dies; it is gone within moments (100 polls: a hang guard).
+        for _ in range(100):
+            try:
+                os.kill(child_pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.2)
+    pytest.fail("the stage outlived its killed pipeline")  # (process_group has killed it now)
