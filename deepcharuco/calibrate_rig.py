@@ -26,7 +26,7 @@ from deepcharuco.calibration import (
 from deepcharuco.calibration_frames import calibration_pool, detect_views
 from deepcharuco.camera import Camera, is_camera_file, read_camera
 from deepcharuco.cli import check_output_folder
-from deepcharuco.detect import Source, open_source
+from deepcharuco.detect import Source, frame_numbers, open_source
 from deepcharuco.errors import CameraFileError, DeepCharucoError
 from deepcharuco.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.image import to_gray_u8
@@ -64,23 +64,30 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
                         ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
     """``detections[c][b]``: camera c's `FrameDetection` of board b (``detectors[b]``'s) at every ``step``-th
     instant (the instant as its index), and each camera's frame size. Frame ``n + offsets[c]`` of source c is
-    instant n; reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
+    instant n, by the frames' numbers in their recordings (`deepcharuco.detect.frame_numbers`): a frame a reader
+    skipped (a damaged stretch of video, an unreadable image) leaves that camera out of its instant and shifts no
+    other frame. Reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
     detectors (worker processes; default: these detectors in this process)."""
-    streams = []
-    for source, offset in zip(sources, offsets):
-        frames = iter(source.frames)
-        for _ in range(offset):
-            next(frames, None)
-        streams.append(frames)
+    def instants(source: Source, offset: int):
+        for number, name, frame in frame_numbers(source):
+            if number >= offset:
+                yield number - offset, name, frame
+
+    streams = [instants(source, offset) for source, offset in zip(sources, offsets)]
     totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
     sizes: list[tuple[int, int] | None] = [None] * len(sources)
 
     def wanted():
-        for instant, frames in enumerate(zip(*streams)):
-            if instant % step == 0:
-                for c, (name, frame) in enumerate(frames):
-                    gray = _checked_gray(c, name, frame, sources[c], sizes)
-                    yield (c, instant, str(name), gray), gray
+        heads = [next(stream, None) for stream in streams]
+        while all(head is not None for head in heads):
+            instant = min(head[0] for head in heads)
+            for c, head in enumerate(heads):
+                if head[0] != instant:
+                    continue  # this camera's frame of the instant could not be read
+                if instant % step == 0:
+                    gray = _checked_gray(c, head[1], head[2], sources[c], sizes)
+                    yield (c, instant, str(head[1]), gray), gray
+                heads[c] = next(streams[c], None)
 
     total = len(sources) * -(-min(totals) // step) if totals else None
     return detect_views(wanted(), detectors, len(sources), pool, total, quiet), sizes
@@ -158,7 +165,7 @@ def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[in
 
     def wanted():
         for c, source in enumerate(sources):
-            for frame_index, (name, frame) in enumerate(source.frames):
+            for frame_index, name, frame in frame_numbers(source):  # a frame skipped shifts no other
                 instant = mapping[c].get(frame_index)
                 if instant is not None and instant % step == 0:
                     gray = _checked_gray(c, name, frame, source, sizes)

@@ -159,6 +159,16 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
     return Source(path.stem, "video", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, total, video=video)
 
 
+def frame_numbers(source: Source) -> Iterator[tuple[int, str, np.ndarray]]:
+    """(frame number, name, BGR or grey image) of ``source``'s frames: the number is the frame's place in the
+    recording, whatever was skipped before it: a video's (and a camera's) frame number (`VideoFrames` keeps it
+    past a damaged stretch), a folder's image's place in its sorted listing (an unreadable image keeps its
+    number), 0 for a single image. A rig pairs its cameras' frames by these (`deepcharuco.calibrate_rig`)."""
+    places = {name: k for k, name in enumerate(source.overlay_names)} if source.kind == "images" else {}
+    for name, image in source.frames:
+        yield places[name] if source.kind == "images" else int(name) if source.kind != "image" else 0, name, image
+
+
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
                   refine_weights: str | None = None, backend: str = "auto", corner_fit: bool = True,
                   device: str = "cpu"):

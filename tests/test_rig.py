@@ -412,3 +412,36 @@ def test_jobs_detect_a_rig_on_worker_processes_and_write_the_same_files(tmp_path
     assert sorted(written[0]) == sorted(written[1]) and len(written[0]) == 4
     for name in written[0]:
         assert_same_but_rounding(written[0][name], written[1][name])
+
+
+def test_a_frame_a_reader_skipped_shifts_no_other_frame_of_its_camera(tmp_path, drawn, capsys):
+    """Camera 1 as a video whose frame 7 is noise (the decoder rejects it; `VideoFrames` skips it and keeps the
+    frame numbers), camera 2 as a folder whose 009.png is not an image: their other frames still pair with camera
+    0's of the same instant, so each camera is placed where the truth has it. (Paired by their place in the streams,
+    every frame after the damage met the next instant's: cameras placed centimetres off, exit 0.)"""
+    truth, folders, board = drawn
+    video = tmp_path / "cam1.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, SIZE)
+    for image in sorted(folders[1].iterdir()):
+        writer.write(cv2.imread(str(image)))
+    writer.release()
+    data = bytearray(video.read_bytes())
+    starts = [i for i in range(len(data) - 1) if data[i:i + 2] == b"\xff\xd8"]  # each frame is one JPEG (MJPG)
+    a, b = starts[7], starts[8] - 8  # frame 7's JPEG, up to the next frame's chunk header
+    data[a:b] = np.random.default_rng(52).integers(0, 256, b - a, dtype=np.uint8).tobytes()
+    video.write_bytes(bytes(data))
+    folder = tmp_path / "cam2"
+    folder.mkdir()
+    for image in sorted(folders[2].iterdir()):
+        (folder / image.name).write_bytes(b"not an image" if image.name == "009.png" else image.read_bytes())
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(video), str(folder), "--board", str(board), "--detector", "opencv", "--out",
+                 str(out), "--quiet", "--no-report"]) == 0
+    err = capsys.readouterr().err
+    assert "cam1: 1 frame(s) could not be decoded" in err and "cam2: 1 unreadable image(s) skipped" in err
+    for c in (1, 2):
+        storage = cv2.FileStorage(str(out / f"cam{c}.yaml"), cv2.FILE_STORAGE_READ)
+        R, t = storage.getNode("rotation_matrix").mat(), storage.getNode("translation_vector").mat().ravel()
+        assert rotation_angle_deg(R @ truth.rotations[c].T) < 0.5
+        assert np.linalg.norm(t - truth.translations[c]) < 0.01
+        assert (7 if c == 1 else 9) not in storage.getNode("view_frames").mat().ravel()
