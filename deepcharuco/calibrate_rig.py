@@ -13,6 +13,7 @@ leaves nothing behind (one line, exit code 2).
 from __future__ import annotations
 
 import argparse
+import filecmp
 import math
 import sys
 from pathlib import Path
@@ -46,6 +47,26 @@ def source_names(sources: list[Source]) -> list[str]:
             raise DeepCharucoError(f"two sources are named {name}: each camera's file is rig/<name>.yaml, so give "
                                    f"sources with different names (rename or link one)")
     return names
+
+
+def refuse_one_source_twice(paths: list[str]) -> None:
+    """Two of a rig's sources that are one recording (one file or folder under two names or links, or two files,
+    or folders of files, with the same bytes) are refused: they would be two cameras standing in one place, every
+    view counted twice."""
+    def same_bytes(a: Path, b: Path) -> bool:
+        if a.is_dir() != b.is_dir():
+            return False
+        if a.is_dir():
+            listed = [sorted((p.name, p.stat().st_size) for p in folder.iterdir() if p.is_file()) for folder in (a, b)]
+            return listed[0] == listed[1] and all(filecmp.cmp(a / name, b / name, shallow=False) for name, _ in listed[0])
+        return a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
+
+    files = [(source, Path(source)) for source in paths if Path(source).exists()]
+    for j, (name_j, path_j) in enumerate(files):
+        for name_i, path_i in files[:j]:
+            if path_i.samefile(path_j) or same_bytes(path_i, path_j):
+                raise DeepCharucoError(f"{name_i} and {name_j} are one recording (the same file, folder or bytes): "
+                                       f"a rig needs one source per camera; give each once")
 
 
 def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
@@ -260,6 +281,7 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
         raise DeepCharucoError(f"--out {out} names a file, but {len(args.source)} sources make a rig: give a folder, "
                                f"e.g. --out {out.with_suffix('')}/")
     check_output_folder(out)
+    refuse_one_source_twice(args.source)
     sources = [open_source(source, args.max_frames) for source in args.source]
     names = source_names(sources)
     targets = [out / f"{name}.yaml" for name in names] + [out / TOML_NAME] + ([] if args.no_report else [out / REPORT_NAME])

@@ -445,3 +445,27 @@ def test_a_frame_a_reader_skipped_shifts_no_other_frame_of_its_camera(tmp_path, 
         assert rotation_angle_deg(R @ truth.rotations[c].T) < 0.5
         assert np.linalg.norm(t - truth.translations[c]) < 0.01
         assert (7 if c == 1 else 9) not in storage.getNode("view_frames").mat().ravel()
+
+
+def test_one_board_or_one_recording_given_twice_is_refused(tmp_path, drawn, capsys):
+    """The same --board twice (or a copy of it) would count every view twice (97 views became 194, the deviations
+    shrank by 1/sqrt 2); the same folder under a second name (a link) or a copy of it would be two cameras in one
+    place. Each: one line, exit 2, nothing written."""
+    _, folders, board = drawn
+    copy = tmp_path / "copy.yaml"
+    copy.write_bytes(board.read_bytes())
+    link = tmp_path / "again"
+    link.symlink_to(folders[1], target_is_directory=True)
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    for image in folders[1].iterdir():
+        (twin / image.name).write_bytes(image.read_bytes())
+    out = tmp_path / "rig"
+    cases = [([str(folders[0]), str(folders[1]), "--board", str(board), "--board", str(copy)], "are one board"),
+             ([str(folders[0]), str(folders[1]), str(link), "--board", str(board)], "are one recording"),
+             ([str(folders[0]), str(folders[1]), str(twin), "--board", str(board)], "are one recording")]
+    for sources, message in cases:
+        assert main([*sources, "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and message in error[0], error
+        assert not out.exists()
