@@ -38,7 +38,9 @@ from deepcharuco.cli import output_folder, run_command
 from deepcharuco.detection import Detection, largest_sigmas
 from deepcharuco.draw import draw_detection
 from deepcharuco.errors import DeepCharucoError
-from deepcharuco.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
+from deepcharuco.files import (
+    atomic_file, png_mark, png_marked, refuse_foreign, starts_with, temporary_name, write_atomic,
+)
 from deepcharuco.image import to_gray_u8
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.parallel import DetectorPool
@@ -291,6 +293,9 @@ def run(args: argparse.Namespace) -> dict:
     for board_run in runs:
         refuse_foreign(board_run.csv_path, starts_with(CSV_SIGNATURE.encode()), "detection CSV", args.force)
         refuse_foreign(board_run.json_path, starts_with(JSON_START), "detection JSON", args.force)
+    if not args.no_overlay:
+        for path in _Overlays(out, source).images():
+            refuse_foreign(path, png_mark(OVERLAY_MARK), "PNG overlay written by deepcharuco detect", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detectors[0], "weights", None) is not None:
@@ -401,6 +406,8 @@ def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, came
 
 # How every detection JSON of this command begins: what a rerun may overwrite without --force.
 JSON_START = b'{"board": '
+# The text chunk inside every overlay PNG this command writes: a rerun replaces only such PNGs without --force.
+OVERLAY_MARK = "deepcharuco detect overlay"
 
 
 class _Overlays:
@@ -412,6 +419,14 @@ class _Overlays:
         self.writer: cv2.VideoWriter | None = None
         self.video = out / f"{source.stem}_overlay.mp4"
         self.written = 0
+
+    def images(self) -> list[Path]:
+        """The overlay PNGs this source's frames would be written to (none for a video or camera)."""
+        if self.source.kind == "image":
+            return [self.out / f"{self.source.stem}_overlay.png"]
+        if self.source.kind == "images":
+            return [self.out / f"{self.source.stem}_overlay" / name for name in self.source.overlay_names.values()]
+        return []
 
     def add(self, name: str, overlay: np.ndarray) -> None:
         if self.source.kind == "image":
@@ -458,7 +473,7 @@ def _write_image(path: Path, image: np.ndarray) -> None:
     if not ok:
         raise DeepCharucoError(f"could not encode the overlay {path}: pass --no-overlay")
     try:
-        write_atomic(path, encoded.tobytes(), "the overlay")
+        write_atomic(path, png_marked(encoded.tobytes(), OVERLAY_MARK), "the overlay")
     except DeepCharucoError as error:
         raise DeepCharucoError(f"{error} (or pass --no-overlay)") from None
 

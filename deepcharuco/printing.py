@@ -25,6 +25,7 @@ import numpy as np
 
 from deepcharuco.board import BoardSpec
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.files import png_marked
 
 PAPERS_MM = {"A4": (210.0, 297.0), "A3": (297.0, 420.0), "A5": (148.0, 210.0), "letter": (215.9, 279.4),
              "legal": (215.9, 355.6), "tabloid": (279.4, 431.8)}
@@ -32,6 +33,8 @@ MARGIN_MM = 5.0  # what most printers cannot print near the paper's edge (4-5 mm
 RULER_MM = 100.0  # the ruler's length: long enough to show a 1 % scaling error (1 mm)
 CAPTION_MM = 22.0  # room below the board for the ruler and the description
 MM_PER_POINT = 25.4 / 72.0
+# Inside every sheet written (PDF creator, SVG comment, PNG text chunk): `deepcharuco board` replaces only such files.
+SHEET_MARK = "deepcharuco board"
 
 
 class PrintError(DeepCharucoError):
@@ -155,6 +158,7 @@ def pdf_bytes(sheet: Sheet, compress: bool = True) -> bytes:
     pt = 1.0 / MM_PER_POINT
     page = canvas.Canvas(buffer, pagesize=(sheet.size[0] * pt, sheet.size[1] * pt), invariant=1,
                          pageCompression=int(compress))
+    page.setCreator(SHEET_MARK)  # the document information (uncompressed): how a rerun knows the file as its own
     height = sheet.size[1]
     for colour, boxes in ((0, sheet.rects), (1, sheet.holes)):
         page.setFillGray(colour)
@@ -190,7 +194,8 @@ def svg_text(sheet: Sheet) -> str:
                                        **{"font-family": "Helvetica, Arial, sans-serif",
                                           "font-size": f"{size * MM_PER_POINT:.3f}"})
         label.text = text
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(svg, encoding="unicode") + "\n"
+    return (f'<?xml version="1.0" encoding="UTF-8"?>\n<!-- {SHEET_MARK} -->\n'
+            + ElementTree.tostring(svg, encoding="unicode") + "\n")
 
 
 def raster(sheet: Sheet, dpi: float) -> np.ndarray:
@@ -217,4 +222,4 @@ def png_bytes(sheet: Sheet, dpi: float = 300.0) -> bytes:
 
     buffer = io.BytesIO()
     Image.fromarray(raster(sheet, dpi)).save(buffer, format="PNG", dpi=(dpi, dpi))
-    return buffer.getvalue()
+    return png_marked(buffer.getvalue(), SHEET_MARK)

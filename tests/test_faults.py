@@ -269,3 +269,23 @@ def test_detect_refuses_to_overwrite_results_it_did_not_write(tmp_path, capsys):
     assert not (tmp_path / "board_320x240.json").exists()
     assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet", "--force"]) == 0
     assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet"]) == 0  # its own: overwritten
+
+
+def test_detect_replaces_only_the_overlays_it_wrote(tmp_path, capsys):
+    """A user's own frame_overlay.png in --out (any PNG, here a camera frame) is kept: refused naming --force, and
+    nothing written; an overlay detect wrote (its PNG text chunk says so) is replaced by a rerun."""
+    image = tmp_path / "frame.png"
+    image.write_bytes((EXAMPLES / "board_320x240.png").read_bytes())
+    out = tmp_path / "out"
+    out.mkdir()
+    theirs = cv2.imencode(".png", np.full((40, 60), 128, np.uint8))[1].tobytes()
+    (out / "frame_overlay.png").write_bytes(theirs)
+    assert detect_cli.main([str(image), "--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "frame_overlay.png exists and is not a PNG overlay written by deepcharuco detect" in error[0]
+    assert "--force" in error[0] and (out / "frame_overlay.png").read_bytes() == theirs
+    assert sorted(p.name for p in out.iterdir()) == ["frame_overlay.png"]
+    assert detect_cli.main([str(image), "--out", str(out), "--quiet", "--force"]) == 0
+    ours = (out / "frame_overlay.png").read_bytes()
+    assert ours != theirs and cv2.imdecode(np.frombuffer(ours, np.uint8), cv2.IMREAD_COLOR).shape == (240, 320, 3)
+    assert detect_cli.main([str(image), "--out", str(out), "--quiet"]) == 0  # its own overlay: replaced unasked

@@ -112,7 +112,8 @@ def test_board_command_keeps_foreign_files_and_unwritable_outputs_are_errors(tmp
     notes = tmp_path / "notes.pdf"
     notes.write_text("my notes")
     assert board_main([str(board), "--out", str(notes)]) == 2
-    assert "exists and is not a PDF file" in capsys.readouterr().err and notes.read_text() == "my notes"
+    assert "exists and is not a sheet written by deepcharuco board" in capsys.readouterr().err
+    assert notes.read_text() == "my notes"
     assert board_main([str(board), "--out", str(unwritable_dir / "b.pdf")]) == 2
     assert "error: " in capsys.readouterr().err
     assert board_main([str(board), "--squares", "7x5", "--out", str(tmp_path / "x")]) == 2
@@ -172,3 +173,29 @@ assert "torch" not in {{name.split(".")[0] for name, module in sys.modules.items
     assert "lonely.pt is a PyTorch checkpoint and PyTorch is not installed" in done.stderr
     assert "python -m deepcharuco.export --bundle" in done.stderr and "Traceback" not in done.stderr
     assert (tmp_path / "b.pdf").is_file()
+
+
+def test_board_command_replaces_only_the_files_it_wrote(tmp_path, capsys):
+    """A camera frame saved as photo.png, a user's PDF and SVG, and the user's own commented board file are each
+    of the format a sheet or board file has, and kept: refused in one line naming --force, nothing written. What
+    the command wrote (a mark inside each file: the PDF's creator, an SVG comment, a PNG text chunk, the board
+    file's first comment) it replaces unasked; --force replaces the user's."""
+    describe = ["--squares", "5x7", "--dictionary", "DICT_4X4_50", "--square", "30mm", "--marker", "22mm"]
+    board = BOARDS[0].save(tmp_path / "board.yaml")
+    frame = cv2.imencode(".png", np.random.default_rng(0).integers(0, 256, (48, 64), dtype=np.uint8))[1].tobytes()
+    theirs = {"photo.png": frame, "user.pdf": b"%PDF-1.4\n% a user's document\n%%EOF\n",
+              "user.svg": b'<?xml version="1.0"?>\n<svg xmlns="http://www.w3.org/2000/svg"/>\n',
+              "myboard.yaml": b"%YAML:1.0\n---\n# my board, measured with calipers\nsquares_x: 5\nsquares_y: 7\n"
+                              b"square_length: 0.0301\nmarker_length: 0.022\ndictionary: DICT_4X4_50\n"}
+    for name, data in theirs.items():
+        (tmp_path / name).write_bytes(data)
+        argv = [*describe, "--out", str(tmp_path / "myboard")] if name == "myboard.yaml" else \
+            [str(board), "--out", str(tmp_path / name)]
+        assert board_main(argv) == 2, name
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and "written by deepcharuco board" in error[0] and "--force" in error[0], error
+        assert (tmp_path / name).read_bytes() == data
+        assert not (tmp_path / "myboard.pdf").exists()
+        assert board_main([*argv, "--force"]) == 0 and (tmp_path / name).read_bytes() != data
+        assert board_main(argv) == 0, name  # now the command's own: replaced unasked
+    assert BoardSpec.load(tmp_path / "myboard.yaml") == BoardSpec(5, 7, 0.03, 0.022, "DICT_4X4_50")
