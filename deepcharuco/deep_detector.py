@@ -36,7 +36,7 @@ from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
 from deepcharuco.models.offsets import PATCH, soft_argmax_offsets
-from deepcharuco.onnx_bundle import OnnxBundle, bundle_path, is_bundle, read_bundle
+from deepcharuco.onnx_bundle import BundleError, OnnxBundle, bundle_path, checked_runner, is_bundle, read_bundle
 from deepcharuco.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers, drop_isolated,
@@ -239,6 +239,9 @@ def _torch_installed() -> bool:
 def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle | None:
     """The ONNX bundle the detector runs (`deepcharuco.onnx_bundle`): ``weights`` itself when it is one, else
     the one beside the weights where PyTorch is not installed; None where PyTorch reads the weights."""
+    if Path(weights).is_dir() and not is_bundle(weights):
+        raise BundleError(f"{weights} is a folder without bundle.json, so not an ONNX bundle: give the weights file "
+                          f"(.pt), or a bundle folder (python -m deepcharuco.export --bundle --weights NAME.pt)")
     if is_bundle(weights):
         if refine_weights is not None:
             raise DeepCharucoError(f"{weights} is an ONNX bundle and holds its own RefineNet: leave refine_weights out")
@@ -268,10 +271,12 @@ def _bundle_runner(bundle: OnnxBundle, backend: str, refinenet: bool, points_onl
     refine_model = bundle.models.get("refinenet.onnx") if refinenet else None
     if refinenet and refine_model is None:
         raise DeepCharucoError(f"{bundle.path} holds no RefineNet: use refine='subpix' or 'none'")
+    refine_names = ["refinenet.onnx"] if refine_model is not None else []
     if backend in ("auto", "onnx-int8") and int8 is not None:
-        return OnnxRunner(int8, refine_model, name="onnx-int8")
-    charuconet = bundle.models["charuconet_points.onnx" if points_only else "charuconet.onnx"]
-    return OnnxRunner(charuconet, refine_model)
+        return checked_runner(bundle, ["charuconet_int8.onnx", *refine_names],
+                              lambda: OnnxRunner(int8, refine_model, name="onnx-int8"))
+    name = "charuconet_points.onnx" if points_only else "charuconet.onnx"
+    return checked_runner(bundle, [name, *refine_names], lambda: OnnxRunner(bundle.models[name], refine_model))
 
 
 class Detector:

@@ -22,6 +22,7 @@ ONNX files are run with onnxruntime when installed, otherwise with OpenCV's DNN 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import warnings
@@ -189,7 +190,8 @@ def write_onnx_bundle(weights: str | Path, refine_weights: str | Path | None = N
             raise
     meta = {"format": FORMAT, "board": (board.plain() if points_only else board).to_dict(),
             "heads": "points" if points_only else "all", "threshold": checkpoint.get("threshold"),
-            "weights": Path(weights).name, "weights_sha256": fingerprint}
+            "weights": Path(weights).name, "weights_sha256": fingerprint,
+            "models_sha256": {name: hashlib.sha256(data).hexdigest() for name, data in models.items()}}
     out = Path(out) if out is not None else bundle_path(weights)
     out.mkdir(parents=True, exist_ok=True)
     for stale in (name for name in MODELS if name not in models):
