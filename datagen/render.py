@@ -30,6 +30,7 @@ from datagen.workers import TaskError, death_cause, report_progress, run_tasks
 from deepcharuco.board import BoardSpec
 from deepcharuco.cli import describe_os_error, output_folder, run_command
 from deepcharuco.errors import DeepCharucoError
+from deepcharuco.extras import require_extra
 from deepcharuco.opencv_api import log_errors_only
 
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
@@ -261,6 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     if problems:
         parser.error("; ".join(problems))
     def body() -> None:
+        # The workers import Blender's module: without it each would fail after the run had started.
+        require_extra("python -m datagen.render", ("bpy", "h5py"), "render",
+                      " (bpy 5.0.1 installs on Python 3.11 only)")
         if args.family is not None and args.board is not None:
             raise DeepCharucoError("--family and --board exclude each other: --family draws a random board of the "
                                    "family for every frame, --board renders one board; pass only one of them")

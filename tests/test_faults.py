@@ -289,3 +289,22 @@ def test_detect_replaces_only_the_overlays_it_wrote(tmp_path, capsys):
     ours = (out / "frame_overlay.png").read_bytes()
     assert ours != theirs and cv2.imdecode(np.frombuffer(ours, np.uint8), cv2.IMREAD_COLOR).shape == (240, 320, 3)
     assert detect_cli.main([str(image), "--out", str(out), "--quiet"]) == 0  # its own overlay: replaced unasked
+
+
+@pytest.mark.parametrize("hidden, argv, message", [
+    ("torch", ["train.charuconet", "--data", "nowhere", "--out", "run"],
+     "training needs torch, which is not installed: pip install 'deepcharuco[train]'"),
+    ("torch", ["train.pipeline", "--help"], "training needs torch, which is not installed"),
+    ("bpy", ["datagen.render", "--n", "2", "--out", "renders", "--quiet"],
+     "python -m datagen.render needs bpy, which is not installed: pip install 'deepcharuco[render]'"),
+])
+def test_a_missing_extra_is_named_before_any_work(tmp_path, hidden, argv, message):
+    """``python -m train.X`` with h5py but no torch, ``python -m datagen.render`` with h5py but no bpy (the render
+    extra on a Python other than 3.11): one line naming the package and the extra, exit code 2, nothing written
+    (they ended in a traceback, the renderer's after its workers had started and told to rerun with --resume)."""
+    (tmp_path / "sitecustomize.py").write_text(f"import sys\nsys.modules[{hidden!r}] = None  # as if not installed\n")
+    env = {**__import__("os").environ, "PYTHONPATH": f"{tmp_path}:{ROOT}"}
+    done = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, cwd=tmp_path, env=env)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines() == [f"error: {done.stderr.strip()[7:]}"] and message in done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["sitecustomize.py"]
