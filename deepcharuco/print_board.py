@@ -12,6 +12,7 @@ that cannot be written) and nothing written.
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
 from pathlib import Path
@@ -20,7 +21,9 @@ from deepcharuco.board import BOARD_FILE_MARK, BoardSpec
 from deepcharuco.cli import check_output_folder, run_command
 from deepcharuco.errors import BoardSpecError, DeepCharucoError
 from deepcharuco.files import contains, png_mark, refuse_foreign, starts_with, write_together
-from deepcharuco.printing import PAPERS_MM, SHEET_MARK, board_sheet, paper_size, pdf_bytes, png_bytes, svg_text
+from deepcharuco.printing import (
+    PAPERS_MM, SHEET_MARK, board_sheet, check_png_size, check_printable, paper_size, pdf_bytes, png_bytes, svg_text,
+)
 
 FORMATS = {".pdf": b"%PDF-", ".svg": b"<?xml", ".png": b"\x89PNG"}  # each format and how its files begin
 # How each format's sheet is known as one this command wrote (`printing.SHEET_MARK` inside it), and may be replaced
@@ -88,7 +91,10 @@ def run(args: argparse.Namespace) -> list[Path]:
         else:
             refuse_foreign(path, contains(f"# {BOARD_FILE_MARK}".encode(), 256), "board file written by deepcharuco "
                            "board", args.force)
+    check_printable(board)
     sheet = board_sheet(board, args.paper)
+    if any(path.suffix == ".png" for path in sheets):
+        check_png_size(sheet.size, args.dpi)
     render = {".pdf": pdf_bytes, ".svg": svg_text, ".png": lambda s: png_bytes(s, args.dpi)}
     files = {}
     for path in sheets:
@@ -144,8 +150,8 @@ def build_parser(prog: str = "deepcharuco board") -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None, prog: str = "python -m deepcharuco.print_board") -> int:
     parser = build_parser(prog)
     args = parser.parse_args(argv)
-    if args.dpi <= 0:
-        parser.error(f"--dpi must be > 0, got {args.dpi:g}")
+    if not (math.isfinite(args.dpi) and args.dpi > 0):
+        parser.error(f"--dpi must be a positive number, got {args.dpi:g}")
 
     def body() -> None:
         run(args)

@@ -86,6 +86,16 @@ def test_board_command_writes_the_sheet_and_the_new_board_file(tmp_path, capsys)
      "--marker (0.022 m) must be smaller than --square"),
     (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--paper", "B7"],
      "unknown paper 'B7'"),
+    # A PNG at 20000 dpi was a numpy MemoryError after asking for 36 GiB; a huge paper as PNG the same.
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--format", "png",
+      "--dpi", "20000"], "at 20000 dpi is 38,669 megapixels (at most 600): give --dpi 2491 or less"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--format", "png",
+      "--paper", "3000x4000mm"], "give --dpi 179 or less, or write the sheet as PDF or SVG"),
+    # Written without a word before: an 80 m "paper", markers whose bits no printer draws.
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--paper",
+      "80000x1000mm"], "is 80 m long: no printer takes a sheet over 5 m"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "0.007mm", "--marker", "0.005mm"],
+     "markers of 0.005 mm have bits of 0.000625 mm"),
 ])
 def test_board_command_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, argv, message):
     assert board_main([*argv, "--out", str(tmp_path / "b")]) == 2
@@ -199,3 +209,12 @@ def test_board_command_replaces_only_the_files_it_wrote(tmp_path, capsys):
         assert board_main([*argv, "--force"]) == 0 and (tmp_path / name).read_bytes() != data
         assert board_main(argv) == 0, name  # now the command's own: replaced unasked
     assert BoardSpec.load(tmp_path / "myboard.yaml") == BoardSpec(5, 7, 0.03, 0.022, "DICT_4X4_50")
+
+
+@pytest.mark.parametrize("dpi", ["nan", "inf", "-3"])
+def test_a_dpi_that_is_not_a_positive_number_is_refused(tmp_path, capsys, dpi):
+    """--dpi nan and inf ended in tracebacks (numpy casting them to a size)."""
+    with pytest.raises(SystemExit) as stop:
+        board_main([str(BOARDS[0].save(tmp_path / "board.yaml")), "--out", str(tmp_path / "b.png"), "--dpi", dpi])
+    assert stop.value.code == 2 and "--dpi must be a positive number" in capsys.readouterr().err
+    assert not (tmp_path / "b.png").exists()
