@@ -137,6 +137,10 @@ def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]
             rows = list(csv.DictReader(handle))
     except OSError as error:
         raise DeepCharucoError(f"--timestamps {path}: cannot read it ({error.strerror or error})") from None
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise DeepCharucoError(f"--timestamps {path} is not a text CSV ({type(error).__name__} at byte "
+                               f"{getattr(error, 'start', '?')}): give a UTF-8 CSV with the header source,frame,time_s"
+                               ) from None
     if not rows or not {"source", "frame", "time_s"} <= set(rows[0]):
         raise DeepCharucoError(f"--timestamps {path} needs a header source,frame,time_s and one row per frame")
     times: list[dict[int, float]] = [{} for _ in names]

@@ -469,3 +469,16 @@ def test_one_board_or_one_recording_given_twice_is_refused(tmp_path, drawn, caps
         error = capsys.readouterr().err.strip().splitlines()
         assert len(error) == 1 and message in error[0], error
         assert not out.exists()
+
+
+def test_a_binary_timestamps_file_is_one_line(tmp_path, drawn, capsys):
+    """--timestamps given a binary file (a video by mistake) ended in UnicodeDecodeError's traceback."""
+    _, folders, board = drawn
+    binary = tmp_path / "times.csv"
+    binary.write_bytes(np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(folders[1]), "--board", str(board), "--detector", "opencv", "--out", str(out),
+                 "--quiet", "--timestamps", str(binary)]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "is not a text CSV" in error[0] and "source,frame,time_s" in error[0]
+    assert not out.exists()
