@@ -308,3 +308,23 @@ def test_a_missing_extra_is_named_before_any_work(tmp_path, hidden, argv, messag
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
     assert done.stderr.strip().splitlines() == [f"error: {done.stderr.strip()[7:]}"] and message in done.stderr
     assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["sitecustomize.py"]
+
+
+def test_calibrate_stopped_by_sigterm_says_so_and_leaves_no_lock(calibrated, wave_video, monkeypatch, capsys):
+    """SIGTERM during the solve (kill, a scheduler's stop) exited 143 without the ``stopped:`` line the docs promise
+    and left the output's .lock file; now it is taken as Ctrl-C is: one line, the camera file as it was, exit 143."""
+    import os
+    import signal
+
+    _, out, _ = calibrated
+    before = out.read_bytes()
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(calibrate_cli, "calibrate", terminated)
+    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 143
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("stopped (SIGTERM): nothing written")
+    assert out.read_bytes() == before and _leftovers(out.parent) == []
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the command's handler is gone again
