@@ -72,6 +72,10 @@ def refuse_one_source_twice(paths: list[str]) -> None:
 def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
     """Videos (or folders of frames) of one rig recorded together have one length; without --sync-offsets other
     lengths are refused."""
+    for source, offset in zip(sources, offsets or []):
+        if source.total and offset >= source.total:
+            raise RigError(f"--sync-offsets {offset} for {source.stem} skips every one of its {source.total} frames: "
+                           f"give the frames to skip at its start, fewer than it has")
     totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
     if offsets is None and len({total for _, total in totals}) > 1:
         listed = ", ".join(f"{name} {total}" for name, total in totals)
@@ -100,6 +104,11 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
 
     def wanted():
         heads = [next(stream, None) for stream in streams]
+        for c, head in enumerate(heads):
+            if head is None:  # reading stops at the first source that ends: name the one that never began
+                skipping = f" after the {offsets[c]} frames --sync-offsets skips" if offsets[c] else ""
+                raise CalibrationError(f"no frames could be read from {sources[c].stem}{skipping}: give videos, "
+                                       f"folders of images or camera indices that deliver frames")
         while all(head is not None for head in heads):
             instant = min(head[0] for head in heads)
             for c, head in enumerate(heads):
@@ -127,9 +136,12 @@ def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
     return gray
 
 
-def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
+def read_timestamps(path: str | Path, names: list[str], totals: list[int | None] | None = None
+                    ) -> list[dict[int, float]]:
     """Each source's {frame: time (s)} from a CSV with the columns ``source,frame,time_s`` (``source``: the source's
-    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). A source without any row is refused."""
+    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). Refused, naming the line: a time that is not
+    finite, a negative frame or one past its source's ``totals`` (frames, where known), one frame given twice at
+    different times; and a source without any row, or whose times do not increase with its frame numbers."""
     import csv
 
     try:
@@ -151,12 +163,27 @@ def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]
             raise DeepCharucoError(f"--timestamps {path} line {line}: source {key!r} is none of {', '.join(names)} "
                                    f"(or 0..{len(names) - 1})")
         try:
-            times[camera][int(row["frame"])] = float(row["time_s"])
-        except ValueError:
+            frame, time = int(row["frame"]), float(row["time_s"])
+        except (ValueError, TypeError):
             raise DeepCharucoError(f"--timestamps {path} line {line}: frame and time_s must be numbers") from None
+        where = f"--timestamps {path} line {line}"
+        if not math.isfinite(time):
+            raise DeepCharucoError(f"{where}: time_s {row['time_s'].strip()} is not a time: give seconds")
+        if frame < 0 or (totals and totals[camera] and frame >= totals[camera]):
+            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]}, whose frames are numbered 0.."
+                                   f"{(totals[camera] - 1) if totals and totals[camera] else 'N'}: give frame numbers "
+                                   f"from 0 (a folder's: its images' places in name order)")
+        if frame in times[camera] and times[camera][frame] != time:
+            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]} again, at {time:g} s (before: "
+                                   f"{times[camera][frame]:g} s): give each frame once")
+        times[camera][frame] = time
     for name, table in zip(names, times):
         if not table:
             raise DeepCharucoError(f"--timestamps {path} has no row for {name}: give every source's frame times")
+        ordered = [table[frame] for frame in sorted(table)]
+        if len(ordered) > 1 and not all(b > a for a, b in zip(ordered, ordered[1:])):
+            raise DeepCharucoError(f"--timestamps {path}: {name}'s times do not increase with its frame numbers "
+                                   f"(two frames at one time, or out of order): give each frame the time it was taken")
     return times
 
 
@@ -179,6 +206,16 @@ def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
                 best[int(frames0[k])] = (gap, frame)
         mapping.append({frame: instant for instant, (_, frame) in best.items()})
     return mapping
+
+
+def check_overlap(times: list[dict[int, float]], mapping: list[dict[int, int]], names: list[str]) -> None:
+    """`RigError` naming a source none of whose frames joins an instant of the first (`instants_by_time`): its clock
+    never overlaps the first's."""
+    for c in range(1, len(names)):
+        if not mapping[c]:
+            spans = [f"{names[k]} {min(times[k].values()):g}..{max(times[k].values()):g} s" for k in (0, c)]
+            raise RigError(f"--timestamps: no frame of {names[c]} was taken within half a frame interval of one of "
+                           f"{names[0]}'s ({', '.join(spans)}): give both sources' times on one clock")
 
 
 def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,
@@ -298,7 +335,10 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
     if args.timestamps is None:
         check_lengths(sources, args.sync_offsets)
     else:
-        mapping = instants_by_time(read_timestamps(args.timestamps, names))
+        times = read_timestamps(args.timestamps, names, [s.total if s.kind in ("video", "images") else None
+                                                         for s in sources])
+        mapping = instants_by_time(times)
+        check_overlap(times, mapping, names)
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / TOML_NAME, "another calibrate"):
         return _rig_into(args, boards, detectors, out, sources, names, targets, mapping)
@@ -325,6 +365,13 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
         raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0][0])} instants: check "
                        f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
                        f"in focus")
+    if args.origin == "board" and args.origin_instant is not None:
+        seen = sorted({f.index for per_board in detections for frames in per_board for f in frames if len(f.ids)})
+        if args.origin_instant not in seen:
+            nearest = sorted(sorted(seen, key=lambda i: abs(i - args.origin_instant))[:5])
+            raise RigError(f"--origin-instant {args.origin_instant}: no camera found the board at that instant (of "
+                           f"{len(detections[0][0])} read); instants near it where one did: "
+                           f"{', '.join(map(str, nearest))}")
     margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
                                border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)

@@ -482,3 +482,58 @@ def test_a_binary_timestamps_file_is_one_line(tmp_path, drawn, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "is not a text CSV" in error[0] and "source,frame,time_s" in error[0]
     assert not out.exists()
+
+
+def _times(rows: list[str]) -> str:
+    return "source,frame,time_s\n" + "\n".join(rows) + "\n"
+
+
+GOOD_TIMES = [f"{c},{n},{n / 6:.4f}" for c in (0, 1) for n in range(16)]
+
+
+@pytest.mark.parametrize("case, message", [
+    ("offset past the end", "--sync-offsets 1000 for cam1 skips every one of its 16 frames"),
+    ("empty video", "no frames could be read from empty:"),
+    ("nan time", "line 2: time_s nan is not a time"),
+    ("frame past the end", "frame 99 of cam1, whose frames are numbered 0..15"),
+    ("negative frame", "frame -1 of cam0, whose frames are numbered 0..15"),
+    ("all equal times", "cam0's times do not increase with its frame numbers"),
+    ("conflicting rows", "frame 3 of cam1 again, at 9 s (before: 0.5 s)"),
+    ("clocks never overlap", "no frame of cam1 was taken within half a frame interval of one of cam0's"),
+    ("origin instant past the end", "--origin-instant 40: no camera found the board at that instant (of 16 read)"),
+])
+def test_rig_nonsense_is_refused_naming_the_source_before_the_solve(tmp_path, drawn, capsys, monkeypatch, case,
+                                                                     message):
+    """Wrong advice and accepted nonsense: --sync-offsets past a source's end blamed the other source, as did a 0-frame
+    video; --timestamps with NaN times, frames past the end or negative, all-equal times, conflicting rows or clocks
+    that never overlap ran on to "no frames could be read" or "board never found" (or the last row won); an
+    --origin-instant past the recording was refused only after the whole solve. Each: one line naming the source or
+    the line, exit 2, nothing written, and no solve started."""
+    _, folders, board = drawn
+    sources, extra = [str(folders[0]), str(folders[1])], []
+    rows = list(GOOD_TIMES)
+    if case == "offset past the end":
+        extra = ["--sync-offsets", "0", "1000"]
+    elif case == "empty video":
+        empty = tmp_path / "empty.avi"
+        cv2.VideoWriter(str(empty), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, SIZE).release()  # no frame written
+        sources = [str(folders[0]), str(empty)]
+    elif case == "origin instant past the end":
+        extra = ["--origin", "board", "--origin-instant", "40"]
+    else:
+        rows = {"nan time": ["0,0,nan", *rows[1:]], "frame past the end": [*rows, "1,99,20.0"],
+                "negative frame": ["0,-1,-0.1", *rows], "all equal times": [f"0,{n},1.0" for n in range(16)] + rows[16:],
+                "conflicting rows": [*rows, "1,3,9"],
+                "clocks never overlap": rows[:16] + [f"1,{n},{100 + n / 6:.4f}" for n in range(16)]}[case]
+        (tmp_path / "times.csv").write_text(_times(rows))
+        extra = ["--timestamps", str(tmp_path / "times.csv")]
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("solved before the refusal")
+
+    monkeypatch.setattr("deepcharuco.calibrate_rig.solve_rig", no_solve)
+    out = tmp_path / "rig"
+    assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet", *extra]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and message in error[0], error
+    assert not out.exists() or not any(out.iterdir())
