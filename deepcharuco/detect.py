@@ -364,6 +364,12 @@ def run(args: argparse.Namespace) -> dict:
             print(f"interrupted after {frames_read} frames; writing what was done (marked incomplete)", file=sys.stderr)
         finally:
             overlays.close(keep=frames_read > 0)
+        if frames_read == 0 and not interrupted:  # leaving the block discards the CSVs: nothing is written
+            problems = source.problems()
+            raise DeepCharucoError(f"no frames could be read from {args.source}"
+                                   + (f" ({problems[0]})" if problems else "")
+                                   + ": give an image, a folder of images, a video with frames or a camera index "
+                                     "that delivers them")
     summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1)
                  for board_run in runs]
     return summaries[0]
