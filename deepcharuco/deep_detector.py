@@ -36,7 +36,9 @@ from deepcharuco.junction import locate_by_pattern, printed_pattern
 from deepcharuco.marker_reader import READERS
 from deepcharuco.models.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
 from deepcharuco.models.offsets import PATCH, soft_argmax_offsets
-from deepcharuco.onnx_bundle import BundleError, OnnxBundle, bundle_path, checked_runner, is_bundle, read_bundle
+from deepcharuco.onnx_bundle import (
+    BundleError, OnnxBundle, bundle_path, check_exported_from, checked_runner, is_bundle, read_bundle,
+)
 from deepcharuco.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
 from deepcharuco.opencv_detector import OpenCVDetector
 from deepcharuco.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers, drop_isolated,
@@ -249,7 +251,9 @@ def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle
     if _torch_installed():
         return None
     if is_bundle(bundle_path(weights)) and refine_weights is None:
-        return read_bundle(bundle_path(weights))
+        bundle = read_bundle(bundle_path(weights))
+        check_exported_from(bundle, weights)
+        return bundle
     raise DeepCharucoError(
         f"{weights} is a PyTorch checkpoint and PyTorch is not installed: pip install torch (the CPU build is enough), "
         f"or where PyTorch is, write its ONNX bundle (python -m deepcharuco.export --bundle --weights {weights}) and "

@@ -111,6 +111,25 @@ OUTPUTS = {"charuconet.onnx": ["point_logits", "id_logits"], "charuconet_points.
            "refinenet.onnx": ["logits"]}
 
 
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes (read in 1 MiB blocks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def check_exported_from(bundle: OnnxBundle, weights: str | Path) -> None:
+    """`BundleError` where ``bundle`` (found beside ``weights``, read in its place without PyTorch) was exported from
+    other bytes of ``weights`` than it holds now (retrained or replaced since): bundles record the weights file's
+    sha256 (``weights_file_sha256``; PyTorch's ``weights_sha256`` of the loaded network needs PyTorch to check)."""
+    recorded = bundle.meta.get("weights_file_sha256")
+    if recorded and Path(weights).is_file() and file_sha256(weights) != recorded:
+        raise BundleError(f"{bundle.path} was exported from another {Path(weights).name} than the one beside it "
+                          f"(retrained or replaced since): {bundle_fix(bundle.path)} where PyTorch is installed")
+
+
 def bundle_fix(path: Path) -> str:
     return f"export it again (python -m deepcharuco.export --bundle --weights {Path(path).with_suffix('.pt').name})"
 

@@ -159,3 +159,32 @@ def test_a_model_file_other_than_the_one_exported_is_refused_by_its_sha256(tmp_p
     assert done.returncode == 2 and "refinenet.onnx is not the model exported into this bundle" in \
         done.stderr.strip().splitlines()[-1]
     assert "Traceback" not in done.stderr and not (tmp_path / "o").exists()
+
+
+def test_an_exported_bundle_records_its_files_and_is_refused_once_its_weights_change(tmp_path):
+    """`write_onnx_bundle` records each model's sha256 and the weights file's; without PyTorch the bundle beside
+    NAME.pt stands in for it only while NAME.pt is the file it was exported from (a retrained detector.pt beside a
+    stale detector.onnx/ ran the old networks without a word)."""
+    from deepcharuco.export import write_onnx_bundle
+
+    weights = tmp_path / "mine.pt"
+    shutil.copyfile(DEFAULT_WEIGHTS, weights)
+    folder = write_onnx_bundle(weights)
+    meta = json.loads((folder / "bundle.json").read_text())
+    assert meta["models_sha256"] == {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.glob("*.onnx")}
+    assert meta["weights_file_sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
+    code = f"""
+import sys
+sys.modules["torch"] = None  # as without PyTorch: the bundle beside the weights is read
+from deepcharuco import Detector
+from deepcharuco.onnx_bundle import BundleError
+assert Detector(weights=r"{weights}").runner.name == "onnx"
+open(r"{weights}", "ab").write(b"retrained")
+try:
+    Detector(weights=r"{weights}")
+except BundleError as error:
+    print(error)
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "mine.onnx was exported from another mine.pt than the one beside it" in done.stdout
