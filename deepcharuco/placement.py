@@ -277,21 +277,22 @@ def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
     the board's own: at least `MIN_MARKERS` read best as themselves, and either at least `MIN_MARKER_AGREEMENT`
     of the readable ones do and more than chance could explain (`chance_of_agreement` <= `MAX_CHANCE`), or
     the readable markers other than ``chosen_by`` (the marker IDs whose reads chose the view) rank their own
-    marker above chance by `MIN_RANK_Z` standard errors (`rank_z`)."""
+    marker above chance by `MIN_RANK_Z` standard errors (`rank_z`), or their codes do (`code_chance`); and the
+    markers do not contradict the board's layout (`layout_contradicted`: checked last, on the views that pass, as
+    most views tried fail before)."""
     readable, best, ranks = _expected_ranks(gray, board, homography, reader)
     agreeing = int(best.sum())
-    if agreeing < MIN_MARKERS or layout_contradicted(agreeing, len(readable),
-                                                     contradicting_markers(gray, board, homography, reader), board):
+    if agreeing < MIN_MARKERS:
         return False
-    if agreeing >= MIN_MARKER_AGREEMENT * len(readable) \
-            and chance_of_agreement(agreeing, len(readable), board.num_markers) <= MAX_CHANCE:
-        return True
     markers = board_markers(board)
     unbiased = ~np.isin(markers.ids[readable], np.asarray([] if chosen_by is None else chosen_by))
-    if rank_z(ranks[unbiased]) >= MIN_RANK_Z:
-        return True
-    return code_chance(code_errors(gray, board, homography, reader), markers.size ** 2,
+    verified = (agreeing >= MIN_MARKER_AGREEMENT * len(readable)
+                and chance_of_agreement(agreeing, len(readable), board.num_markers) <= MAX_CHANCE) \
+        or rank_z(ranks[unbiased]) >= MIN_RANK_Z \
+        or code_chance(code_errors(gray, board, homography, reader), markers.size ** 2,
                        code_error_limit(board)) <= MAX_CHANCE
+    return verified and not layout_contradicted(agreeing, len(readable),
+                                                contradicting_markers(gray, board, homography, reader), board)
 
 
 def contradicting_markers(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None
