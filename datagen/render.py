@@ -30,6 +30,7 @@ import deepcharuco
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.cli.common import output_folder, run_command
 from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.extras import require_extra
 from deepcharuco.core.opencv_api import log_errors_only
 from deepcharuco.core.platform import describe_os_error
 
@@ -262,6 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     if problems:
         parser.error("; ".join(problems))
     def body() -> None:
+        # The workers import Blender's module: without it each would fail after the run had started.
+        require_extra("python -m datagen.render", ("bpy", "h5py"), "render",
+                      " (bpy 5.0.1 installs on Python 3.11 only)")
         if args.family is not None and args.board is not None:
             raise DeepCharucoError("--family and --board exclude each other: --family draws a random board of the "
                                    "family for every frame, --board renders one board; pass only one of them")

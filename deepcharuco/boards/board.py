@@ -32,6 +32,10 @@ def dictionary_names() -> list[str]:
     return sorted({name.upper() for name in dir(cv2.aruco) if name.startswith("DICT_")})
 
 
+# The comment in every YAML board file this project writes: `deepcharuco board` replaces only such files.
+BOARD_FILE_MARK = "deepcharuco board file: --board for detect and calibrate"
+
+
 def _dictionary_id(name: str) -> int:
     for attr in dir(cv2.aruco):
         if attr.upper() == name.upper() and attr.startswith("DICT_"):
@@ -288,7 +292,7 @@ class BoardSpec:
         if suffix == ".json":
             return json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
         if suffix in (".yaml", ".yml"):
-            lines = ["%YAML:1.0", "---"]
+            lines = ["%YAML:1.0", "---", f"# {BOARD_FILE_MARK}"]
             for key, value in self.to_dict().items():
                 text = ("true" if value else "false") if isinstance(value, bool) else value
                 lines.append(f"{key}: {text}")

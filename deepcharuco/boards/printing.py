@@ -25,6 +25,7 @@ import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.files import png_marked
 
 PAPERS_MM = {"A4": (210.0, 297.0), "A3": (297.0, 420.0), "A5": (148.0, 210.0), "letter": (215.9, 279.4),
              "legal": (215.9, 355.6), "tabloid": (279.4, 431.8)}
@@ -32,6 +33,13 @@ MARGIN_MM = 5.0  # what most printers cannot print near the paper's edge (4-5 mm
 RULER_MM = 100.0  # the ruler's length: long enough to show a 1 % scaling error (1 mm)
 CAPTION_MM = 22.0  # room below the board for the ruler and the description
 MM_PER_POINT = 25.4 / 72.0
+MAX_PAPER_MM = 5000.0  # the widest roll printers print 5 m: a larger "paper" is a typing slip
+# A marker's bit cell under this cannot be printed: a 600 dpi printer's dot is 0.042 mm, and a bit needs a few.
+MIN_BIT_MM = 0.1
+# A PNG sheet's pixels (one byte each, and the encoder's copies): A0 at 600 dpi is 0.56 G. Beyond, a vector format.
+MAX_PNG_PIXELS = 600_000_000
+# Inside every sheet written (PDF creator, SVG comment, PNG text chunk): `deepcharuco board` replaces only such files.
+SHEET_MARK = "deepcharuco board"
 
 
 class PrintError(DeepCharucoError):
@@ -60,8 +68,33 @@ def paper_size(name: str) -> tuple[float, float]:
             return size
     match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*x\s*(\d+(?:\.\d+)?)\s*mm\s*", name.lower())
     if match and float(match[1]) > 0 and float(match[2]) > 0:
-        return float(match[1]), float(match[2])
+        size = float(match[1]), float(match[2])
+        if max(size) > MAX_PAPER_MM:
+            raise PrintError(f"paper {name!r} is {max(size) / 1000:g} m long: no printer takes a sheet over "
+                             f"{MAX_PAPER_MM / 1000:g} m; give the paper the printer takes (a roll's width x length)")
+        return size
     raise PrintError(f"unknown paper {name!r}: use {', '.join(PAPERS_MM)} or a size such as 500x700mm")
+
+
+def check_printable(board: BoardSpec) -> None:
+    """`PrintError` where the board's marker bits are under `MIN_BIT_MM`: no printer draws them."""
+    bits = board.cv_dictionary().markerSize + 2  # the code and its black border
+    bit_mm = board.marker_length * 1000.0 / bits
+    if bit_mm < MIN_BIT_MM:
+        raise PrintError(f"markers of {board.marker_length * 1000:g} mm have bits of {bit_mm:.3g} mm ({bits} a side): "
+                         f"a printer's dot is ~0.04 mm, so no printer draws them; give markers of "
+                         f"{MIN_BIT_MM * bits:g} mm or more")
+
+
+def check_png_size(paper_mm: tuple[float, float], dpi: float) -> None:
+    """`PrintError` where a PNG of ``paper_mm`` at ``dpi`` would exceed `MAX_PNG_PIXELS` (memory: one byte a
+    pixel and the encoder's copies), naming the largest dpi that fits and the vector formats."""
+    pixels = paper_mm[0] * paper_mm[1] * (dpi / 25.4) ** 2
+    if pixels > MAX_PNG_PIXELS:
+        largest = int(25.4 * math.sqrt(MAX_PNG_PIXELS / (paper_mm[0] * paper_mm[1])))
+        raise PrintError(f"a PNG of {paper_mm[0]:g} x {paper_mm[1]:g} mm at {dpi:g} dpi is {pixels / 1e6:,.0f} megapixels "
+                         f"(at most {MAX_PNG_PIXELS / 1e6:,.0f}): give --dpi {largest} or less, or write the sheet as "
+                         f"PDF or SVG (vector: sharp at any size)")
 
 
 def board_shapes(board: BoardSpec) -> list[tuple[float, float, float, float]]:
@@ -155,6 +188,7 @@ def pdf_bytes(sheet: Sheet, compress: bool = True) -> bytes:
     pt = 1.0 / MM_PER_POINT
     page = canvas.Canvas(buffer, pagesize=(sheet.size[0] * pt, sheet.size[1] * pt), invariant=1,
                          pageCompression=int(compress))
+    page.setCreator(SHEET_MARK)  # the document information (uncompressed): how a rerun knows the file as its own
     height = sheet.size[1]
     for colour, boxes in ((0, sheet.rects), (1, sheet.holes)):
         page.setFillGray(colour)
@@ -190,7 +224,8 @@ def svg_text(sheet: Sheet) -> str:
                                        **{"font-family": "Helvetica, Arial, sans-serif",
                                           "font-size": f"{size * MM_PER_POINT:.3f}"})
         label.text = text
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(svg, encoding="unicode") + "\n"
+    return (f'<?xml version="1.0" encoding="UTF-8"?>\n<!-- {SHEET_MARK} -->\n'
+            + ElementTree.tostring(svg, encoding="unicode") + "\n")
 
 
 def raster(sheet: Sheet, dpi: float) -> np.ndarray:
@@ -217,4 +252,4 @@ def png_bytes(sheet: Sheet, dpi: float = 300.0) -> bytes:
 
     buffer = io.BytesIO()
     Image.fromarray(raster(sheet, dpi)).save(buffer, format="PNG", dpi=(dpi, dpi))
-    return buffer.getvalue()
+    return png_marked(buffer.getvalue(), SHEET_MARK)

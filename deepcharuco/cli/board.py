@@ -12,17 +12,25 @@ that cannot be written) and nothing written.
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
 from pathlib import Path
 
-from deepcharuco.boards.board import BoardSpec
-from deepcharuco.boards.printing import PAPERS_MM, board_sheet, paper_size, pdf_bytes, png_bytes, svg_text
+from deepcharuco.boards.board import BOARD_FILE_MARK, BoardSpec
+from deepcharuco.boards.printing import (
+    PAPERS_MM, SHEET_MARK, board_sheet, check_png_size, check_printable, paper_size, pdf_bytes, png_bytes, svg_text,
+)
 from deepcharuco.cli.common import check_output_folder, run_command
 from deepcharuco.core.errors import BoardSpecError, DeepCharucoError
-from deepcharuco.core.files import refuse_foreign, starts_with, write_together
+from deepcharuco.core.files import contains, png_mark, refuse_foreign, starts_with, write_together
 
 FORMATS = {".pdf": b"%PDF-", ".svg": b"<?xml", ".png": b"\x89PNG"}  # each format and how its files begin
+# How each format's sheet is known as one this command wrote (`printing.SHEET_MARK` inside it), and may be replaced
+# without --force: a user's own PNG, PDF or SVG is not.
+OURS = {".pdf": lambda path: starts_with(FORMATS[".pdf"])(path) and contains(f"/Creator ({SHEET_MARK})".encode(),
+                                                                             1 << 26)(path),
+        ".svg": contains(f"<!-- {SHEET_MARK} -->".encode(), 256), ".png": png_mark(SHEET_MARK)}
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 
@@ -79,10 +87,14 @@ def run(args: argparse.Namespace) -> list[Path]:
     for path in sheets + ([board_file] if board_file else []):
         check_output_folder(path.parent, "--out's folder")
         if path.suffix in FORMATS:
-            refuse_foreign(path, starts_with(FORMATS[path.suffix]), f"{path.suffix[1:].upper()} file", args.force)
+            refuse_foreign(path, OURS[path.suffix], "sheet written by deepcharuco board", args.force)
         else:
-            refuse_foreign(path, lambda p: BoardSpec.load(p) is not None, "board file", args.force)
+            refuse_foreign(path, contains(f"# {BOARD_FILE_MARK}".encode(), 256), "board file written by deepcharuco "
+                           "board", args.force)
+    check_printable(board)
     sheet = board_sheet(board, args.paper)
+    if any(path.suffix == ".png" for path in sheets):
+        check_png_size(sheet.size, args.dpi)
     render = {".pdf": pdf_bytes, ".svg": svg_text, ".png": lambda s: png_bytes(s, args.dpi)}
     files = {}
     for path in sheets:
@@ -131,15 +143,15 @@ def build_parser(prog: str = "deepcharuco board") -> argparse.ArgumentParser:
     parser.add_argument("--format", action="append", default=[], choices=["pdf", "svg", "png"],
                         help="also write this format (repeat for more)")
     parser.add_argument("--dpi", type=float, default=300.0, help="PNG resolution (dots per inch)")
-    parser.add_argument("--force", action="store_true", help="overwrite files that are not sheets or board files")
+    parser.add_argument("--force", action="store_true", help="overwrite files that deepcharuco board did not write")
     return parser
 
 
 def main(argv: list[str] | None = None, prog: str = "deepcharuco board") -> int:
     parser = build_parser(prog)
     args = parser.parse_args(argv)
-    if args.dpi <= 0:
-        parser.error(f"--dpi must be > 0, got {args.dpi:g}")
+    if not (math.isfinite(args.dpi) and args.dpi > 0):
+        parser.error(f"--dpi must be a positive number, got {args.dpi:g}")
 
     def body() -> None:
         run(args)

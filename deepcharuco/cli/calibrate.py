@@ -302,6 +302,13 @@ def main(argv: list[str] | None = None) -> int:
                 from deepcharuco.cli.calibrate_rig import run_rig
 
                 boards = [BoardSpec.load(path) for path in args.board] if args.board else [BoardSpec()]
+                for j, board in enumerate(boards):
+                    for i in range(j):
+                        if boards[i].same_layout(board):
+                            raise DeepCharucoError(
+                                f"--board {args.board[i]} and --board {args.board[j]} are one board (the same markers "
+                                f"in the same layout): give it once (each view of it would count twice, and the rig "
+                                f"would look more certain than it is)")
                 run_rig(args, boards, [make_detector(args.detector, board, args.refine, args.weights)
                                        for board in boards])
             else:

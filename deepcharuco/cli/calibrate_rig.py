@@ -13,6 +13,7 @@ leaves nothing behind (one line, exit code 2).
 from __future__ import annotations
 
 import argparse
+import filecmp
 import math
 import sys
 from pathlib import Path
@@ -28,7 +29,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            within_border)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
-from deepcharuco.cli.detect import Source, open_source
+from deepcharuco.cli.detect import Source, frame_numbers, open_source
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.core.image import to_gray_u8
@@ -49,9 +50,33 @@ def source_names(sources: list[Source]) -> list[str]:
     return names
 
 
+def refuse_one_source_twice(paths: list[str]) -> None:
+    """Two of a rig's sources that are one recording (one file or folder under two names or links, or two files,
+    or folders of files, with the same bytes) are refused: they would be two cameras standing in one place, every
+    view counted twice."""
+    def same_bytes(a: Path, b: Path) -> bool:
+        if a.is_dir() != b.is_dir():
+            return False
+        if a.is_dir():
+            listed = [sorted((p.name, p.stat().st_size) for p in folder.iterdir() if p.is_file()) for folder in (a, b)]
+            return listed[0] == listed[1] and all(filecmp.cmp(a / name, b / name, shallow=False) for name, _ in listed[0])
+        return a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
+
+    files = [(source, Path(source)) for source in paths if Path(source).exists()]
+    for j, (name_j, path_j) in enumerate(files):
+        for name_i, path_i in files[:j]:
+            if path_i.samefile(path_j) or same_bytes(path_i, path_j):
+                raise DeepCharucoError(f"{name_i} and {name_j} are one recording (the same file, folder or bytes): "
+                                       f"a rig needs one source per camera; give each once")
+
+
 def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
     """Videos (or folders of frames) of one rig recorded together have one length; without --sync-offsets other
     lengths are refused."""
+    for source, offset in zip(sources, offsets or []):
+        if source.total and offset >= source.total:
+            raise RigError(f"--sync-offsets {offset} for {source.stem} skips every one of its {source.total} frames: "
+                           f"give the frames to skip at its start, fewer than it has")
     totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
     if offsets is None and len({total for _, total in totals}) > 1:
         listed = ", ".join(f"{name} {total}" for name, total in totals)
@@ -65,23 +90,35 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
                         ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
     """``detections[c][b]``: camera c's `FrameDetection` of board b (``detectors[b]``'s) at every ``step``-th
     instant (the instant as its index), and each camera's frame size. Frame ``n + offsets[c]`` of source c is
-    instant n; reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
+    instant n, by the frames' numbers in their recordings (`deepcharuco.cli.detect.frame_numbers`): a frame a reader
+    skipped (a damaged stretch of video, an unreadable image) leaves that camera out of its instant and shifts no
+    other frame. Reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
     detectors (worker processes; default: these detectors in this process)."""
-    streams = []
-    for source, offset in zip(sources, offsets):
-        frames = iter(source.frames)
-        for _ in range(offset):
-            next(frames, None)
-        streams.append(frames)
+    def instants(source: Source, offset: int):
+        for number, name, frame in frame_numbers(source):
+            if number >= offset:
+                yield number - offset, name, frame
+
+    streams = [instants(source, offset) for source, offset in zip(sources, offsets)]
     totals = [s.total - o for s, o in zip(sources, offsets) if s.total]
     sizes: list[tuple[int, int] | None] = [None] * len(sources)
 
     def wanted():
-        for instant, frames in enumerate(zip(*streams)):
-            if instant % step == 0:
-                for c, (name, frame) in enumerate(frames):
-                    gray = _checked_gray(c, name, frame, sources[c], sizes)
-                    yield (c, instant, str(name), gray), gray
+        heads = [next(stream, None) for stream in streams]
+        for c, head in enumerate(heads):
+            if head is None:  # reading stops at the first source that ends: name the one that never began
+                skipping = f" after the {offsets[c]} frames --sync-offsets skips" if offsets[c] else ""
+                raise CalibrationError(f"no frames could be read from {sources[c].stem}{skipping}: give videos, "
+                                       f"folders of images or camera indices that deliver frames")
+        while all(head is not None for head in heads):
+            instant = min(head[0] for head in heads)
+            for c, head in enumerate(heads):
+                if head[0] != instant:
+                    continue  # this camera's frame of the instant could not be read
+                if instant % step == 0:
+                    gray = _checked_gray(c, head[1], head[2], sources[c], sizes)
+                    yield (c, instant, str(head[1]), gray), gray
+                heads[c] = next(streams[c], None)
 
     total = len(sources) * -(-min(totals) // step) if totals else None
     return detect_views(wanted(), detectors, len(sources), pool, total, quiet), sizes
@@ -100,9 +137,12 @@ def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
     return gray
 
 
-def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]]:
+def read_timestamps(path: str | Path, names: list[str], totals: list[int | None] | None = None
+                    ) -> list[dict[int, float]]:
     """Each source's {frame: time (s)} from a CSV with the columns ``source,frame,time_s`` (``source``: the source's
-    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). A source without any row is refused."""
+    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). Refused, naming the line: a time that is not
+    finite, a negative frame or one past its source's ``totals`` (frames, where known), one frame given twice at
+    different times; and a source without any row, or whose times do not increase with its frame numbers."""
     import csv
 
     try:
@@ -110,6 +150,10 @@ def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]
             rows = list(csv.DictReader(handle))
     except OSError as error:
         raise DeepCharucoError(f"--timestamps {path}: cannot read it ({error.strerror or error})") from None
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise DeepCharucoError(f"--timestamps {path} is not a text CSV ({type(error).__name__} at byte "
+                               f"{getattr(error, 'start', '?')}): give a UTF-8 CSV with the header source,frame,time_s"
+                               ) from None
     if not rows or not {"source", "frame", "time_s"} <= set(rows[0]):
         raise DeepCharucoError(f"--timestamps {path} needs a header source,frame,time_s and one row per frame")
     times: list[dict[int, float]] = [{} for _ in names]
@@ -120,12 +164,27 @@ def read_timestamps(path: str | Path, names: list[str]) -> list[dict[int, float]
             raise DeepCharucoError(f"--timestamps {path} line {line}: source {key!r} is none of {', '.join(names)} "
                                    f"(or 0..{len(names) - 1})")
         try:
-            times[camera][int(row["frame"])] = float(row["time_s"])
-        except ValueError:
+            frame, time = int(row["frame"]), float(row["time_s"])
+        except (ValueError, TypeError):
             raise DeepCharucoError(f"--timestamps {path} line {line}: frame and time_s must be numbers") from None
+        where = f"--timestamps {path} line {line}"
+        if not math.isfinite(time):
+            raise DeepCharucoError(f"{where}: time_s {row['time_s'].strip()} is not a time: give seconds")
+        if frame < 0 or (totals and totals[camera] and frame >= totals[camera]):
+            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]}, whose frames are numbered 0.."
+                                   f"{(totals[camera] - 1) if totals and totals[camera] else 'N'}: give frame numbers "
+                                   f"from 0 (a folder's: its images' places in name order)")
+        if frame in times[camera] and times[camera][frame] != time:
+            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]} again, at {time:g} s (before: "
+                                   f"{times[camera][frame]:g} s): give each frame once")
+        times[camera][frame] = time
     for name, table in zip(names, times):
         if not table:
             raise DeepCharucoError(f"--timestamps {path} has no row for {name}: give every source's frame times")
+        ordered = [table[frame] for frame in sorted(table)]
+        if len(ordered) > 1 and not all(b > a for a, b in zip(ordered, ordered[1:])):
+            raise DeepCharucoError(f"--timestamps {path}: {name}'s times do not increase with its frame numbers "
+                                   f"(two frames at one time, or out of order): give each frame the time it was taken")
     return times
 
 
@@ -150,6 +209,16 @@ def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
     return mapping
 
 
+def check_overlap(times: list[dict[int, float]], mapping: list[dict[int, int]], names: list[str]) -> None:
+    """`RigError` naming a source none of whose frames joins an instant of the first (`instants_by_time`): its clock
+    never overlaps the first's."""
+    for c in range(1, len(names)):
+        if not mapping[c]:
+            spans = [f"{names[k]} {min(times[k].values()):g}..{max(times[k].values()):g} s" for k in (0, c)]
+            raise RigError(f"--timestamps: no frame of {names[c]} was taken within half a frame interval of one of "
+                           f"{names[0]}'s ({', '.join(spans)}): give both sources' times on one clock")
+
+
 def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,
                    quiet: bool = False, pool: DetectorPool | None = None
                    ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
@@ -159,7 +228,7 @@ def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[in
 
     def wanted():
         for c, source in enumerate(sources):
-            for frame_index, (name, frame) in enumerate(source.frames):
+            for frame_index, name, frame in frame_numbers(source):  # a frame skipped shifts no other
                 instant = mapping[c].get(frame_index)
                 if instant is not None and instant % step == 0:
                     gray = _checked_gray(c, name, frame, source, sizes)
@@ -254,6 +323,7 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
         raise DeepCharucoError(f"--out {out} names a file, but {len(args.source)} sources make a rig: give a folder, "
                                f"e.g. --out {out.with_suffix('')}/")
     check_output_folder(out)
+    refuse_one_source_twice(args.source)
     sources = [open_source(source, args.max_frames) for source in args.source]
     names = source_names(sources)
     targets = [out / f"{name}.yaml" for name in names] + [out / TOML_NAME] + ([] if args.no_report else [out / REPORT_NAME])
@@ -266,7 +336,10 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
     if args.timestamps is None:
         check_lengths(sources, args.sync_offsets)
     else:
-        mapping = instants_by_time(read_timestamps(args.timestamps, names))
+        times = read_timestamps(args.timestamps, names, [s.total if s.kind in ("video", "images") else None
+                                                         for s in sources])
+        mapping = instants_by_time(times)
+        check_overlap(times, mapping, names)
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / TOML_NAME, "another calibrate"):
         return _rig_into(args, boards, detectors, out, sources, names, targets, mapping)
@@ -293,6 +366,13 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
         raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0][0])} instants: check "
                        f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
                        f"in focus")
+    if args.origin == "board" and args.origin_instant is not None:
+        seen = sorted({f.index for per_board in detections for frames in per_board for f in frames if len(f.ids)})
+        if args.origin_instant not in seen:
+            nearest = sorted(sorted(seen, key=lambda i: abs(i - args.origin_instant))[:5])
+            raise RigError(f"--origin-instant {args.origin_instant}: no camera found the board at that instant (of "
+                           f"{len(detections[0][0])} read); instants near it where one did: "
+                           f"{', '.join(map(str, nearest))}")
     margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
     options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
                                border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)

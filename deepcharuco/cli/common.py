@@ -8,8 +8,10 @@ of a traceback. Bugs (any other exception) still show their traceback.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -18,23 +20,38 @@ from deepcharuco.core.platform import describe_os_error
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a command stopped by Ctrl-C
+EXIT_TERMINATED = 143  # 128 + SIGTERM (kill, a job scheduler's stop)
 
 
 def run_command(body: Callable[[], int | None]) -> int:
     """``body()``'s exit code (None: 0); a `DeepCharucoError` or `OSError` becomes ``error: ...`` on
     stderr and exit code 2; Ctrl-C (`KeyboardInterrupt`) becomes ``stopped: ...`` and exit code 130,
-    without a traceback (``KeyboardInterrupt("what was kept and how to go on")`` says more)."""
+    without a traceback (``KeyboardInterrupt("what was kept and how to go on")`` says more). SIGTERM is
+    taken as Ctrl-C is (the body's cleanup runs: output locks released, nothing half-written), and exits 143."""
+    terminated = []
+
+    def on_sigterm(signum, frame):
+        terminated.append(signum)
+        raise KeyboardInterrupt
+
+    # Only the main thread may set a handler; a body that sets its own (the trainers') takes over meanwhile.
+    previous = signal.signal(signal.SIGTERM, on_sigterm) if threading.current_thread() is threading.main_thread() \
+        else None
     try:
         code = body()
     except KeyboardInterrupt as stop:
-        print(f"stopped: {stop.args[0] if stop.args else 'interrupted (Ctrl-C) before the end'}", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        reason = stop.args[0] if stop.args else "interrupted (Ctrl-C) before the end"
+        print(f"stopped{' (SIGTERM)' if terminated else ''}: {reason}", file=sys.stderr)
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     except DeepCharucoError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as error:
         print(f"error: {describe_os_error(error)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return 0 if code is None else code
 
 

@@ -36,7 +36,9 @@ from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.video import VideoFrames
 from deepcharuco.core.detection import Detection, largest_sigmas
 from deepcharuco.core.errors import DeepCharucoError
-from deepcharuco.core.files import atomic_file, refuse_foreign, starts_with, temporary_name, write_atomic
+from deepcharuco.core.files import (
+    atomic_file, png_mark, png_marked, refuse_foreign, starts_with, temporary_name, write_atomic,
+)
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.board_hints import what_matches
 from deepcharuco.detection.opencv_detector import OpenCVDetector
@@ -157,6 +159,16 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
     count = video.count
     total = min(count, max_frames) if count and max_frames else count or max_frames
     return Source(path.stem, "video", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, total, video=video)
+
+
+def frame_numbers(source: Source) -> Iterator[tuple[int, str, np.ndarray]]:
+    """(frame number, name, BGR or grey image) of ``source``'s frames: the number is the frame's place in the
+    recording, whatever was skipped before it: a video's (and a camera's) frame number (`VideoFrames` keeps it
+    past a damaged stretch), a folder's image's place in its sorted listing (an unreadable image keeps its
+    number), 0 for a single image. A rig pairs its cameras' frames by these (`deepcharuco.cli.calibrate_rig`)."""
+    places = {name: k for k, name in enumerate(source.overlay_names)} if source.kind == "images" else {}
+    for name, image in source.frames:
+        yield places[name] if source.kind == "images" else int(name) if source.kind != "image" else 0, name, image
 
 
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
@@ -281,6 +293,9 @@ def run(args: argparse.Namespace) -> dict:
     for board_run in runs:
         refuse_foreign(board_run.csv_path, starts_with(CSV_SIGNATURE.encode()), "detection CSV", args.force)
         refuse_foreign(board_run.json_path, starts_with(JSON_START), "detection JSON", args.force)
+    if not args.no_overlay:
+        for path in _Overlays(out, source).images():
+            refuse_foreign(path, png_mark(OVERLAY_MARK), "PNG overlay written by deepcharuco detect", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detectors[0], "weights", None) is not None:
@@ -349,6 +364,12 @@ def run(args: argparse.Namespace) -> dict:
             print(f"interrupted after {frames_read} frames; writing what was done (marked incomplete)", file=sys.stderr)
         finally:
             overlays.close(keep=frames_read > 0)
+        if frames_read == 0 and not interrupted:  # leaving the block discards the CSVs: nothing is written
+            problems = source.problems()
+            raise DeepCharucoError(f"no frames could be read from {args.source}"
+                                   + (f" ({problems[0]})" if problems else "")
+                                   + ": give an image, a folder of images, a video with frames or a camera index "
+                                     "that delivers them")
     summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1)
                  for board_run in runs]
     return summaries[0]
@@ -391,6 +412,8 @@ def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, came
 
 # How every detection JSON of this command begins: what a rerun may overwrite without --force.
 JSON_START = b'{"board": '
+# The text chunk inside every overlay PNG this command writes: a rerun replaces only such PNGs without --force.
+OVERLAY_MARK = "deepcharuco detect overlay"
 
 
 class _Overlays:
@@ -402,6 +425,14 @@ class _Overlays:
         self.writer: cv2.VideoWriter | None = None
         self.video = out / f"{source.stem}_overlay.mp4"
         self.written = 0
+
+    def images(self) -> list[Path]:
+        """The overlay PNGs this source's frames would be written to (none for a video or camera)."""
+        if self.source.kind == "image":
+            return [self.out / f"{self.source.stem}_overlay.png"]
+        if self.source.kind == "images":
+            return [self.out / f"{self.source.stem}_overlay" / name for name in self.source.overlay_names.values()]
+        return []
 
     def add(self, name: str, overlay: np.ndarray) -> None:
         if self.source.kind == "image":
@@ -448,7 +479,7 @@ def _write_image(path: Path, image: np.ndarray) -> None:
     if not ok:
         raise DeepCharucoError(f"could not encode the overlay {path}: pass --no-overlay")
     try:
-        write_atomic(path, encoded.tobytes(), "the overlay")
+        write_atomic(path, png_marked(encoded.tobytes(), OVERLAY_MARK), "the overlay")
     except DeepCharucoError as error:
         raise DeepCharucoError(f"{error} (or pass --no-overlay)") from None
 

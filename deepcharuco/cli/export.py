@@ -22,6 +22,7 @@ ONNX files are run with onnxruntime when installed, otherwise with OpenCV's DNN 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import warnings
@@ -170,7 +171,7 @@ def write_onnx_bundle(weights: str | Path, refine_weights: str | Path | None = N
     """Write the ONNX bundle of ``weights`` (`deepcharuco.networks.onnx_bundle`: the networks exported as the runtime
     exports them in memory, and the board, threshold and fingerprint) to ``out``, by default beside the weights
     (``NAME.pt`` -> ``NAME.onnx/``); its files are written whole, ``bundle.json`` last."""
-    from deepcharuco.networks.onnx_bundle import FORMAT, META_FILE, MODELS, PointsOnlyBoard, bundle_path
+    from deepcharuco.networks.onnx_bundle import FORMAT, META_FILE, MODELS, PointsOnlyBoard, bundle_path, file_sha256
     from deepcharuco.networks.runtime import float_onnx, int8_model, weights_fingerprint
 
     charuconet, board, checkpoint = load_charuconet(weights)
@@ -189,7 +190,9 @@ def write_onnx_bundle(weights: str | Path, refine_weights: str | Path | None = N
             raise
     meta = {"format": FORMAT, "board": (board.plain() if points_only else board).to_dict(),
             "heads": "points" if points_only else "all", "threshold": checkpoint.get("threshold"),
-            "weights": Path(weights).name, "weights_sha256": fingerprint}
+            "weights": Path(weights).name, "weights_sha256": fingerprint,
+            "models_sha256": {name: hashlib.sha256(data).hexdigest() for name, data in models.items()},
+            "weights_file_sha256": file_sha256(weights)}
     out = Path(out) if out is not None else bundle_path(weights)
     out.mkdir(parents=True, exist_ok=True)
     for stale in (name for name in MODELS if name not in models):

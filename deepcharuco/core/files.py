@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import zlib
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -93,7 +94,9 @@ def write_together(files: dict[Path, str | bytes], what: str = "") -> list[Path]
 def refuse_foreign(path: str | Path, is_ours: Callable[[Path], bool], what: str, force: bool = False,
                    option: str = "--out") -> None:
     """Refuse (`OutputError`) to overwrite an existing ``path`` that ``is_ours`` does not recognise as a
-    ``what`` (a camera file, a report, ...), unless ``force``."""
+    ``what`` (a camera file, a report, ...), unless ``force``. Each command's test looks for a mark inside the
+    files it writes (a header, a comment, a PNG text chunk), not just their format: a user's own PNG, PDF or board
+    file of the same format is kept."""
     path = Path(path)
     if force or not path.is_file():
         return
@@ -112,6 +115,34 @@ def starts_with(prefix: bytes) -> Callable[[Path], bool]:
         with open(path, "rb") as handle:
             return handle.read(len(prefix)) == prefix
     return test
+
+
+def contains(mark: bytes, within: int = 1 << 16) -> Callable[[Path], bool]:
+    """An ``is_ours`` test for `refuse_foreign`: ``mark`` lies in the file's first ``within`` bytes."""
+    def test(path: Path) -> bool:
+        with open(path, "rb") as handle:
+            return mark in handle.read(within)
+    return test
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_IHDR_END = len(PNG_SIGNATURE) + 4 + 4 + 13 + 4  # length, type, the 13 header bytes, CRC
+
+
+def png_marked(data: bytes, software: str) -> bytes:
+    """PNG ``data`` with a ``tEXt`` chunk ``Software`` = ``software`` right after the header: the mark by which a
+    command later knows a PNG as one it wrote (`png_mark`), and may replace it without ``--force``."""
+    if not data.startswith(PNG_SIGNATURE):
+        raise ValueError("not a PNG")
+    body = b"tEXt" + b"Software\0" + software.encode("latin-1")
+    chunk = (len(body) - 4).to_bytes(4, "big") + body + zlib.crc32(body).to_bytes(4, "big")
+    return data[:_IHDR_END] + chunk + data[_IHDR_END:]
+
+
+def png_mark(software: str) -> Callable[[Path], bool]:
+    """An ``is_ours`` test for `refuse_foreign`: a PNG that `png_marked` marked with ``software``."""
+    marked = contains(b"tEXtSoftware\0" + software.encode("latin-1"), 256)  # the chunk follows the header
+    return lambda path: starts_with(PNG_SIGNATURE)(path) and marked(path)
 
 
 class OutputLock:

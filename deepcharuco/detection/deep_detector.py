@@ -48,7 +48,9 @@ from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
 from deepcharuco.networks.offsets import PATCH, soft_argmax_offsets
-from deepcharuco.networks.onnx_bundle import OnnxBundle, bundle_path, is_bundle, read_bundle
+from deepcharuco.networks.onnx_bundle import (
+    BundleError, OnnxBundle, bundle_path, check_exported_from, checked_runner, is_bundle, read_bundle,
+)
 from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 
@@ -241,6 +243,9 @@ def _torch_installed() -> bool:
 def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle | None:
     """The ONNX bundle the detector runs (`deepcharuco.networks.onnx_bundle`): ``weights`` itself when it is one, else
     the one beside the weights where PyTorch is not installed; None where PyTorch reads the weights."""
+    if Path(weights).is_dir() and not is_bundle(weights):
+        raise BundleError(f"{weights} is a folder without bundle.json, so not an ONNX bundle: give the weights file "
+                          f"(.pt), or a bundle folder (deepcharuco export --bundle --weights NAME.pt)")
     if is_bundle(weights):
         if refine_weights is not None:
             raise DeepCharucoError(f"{weights} is an ONNX bundle and holds its own RefineNet: leave refine_weights out")
@@ -248,7 +253,9 @@ def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle
     if _torch_installed():
         return None
     if is_bundle(bundle_path(weights)) and refine_weights is None:
-        return read_bundle(bundle_path(weights))
+        bundle = read_bundle(bundle_path(weights))
+        check_exported_from(bundle, weights)
+        return bundle
     raise DeepCharucoError(
         f"{weights} is a PyTorch checkpoint and PyTorch is not installed: pip install torch (the CPU build is enough), "
         f"or where PyTorch is, write its ONNX bundle (deepcharuco export --bundle --weights {weights}) and "
@@ -269,10 +276,12 @@ def _bundle_runner(bundle: OnnxBundle, backend: str, refinenet: bool, points_onl
     refine_model = bundle.models.get("refinenet.onnx") if refinenet else None
     if refinenet and refine_model is None:
         raise DeepCharucoError(f"{bundle.path} holds no RefineNet: use refine='subpix' or 'none'")
+    refine_names = ["refinenet.onnx"] if refine_model is not None else []
     if backend in ("auto", "onnx-int8") and int8 is not None:
-        return OnnxRunner(int8, refine_model, name="onnx-int8")
-    charuconet = bundle.models["charuconet_points.onnx" if points_only else "charuconet.onnx"]
-    return OnnxRunner(charuconet, refine_model)
+        return checked_runner(bundle, ["charuconet_int8.onnx", *refine_names],
+                              lambda: OnnxRunner(int8, refine_model, name="onnx-int8"))
+    name = "charuconet_points.onnx" if points_only else "charuconet.onnx"
+    return checked_runner(bundle, [name, *refine_names], lambda: OnnxRunner(bundle.models[name], refine_model))
 
 
 class Detector:

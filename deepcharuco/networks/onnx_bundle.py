@@ -17,6 +17,7 @@ with PyTorch installed or not.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -80,7 +81,7 @@ def is_bundle(path: str | Path) -> bool:
 def read_bundle(path: str | Path) -> OnnxBundle:
     """Read the bundle folder ``path``; `BundleError` naming the file and the fix when it is damaged."""
     path = Path(path)
-    fix = f"export it again (deepcharuco export --bundle --weights {path.with_suffix('.pt').name})"
+    fix = bundle_fix(path)
     try:
         meta = json.loads((path / META_FILE).read_text())
         board = BoardSpec.from_dict(meta["board"], source=str(path / META_FILE))
@@ -93,4 +94,70 @@ def read_bundle(path: str | Path) -> OnnxBundle:
     models = {name: (path / name).read_bytes() for name in MODELS if (path / name).is_file()}
     if "charuconet_points.onnx" not in models or (meta.get("heads") != "points" and "charuconet.onnx" not in models):
         raise BundleError(f"{path} lacks its ChArUcoNet model(s): {fix}")
+    for name, data in models.items():
+        if not data:
+            raise BundleError(f"{path / name} is empty: {fix}")
+    recorded = meta.get("models_sha256") or {}  # bundles exported before it was recorded have none
+    for name, data in models.items():
+        if name in recorded and hashlib.sha256(data).hexdigest() != recorded[name]:
+            raise BundleError(f"{path / name} is not the model exported into this bundle ({len(data)} bytes, another "
+                              f"sha256 than bundle.json records: truncated, damaged or replaced): {fix}")
     return OnnxBundle(path, board, meta, models)
+
+
+# The outputs each model of a bundle names (`deepcharuco.networks.runtime.float_onnx`): a model file put in another's place
+# (refinenet.onnx as charuconet.onnx) loads, and would fail only at its first run.
+OUTPUTS = {"charuconet.onnx": ["point_logits", "id_logits"], "charuconet_points.onnx": ["point_logits"],
+           "refinenet.onnx": ["logits"]}
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes (read in 1 MiB blocks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def check_exported_from(bundle: OnnxBundle, weights: str | Path) -> None:
+    """`BundleError` where ``bundle`` (found beside ``weights``, read in its place without PyTorch) was exported from
+    other bytes of ``weights`` than it holds now (retrained or replaced since): bundles record the weights file's
+    sha256 (``weights_file_sha256``; PyTorch's ``weights_sha256`` of the loaded network needs PyTorch to check)."""
+    recorded = bundle.meta.get("weights_file_sha256")
+    if recorded and Path(weights).is_file() and file_sha256(weights) != recorded:
+        raise BundleError(f"{bundle.path} was exported from another {Path(weights).name} than the one beside it "
+                          f"(retrained or replaced since): {bundle_fix(bundle.path)} where PyTorch is installed")
+
+
+def bundle_fix(path: Path) -> str:
+    return f"export it again (deepcharuco export --bundle --weights {Path(path).with_suffix('.pt').name})"
+
+
+def checked_runner(bundle: OnnxBundle, names: list[str], make):
+    """``make()`` (an `OnnxRunner` over the bundle's models ``names``: ChArUcoNet's, then RefineNet's if any), or
+    `BundleError` naming the file that ONNX Runtime cannot load (an empty or truncated file; its own exceptions,
+    e.g. ``InvalidProtobuf``) or whose outputs are another model's."""
+    from deepcharuco.networks.onnx_runner import _session
+
+    try:
+        runner = make()
+    except Exception as error:  # noqa: BLE001 - ONNX Runtime's exceptions share no public base class
+        if not type(error).__module__.startswith("onnxruntime"):
+            raise
+        for name in names:  # which one: each loaded alone (the error path only)
+            try:
+                _session(bundle.models[name], 1)
+            except Exception as failed:  # noqa: BLE001
+                reason = (str(failed).splitlines() or [""])[0][:160]
+                raise BundleError(f"{bundle.path / name} cannot be loaded by ONNX Runtime ({type(failed).__name__}: "
+                                  f"{reason}): {bundle_fix(bundle.path)}") from None
+        raise
+    sessions = [runner.charuconet_session] + ([runner.refinenet_session] if len(names) > 1 else [])
+    for name, session in zip(names, sessions):
+        outputs = [output.name for output in session.get_outputs()]
+        expected = OUTPUTS.get(name, OUTPUTS["charuconet_points.onnx"])  # int8: at least the point head
+        if outputs[:len(expected)] != expected:
+            raise BundleError(f"{bundle.path / name} is not a {name[:-5]} model (its outputs are {', '.join(outputs)}, "
+                              f"not {', '.join(expected)}): another model's file in its place? {bundle_fix(bundle.path)}")
+    return runner

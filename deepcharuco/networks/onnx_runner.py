@@ -87,6 +87,14 @@ class OnnxRunner:
                 self._refinenet_one_thread = _session(refinenet_model, 1)
         self._background = BackgroundThread()
 
+    @property
+    def charuconet_session(self):
+        return self._charuconet
+
+    @property
+    def refinenet_session(self):
+        return self._refinenet
+
     def charuconet(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         points, *ids = self._charuconet.run(None, {self._charuconet_input: image})
         return points[0], ids[0][0] if ids else None

@@ -89,6 +89,16 @@ def test_board_command_writes_the_sheet_and_the_new_board_file(tmp_path, capsys)
      "--marker (0.022 m) must be smaller than --square"),
     (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--paper", "B7"],
      "unknown paper 'B7'"),
+    # A PNG at 20000 dpi was a numpy MemoryError after asking for 36 GiB; a huge paper as PNG the same.
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--format", "png",
+      "--dpi", "20000"], "at 20000 dpi is 38,669 megapixels (at most 600): give --dpi 2491 or less"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--format", "png",
+      "--paper", "3000x4000mm"], "give --dpi 179 or less, or write the sheet as PDF or SVG"),
+    # Written without a word before: an 80 m "paper", markers whose bits no printer draws.
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--paper",
+      "80000x1000mm"], "is 80 m long: no printer takes a sheet over 5 m"),
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "0.007mm", "--marker", "0.005mm"],
+     "markers of 0.005 mm have bits of 0.000625 mm"),
 ])
 def test_board_command_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, argv, message):
     assert board_main([*argv, "--out", str(tmp_path / "b")]) == 2
@@ -115,7 +125,8 @@ def test_board_command_keeps_foreign_files_and_unwritable_outputs_are_errors(tmp
     notes = tmp_path / "notes.pdf"
     notes.write_text("my notes")
     assert board_main([str(board), "--out", str(notes)]) == 2
-    assert "exists and is not a PDF file" in capsys.readouterr().err and notes.read_text() == "my notes"
+    assert "exists and is not a sheet written by deepcharuco board" in capsys.readouterr().err
+    assert notes.read_text() == "my notes"
     assert board_main([str(board), "--out", str(unwritable_dir / "b.pdf")]) == 2
     assert "error: " in capsys.readouterr().err
     assert board_main([str(board), "--squares", "7x5", "--out", str(tmp_path / "x")]) == 2
@@ -168,7 +179,6 @@ assert main(["detect", r"{image}", "--detector", "deep", "--weights", r"{tmp_pat
              "--out", r"{tmp_path / 'x'}"]) == 2
 import deepcharuco.cli.calibrate
 
-from conftest import ROOT
 assert "torch" not in {{name.split(".")[0] for name, module in sys.modules.items() if module is not None}}
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -263,3 +273,36 @@ def test_the_written_pdf_draws_the_board_at_its_true_size(tmp_path):
     expected = board.object_points()[found.ids, :2] * 1000.0
     offset = (mm - expected).mean(0)
     assert np.abs(mm - expected - offset).max() < 0.01
+def test_board_command_replaces_only_the_files_it_wrote(tmp_path, capsys):
+    """A camera frame saved as photo.png, a user's PDF and SVG, and the user's own commented board file are each
+    of the format a sheet or board file has, and kept: refused in one line naming --force, nothing written. What
+    the command wrote (a mark inside each file: the PDF's creator, an SVG comment, a PNG text chunk, the board
+    file's first comment) it replaces unasked; --force replaces the user's."""
+    describe = ["--squares", "5x7", "--dictionary", "DICT_4X4_50", "--square", "30mm", "--marker", "22mm"]
+    board = BOARDS[0].save(tmp_path / "board.yaml")
+    frame = cv2.imencode(".png", np.random.default_rng(0).integers(0, 256, (48, 64), dtype=np.uint8))[1].tobytes()
+    theirs = {"photo.png": frame, "user.pdf": b"%PDF-1.4\n% a user's document\n%%EOF\n",
+              "user.svg": b'<?xml version="1.0"?>\n<svg xmlns="http://www.w3.org/2000/svg"/>\n',
+              "myboard.yaml": b"%YAML:1.0\n---\n# my board, measured with calipers\nsquares_x: 5\nsquares_y: 7\n"
+                              b"square_length: 0.0301\nmarker_length: 0.022\ndictionary: DICT_4X4_50\n"}
+    for name, data in theirs.items():
+        (tmp_path / name).write_bytes(data)
+        argv = [*describe, "--out", str(tmp_path / "myboard")] if name == "myboard.yaml" else \
+            [str(board), "--out", str(tmp_path / name)]
+        assert board_main(argv) == 2, name
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and "written by deepcharuco board" in error[0] and "--force" in error[0], error
+        assert (tmp_path / name).read_bytes() == data
+        assert not (tmp_path / "myboard.pdf").exists()
+        assert board_main([*argv, "--force"]) == 0 and (tmp_path / name).read_bytes() != data
+        assert board_main(argv) == 0, name  # now the command's own: replaced unasked
+    assert BoardSpec.load(tmp_path / "myboard.yaml") == BoardSpec(5, 7, 0.03, 0.022, "DICT_4X4_50")
+
+
+@pytest.mark.parametrize("dpi", ["nan", "inf", "-3"])
+def test_a_dpi_that_is_not_a_positive_number_is_refused(tmp_path, capsys, dpi):
+    """--dpi nan and inf ended in tracebacks (numpy casting them to a size)."""
+    with pytest.raises(SystemExit) as stop:
+        board_main([str(BOARDS[0].save(tmp_path / "board.yaml")), "--out", str(tmp_path / "b.png"), "--dpi", dpi])
+    assert stop.value.code == 2 and "--dpi must be a positive number" in capsys.readouterr().err
+    assert not (tmp_path / "b.png").exists()

@@ -442,3 +442,128 @@ def test_jobs_detect_a_rig_on_worker_processes_and_write_the_same_files(tmp_path
     assert sorted(written[0]) == sorted(written[1]) and len(written[0]) == 4
     for name in written[0]:
         assert_same_but_rounding(written[0][name], written[1][name])
+
+
+def test_a_frame_a_reader_skipped_shifts_no_other_frame_of_its_camera(tmp_path, drawn, capsys):
+    """Camera 1 as a video whose frame 7 is noise (the decoder rejects it; `VideoFrames` skips it and keeps the
+    frame numbers), camera 2 as a folder whose 009.png is not an image: their other frames still pair with camera
+    0's of the same instant, so each camera is placed where the truth has it. (Paired by their place in the streams,
+    every frame after the damage met the next instant's: cameras placed centimetres off, exit 0.)"""
+    truth, folders, board = drawn
+    video = tmp_path / "cam1.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, SIZE)
+    for image in sorted(folders[1].iterdir()):
+        writer.write(cv2.imread(str(image)))
+    writer.release()
+    data = bytearray(video.read_bytes())
+    starts = [i for i in range(len(data) - 1) if data[i:i + 2] == b"\xff\xd8"]  # each frame is one JPEG (MJPG)
+    a, b = starts[7], starts[8] - 8  # frame 7's JPEG, up to the next frame's chunk header
+    data[a:b] = np.random.default_rng(52).integers(0, 256, b - a, dtype=np.uint8).tobytes()
+    video.write_bytes(bytes(data))
+    folder = tmp_path / "cam2"
+    folder.mkdir()
+    for image in sorted(folders[2].iterdir()):
+        (folder / image.name).write_bytes(b"not an image" if image.name == "009.png" else image.read_bytes())
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(video), str(folder), "--board", str(board), "--detector", "opencv", "--out",
+                 str(out), "--quiet", "--no-report"]) == 0
+    err = capsys.readouterr().err
+    assert "cam1: 1 frame(s) could not be decoded" in err and "cam2: 1 unreadable image(s) skipped" in err
+    for c in (1, 2):
+        storage = cv2.FileStorage(str(out / f"cam{c}.yaml"), cv2.FILE_STORAGE_READ)
+        R, t = storage.getNode("rotation_matrix").mat(), storage.getNode("translation_vector").mat().ravel()
+        assert rotation_angle_deg(R @ truth.rotations[c].T) < 0.5
+        assert np.linalg.norm(t - truth.translations[c]) < 0.01
+        assert (7 if c == 1 else 9) not in storage.getNode("view_frames").mat().ravel()
+
+
+def test_one_board_or_one_recording_given_twice_is_refused(tmp_path, drawn, capsys):
+    """The same --board twice (or a copy of it) would count every view twice (97 views became 194, the deviations
+    shrank by 1/sqrt 2); the same folder under a second name (a link) or a copy of it would be two cameras in one
+    place. Each: one line, exit 2, nothing written."""
+    _, folders, board = drawn
+    copy = tmp_path / "copy.yaml"
+    copy.write_bytes(board.read_bytes())
+    link = tmp_path / "again"
+    link.symlink_to(folders[1], target_is_directory=True)
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    for image in folders[1].iterdir():
+        (twin / image.name).write_bytes(image.read_bytes())
+    out = tmp_path / "rig"
+    cases = [([str(folders[0]), str(folders[1]), "--board", str(board), "--board", str(copy)], "are one board"),
+             ([str(folders[0]), str(folders[1]), str(link), "--board", str(board)], "are one recording"),
+             ([str(folders[0]), str(folders[1]), str(twin), "--board", str(board)], "are one recording")]
+    for sources, message in cases:
+        assert main([*sources, "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and message in error[0], error
+        assert not out.exists()
+
+
+def test_a_binary_timestamps_file_is_one_line(tmp_path, drawn, capsys):
+    """--timestamps given a binary file (a video by mistake) ended in UnicodeDecodeError's traceback."""
+    _, folders, board = drawn
+    binary = tmp_path / "times.csv"
+    binary.write_bytes(np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(folders[1]), "--board", str(board), "--detector", "opencv", "--out", str(out),
+                 "--quiet", "--timestamps", str(binary)]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "is not a text CSV" in error[0] and "source,frame,time_s" in error[0]
+    assert not out.exists()
+
+
+def _times(rows: list[str]) -> str:
+    return "source,frame,time_s\n" + "\n".join(rows) + "\n"
+
+
+GOOD_TIMES = [f"{c},{n},{n / 6:.4f}" for c in (0, 1) for n in range(16)]
+
+
+@pytest.mark.parametrize("case, message", [
+    ("offset past the end", "--sync-offsets 1000 for cam1 skips every one of its 16 frames"),
+    ("empty video", "no frames could be read from empty:"),
+    ("nan time", "line 2: time_s nan is not a time"),
+    ("frame past the end", "frame 99 of cam1, whose frames are numbered 0..15"),
+    ("negative frame", "frame -1 of cam0, whose frames are numbered 0..15"),
+    ("all equal times", "cam0's times do not increase with its frame numbers"),
+    ("conflicting rows", "frame 3 of cam1 again, at 9 s (before: 0.5 s)"),
+    ("clocks never overlap", "no frame of cam1 was taken within half a frame interval of one of cam0's"),
+    ("origin instant past the end", "--origin-instant 40: no camera found the board at that instant (of 16 read)"),
+])
+def test_rig_nonsense_is_refused_naming_the_source_before_the_solve(tmp_path, drawn, capsys, monkeypatch, case,
+                                                                     message):
+    """Wrong advice and accepted nonsense: --sync-offsets past a source's end blamed the other source, as did a 0-frame
+    video; --timestamps with NaN times, frames past the end or negative, all-equal times, conflicting rows or clocks
+    that never overlap ran on to "no frames could be read" or "board never found" (or the last row won); an
+    --origin-instant past the recording was refused only after the whole solve. Each: one line naming the source or
+    the line, exit 2, nothing written, and no solve started."""
+    _, folders, board = drawn
+    sources, extra = [str(folders[0]), str(folders[1])], []
+    rows = list(GOOD_TIMES)
+    if case == "offset past the end":
+        extra = ["--sync-offsets", "0", "1000"]
+    elif case == "empty video":
+        empty = tmp_path / "empty.avi"
+        cv2.VideoWriter(str(empty), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, SIZE).release()  # no frame written
+        sources = [str(folders[0]), str(empty)]
+    elif case == "origin instant past the end":
+        extra = ["--origin", "board", "--origin-instant", "40"]
+    else:
+        rows = {"nan time": ["0,0,nan", *rows[1:]], "frame past the end": [*rows, "1,99,20.0"],
+                "negative frame": ["0,-1,-0.1", *rows], "all equal times": [f"0,{n},1.0" for n in range(16)] + rows[16:],
+                "conflicting rows": [*rows, "1,3,9"],
+                "clocks never overlap": rows[:16] + [f"1,{n},{100 + n / 6:.4f}" for n in range(16)]}[case]
+        (tmp_path / "times.csv").write_text(_times(rows))
+        extra = ["--timestamps", str(tmp_path / "times.csv")]
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("solved before the refusal")
+
+    monkeypatch.setattr("deepcharuco.cli.calibrate_rig.solve_rig", no_solve)
+    out = tmp_path / "rig"
+    assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet", *extra]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and message in error[0], error
+    assert not out.exists() or not any(out.iterdir())

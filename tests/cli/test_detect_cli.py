@@ -215,3 +215,14 @@ def test_no_board_in_any_frame_says_what_the_frames_show(tmp_path, camera, capsy
     assert "no markers of any dictionary OpenCV knows are in the 1 frame(s) looked at" in capsys.readouterr().err
     assert main([str(EXAMPLES / "board_320x240.png"), "--out", str(tmp_path / "d"), "--no-overlay", "--quiet"]) == 0
     assert "warning" not in capsys.readouterr().err  # found: nothing to say
+
+
+def test_a_video_without_frames_is_refused_and_nothing_is_written(tmp_path, capsys):
+    """A 0-frame video exited 0 with an empty CSV and JSON (calibrate refused it); now one line, exit 2, no file."""
+    empty = tmp_path / "empty.avi"
+    cv2.VideoWriter(str(empty), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (320, 240)).release()  # opens, 0 frames
+    out = tmp_path / "out"
+    assert main([str(empty), "--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error[-1].startswith(f"error: no frames could be read from {empty}")
+    assert not out.exists() or sorted(p.name for p in out.iterdir()) == []

@@ -268,3 +268,62 @@ def test_detect_refuses_to_overwrite_results_it_did_not_write(tmp_path, capsys):
     assert not (tmp_path / "board_320x240.json").exists()
     assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet", "--force"]) == 0
     assert detect_cli.main([image, "--out", str(tmp_path), "--no-overlay", "--quiet"]) == 0  # its own: overwritten
+
+
+def test_detect_replaces_only_the_overlays_it_wrote(tmp_path, capsys):
+    """A user's own frame_overlay.png in --out (any PNG, here a camera frame) is kept: refused naming --force, and
+    nothing written; an overlay detect wrote (its PNG text chunk says so) is replaced by a rerun."""
+    image = tmp_path / "frame.png"
+    image.write_bytes((EXAMPLES / "board_320x240.png").read_bytes())
+    out = tmp_path / "out"
+    out.mkdir()
+    theirs = cv2.imencode(".png", np.full((40, 60), 128, np.uint8))[1].tobytes()
+    (out / "frame_overlay.png").write_bytes(theirs)
+    assert detect_cli.main([str(image), "--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "frame_overlay.png exists and is not a PNG overlay written by deepcharuco detect" in error[0]
+    assert "--force" in error[0] and (out / "frame_overlay.png").read_bytes() == theirs
+    assert sorted(p.name for p in out.iterdir()) == ["frame_overlay.png"]
+    assert detect_cli.main([str(image), "--out", str(out), "--quiet", "--force"]) == 0
+    ours = (out / "frame_overlay.png").read_bytes()
+    assert ours != theirs and cv2.imdecode(np.frombuffer(ours, np.uint8), cv2.IMREAD_COLOR).shape == (240, 320, 3)
+    assert detect_cli.main([str(image), "--out", str(out), "--quiet"]) == 0  # its own overlay: replaced unasked
+
+
+@pytest.mark.parametrize("hidden, argv, message", [
+    ("torch", ["train.charuconet", "--data", "nowhere", "--out", "run"],
+     "training needs torch, which is not installed: pip install 'deepcharuco[train]'"),
+    ("torch", ["train.pipeline", "--help"], "training needs torch, which is not installed"),
+    ("bpy", ["datagen.render", "--n", "2", "--out", "renders", "--quiet"],
+     "python -m datagen.render needs bpy, which is not installed: pip install 'deepcharuco[render]'"),
+])
+def test_a_missing_extra_is_named_before_any_work(tmp_path, hidden, argv, message):
+    """``python -m train.X`` with h5py but no torch, ``python -m datagen.render`` with h5py but no bpy (the render
+    extra on a Python other than 3.11): one line naming the package and the extra, exit code 2, nothing written
+    (they ended in a traceback, the renderer's after its workers had started and told to rerun with --resume)."""
+    (tmp_path / "sitecustomize.py").write_text(f"import sys\nsys.modules[{hidden!r}] = None  # as if not installed\n")
+    env = {**__import__("os").environ, "PYTHONPATH": f"{tmp_path}:{ROOT}"}
+    done = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, cwd=tmp_path, env=env)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines() == [f"error: {done.stderr.strip()[7:]}"] and message in done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["sitecustomize.py"]
+
+
+def test_calibrate_stopped_by_sigterm_says_so_and_leaves_no_lock(calibrated, wave_video, monkeypatch, capsys):
+    """SIGTERM during the solve (kill, a scheduler's stop) exited 143 without the ``stopped:`` line the docs promise
+    and left the output's .lock file; now it is taken as Ctrl-C is: one line, the camera file as it was, exit 143."""
+    import os
+    import signal
+
+    _, out, _ = calibrated
+    before = out.read_bytes()
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(calibrate_cli, "calibrate", terminated)
+    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 143
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("stopped (SIGTERM): nothing written")
+    assert out.read_bytes() == before and _leftovers(out.parent) == []
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the command's handler is gone again

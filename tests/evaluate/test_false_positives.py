@@ -1,10 +1,15 @@
 """The false-positive section: look-alike boards drawn as the target is printed, photos without a board,
 and the marker check's chance rule that keeps the deep detector silent on them."""
 
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
 import numpy as np
 import pytest
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
+from deepcharuco.cli.detect import make_detector
 from deepcharuco.detection.placement import MAX_CHANCE, chance_of_agreement
 from evaluate.paper.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
 
@@ -45,3 +50,60 @@ def test_no_pose_on_look_alikes_and_photos_and_the_targets_say_so():
     # The targets can fail: one pose anywhere is a miss.
     rows["mirrored"]["deep"]["with_pose"] = 1
     assert not targets(result)[0][3]
+
+
+SAMPLES = Path(__file__).parents[1] / "evaluate" / "captures_sample"
+
+
+def _layouts(folder: str) -> tuple[BoardSpec, dict[str, BoardSpec], list[np.ndarray]]:
+    board = BoardSpec.load(SAMPLES / folder / "board.yaml")
+    wrong = {"transposed": replace(board, squares_x=board.squares_y, squares_y=board.squares_x)}
+    if folder == "caliscope_cam1":  # IDs two on: every row's markers sit where the next row's are printed
+        wrong["shifted"] = replace(board, first_marker_id=board.first_marker_id + 2)
+    return board, wrong, [cv2.imread(str(p)) for p in sorted((SAMPLES / folder).glob("*.jpg"))]
+
+
+@pytest.mark.parametrize("folder", ["caliscope_cam1", "opencv_tutorial"])
+@pytest.mark.parametrize("name", ["opencv", "deep", "hybrid"])
+def test_a_board_file_of_another_layout_with_the_same_ids_is_not_reported(folder, name):
+    """Real frames (the shipped samples: caliscope's inverted 4x5 DICT_4X4_1000 board, OpenCV's tutorial 5x7
+    DICT_6X6_250) searched with a board file of their IDs in another layout: every detector finds nothing, for
+    the markers it reads contradict that layout (`placement.contradicting_markers`; OpenCV's interpolation
+    already names no corner that its markers do not back); the right layout is found in the frames it was before. (The deep and hybrid
+    detectors reported 9 corners of a transposed caliscope board at scores 0.94-1.0, and 4-7 of the shifted one.)"""
+    board, wrong, frames = _layouts(folder)
+    right = make_detector(name, board, "subpix" if name == "opencv" else "refinenet")
+    found = [len(right.detect(frame)) for frame in frames]
+    assert sum(n >= 6 for n in found) >= (4 if folder == "caliscope_cam1" else 3)
+    for layout, other in wrong.items():
+        detector = make_detector(name, other, "subpix" if name == "opencv" else "refinenet")
+        # OpenCV names one corner of the transposed caliscope board from two markers that both layouts print
+        # around it: that corner is right, and no contradiction.
+        assert max(len(detector.detect(frame)) for frame in frames) <= (1 if name == "opencv" else 0), layout
+
+
+
+def _markers_swapped(image: np.ndarray, board: BoardSpec, a: int, b: int) -> np.ndarray:
+    """``image`` with the printed markers ``a`` and ``b`` exchanged (each warped into the other's quad, as OpenCV's
+    marker detector finds them): the board of the frame no longer has its board file's layout."""
+    corners, ids, _ = cv2.aruco.ArucoDetector(board.cv_dictionary()).detectMarkers(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    quads = {int(i): c.reshape(4, 2).astype(np.float32) for i, c in zip(ids.ravel(), corners)}
+    out = image.copy()
+    for source, target in ((a, b), (b, a)):
+        warped = cv2.warpPerspective(image, cv2.getPerspectiveTransform(quads[source], quads[target]), image.shape[1::-1])
+        inside = np.zeros(image.shape[:2], np.uint8)
+        cv2.fillConvexPoly(inside, np.round(quads[target]).astype(np.int32), 255)
+        out[inside > 0] = warped[inside > 0]
+    return out
+
+
+@pytest.mark.parametrize("name", ["opencv", "deep", "hybrid"])
+def test_a_frame_whose_markers_are_swapped_is_not_reported(name):
+    """OpenCV's tutorial photos with two of the board's 17 markers (7 and 8) swapped in the image: the board file's
+    layout is contradicted by two clear reads, beyond chance for DICT_6X6_250 (`placement.layout_contradicted`), and
+    no detector reports it. (The deep and hybrid detectors reported all 24 corners.)"""
+    board, _, frames = _layouts("opencv_tutorial")
+    frames = frames[:3]  # the unoccluded photos
+    detector = make_detector(name, board, "subpix" if name == "opencv" else "refinenet")
+    assert [len(detector.detect(frame)) for frame in frames] == [24, 24, 24]
+    assert [len(detector.detect(_markers_swapped(frame, board, 7, 8))) for frame in frames] == [0, 0, 0]

@@ -1,9 +1,13 @@
 """The shipped networks as ONNX bundles: current with the .pt weights, and the Detector without PyTorch gives what it
 gives with it."""
 
+import hashlib
 import json
+import re
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -57,7 +61,6 @@ def test_detections_without_torch_are_those_with_it(tmp_path, camera):
     with_torch = _detect(images, boards)
     code = f"""
 import json, sys
-import numpy as np
 sys.modules["torch"] = None
 from deepcharuco import BoardSpec, Detector
 boards = [BoardSpec(**b) for b in json.loads(open(r"{tmp_path / 'boards.json'}").read())]
@@ -111,3 +114,75 @@ def test_the_package_ships_only_its_own_weights():
     assert {path.name for path in WEIGHTS_DIR.iterdir()} - {"__pycache__"} == shipped
     families = {path.name for path in (WEIGHTS_DIR / "families").iterdir()}
     assert families == {f"{family}{suffix}" for family in ("DICT_4X4", "DICT_6X6") for suffix in (".md", ".onnx", ".pt")}
+
+
+MARKERS_BOARD = BoardSpec(5, 7, 0.04, 0.02, "DICT_6X6_250")  # not the weights' board: read by its markers alone
+
+
+@pytest.mark.parametrize("damage, board, message", [
+    (lambda d: (d / "charuconet.onnx").write_bytes((d / "charuconet.onnx").read_bytes()[:5000]), None,
+     "charuconet.onnx cannot be loaded by ONNX Runtime (InvalidProtobuf"),
+    (lambda d: (d / "refinenet.onnx").write_bytes((d / "refinenet.onnx").read_bytes()[:100]), None,
+     "refinenet.onnx cannot be loaded by ONNX Runtime"),
+    (lambda d: (d / "charuconet_points.onnx").write_bytes(b""), MARKERS_BOARD, "charuconet_points.onnx is empty"),
+    (lambda d: (d / "charuconet_points.onnx").write_bytes((d / "refinenet.onnx").read_bytes()), MARKERS_BOARD,
+     "charuconet_points.onnx is not a charuconet_points model (its outputs are logits"),
+    (lambda d: (d / "bundle.json").unlink(), None, "is a folder without bundle.json, so not an ONNX bundle"),
+], ids=["truncated", "truncated-refinenet", "empty", "swapped", "no-bundle-json"])
+def test_a_damaged_model_file_is_named_not_a_traceback(tmp_path, damage, board, message):
+    """A bundle whose model file was cut short, emptied or replaced by another model's, or a folder without
+    bundle.json: `BundleError` naming the file and the fix (one line from the commands), not ONNX Runtime's
+    traceback (``InvalidProtobuf``) or "weights file does not exist"."""
+    folder = tmp_path / "mine.onnx"
+    shutil.copytree(bundle_path(DEFAULT_WEIGHTS), folder)
+    damage(folder)
+    with pytest.raises(BundleError, match=re.escape(message)):
+        Detector(weights=folder, board=board)
+
+
+def test_a_model_file_other_than_the_one_exported_is_refused_by_its_sha256(tmp_path):
+    """A bundle records each model's sha256 (`models_sha256`, written by `export.write_onnx_bundle`): a file changed
+    since, even one ONNX Runtime loads, is refused before any session is made; detect says so in one line."""
+    folder = tmp_path / "mine.onnx"
+    shutil.copytree(bundle_path(DEFAULT_WEIGHTS), folder)
+    meta = json.loads((folder / "bundle.json").read_text())
+    meta["models_sha256"] = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.glob("*.onnx")}
+    (folder / "bundle.json").write_text(json.dumps(meta))
+    assert read_bundle(folder).models  # as exported: read
+    (folder / "refinenet.onnx").write_bytes((folder / "charuconet_points.onnx").read_bytes())
+    with pytest.raises(BundleError, match="refinenet.onnx is not the model exported into this bundle"):
+        read_bundle(folder)
+    done = subprocess.run([sys.executable, "-m", "deepcharuco.detect", str(Path(__file__).parents[1] / "deepcharuco"
+                           / "examples" / "board_320x240.png"), "--weights", str(folder), "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    assert done.returncode == 2 and "refinenet.onnx is not the model exported into this bundle" in \
+        done.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in done.stderr and not (tmp_path / "o").exists()
+
+
+def test_an_exported_bundle_records_its_files_and_is_refused_once_its_weights_change(tmp_path):
+    """`write_onnx_bundle` records each model's sha256 and the weights file's; without PyTorch the bundle beside
+    NAME.pt stands in for it only while NAME.pt is the file it was exported from (a retrained detector.pt beside a
+    stale detector.onnx/ ran the old networks without a word)."""
+    from deepcharuco.cli.export import write_onnx_bundle
+
+    weights = tmp_path / "mine.pt"
+    shutil.copyfile(DEFAULT_WEIGHTS, weights)
+    folder = write_onnx_bundle(weights)
+    meta = json.loads((folder / "bundle.json").read_text())
+    assert meta["models_sha256"] == {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.glob("*.onnx")}
+    assert meta["weights_file_sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
+    code = f"""
+sys.modules["torch"] = None  # as without PyTorch: the bundle beside the weights is read
+from deepcharuco import Detector
+from deepcharuco.networks.onnx_bundle import BundleError
+assert Detector(weights=r"{weights}").runner.name == "onnx"
+open(r"{weights}", "ab").write(b"retrained")
+try:
+    Detector(weights=r"{weights}")
+except BundleError as error:
+    print(error)
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "mine.onnx was exported from another mine.pt than the one beside it" in done.stdout
