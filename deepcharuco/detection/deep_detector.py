@@ -40,10 +40,11 @@ from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, fit_corners, vie
 from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
 from deepcharuco.detection.marker_reader import READERS
 from deepcharuco.detection.opencv_detector import OpenCVDetector
-from deepcharuco.detection.placement import (PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers, drop_isolated,
-                                             marker_view_verified, neighbour_distances, settle_corners)
+from deepcharuco.detection.placement import PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers
 from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
+from deepcharuco.detection.settling import drop_isolated, neighbour_distances, settle_corners
 from deepcharuco.detection.tracking import search_region
+from deepcharuco.detection.verification import marker_view_verified
 from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
@@ -323,7 +324,7 @@ class Detector:
             found there (wrong IDs dropped, IDs the ID head was unsure of recovered);
             "filter": keep only the corners that fit the view; "none": the paper's decoding as it is.
             With "repair" or "filter" the view must also show the board's own markers where it puts them
-            (`placement.view_is_verified`: a look-alike board gives nothing), and corners that fit no view
+            (`verification.view_is_verified`: a look-alike board gives nothing), and corners that fit no view
             (fewer than 6, or IDs that disagree) are decoded by their markers as with "markers", or dropped:
             no answer rather than a wrong pose. `decode` without the image keeps the older rule: 6 or more
             corners that fit no view are dropped, fewer are returned unchecked.
@@ -575,7 +576,7 @@ class Detector:
                 ) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, 2) corners of ``ids`` in ``full`` -> (the printed pattern's fit of each where it converges, else the
         corner as it was; (N, 2, 2) covariances: the fit's, else the larger of `FALLBACK_SIGMA_PX` and the corner's
-        distance from where its neighbours put it (`placement.neighbour_distances`), squared). ``keep`` (N,) bool:
+        distance from where its neighbours put it (`settling.neighbour_distances`), squared). ``keep`` (N,) bool:
         corners left where they are, with the fallback's covariance."""
         homography = view_homography(self.board, ids, corners)
         if homography is None:
@@ -696,7 +697,7 @@ class Detector:
         homography by more than 3 px, and a wrong ID lands a whole square away. A board of fewer corners
         than that (a 3x3 board has 4) stands on OpenCV's marker reads when every corner is found: no
         geometry can check so few (the networks' own view of it is proved by its markers' codes,
-        `placement.code_errors`)."""
+        `verification.code_errors`)."""
         if self.board.num_corners < MIN_CONSENSUS:
             return len(detection.ids) == self.board.num_corners
         if len(detection.ids) < MIN_CONSENSUS:
@@ -778,7 +779,7 @@ class Detector:
         (ids (M,), pixels (M, 2) float32, scores (M,)), decoded at ``self.threshold`` with ``self.geometry``.
         ``image_size``: (width, height) of the image before padding. With ``gray`` (the image in the board's
         canonical appearance) a "repair"/"filter" view must also pass the marker check
-        (`placement.view_is_verified`): a look-alike board (other markers) gives no corners; ``read_gray``
+        (`verification.view_is_verified`): a look-alike board (other markers) gives no corners; ``read_gray``
         is the same image at full resolution, to read the markers in; ``confidence``: the logits'
         `models.cells.cell_confidence` where the caller has it."""
         if self.geometry == "markers":

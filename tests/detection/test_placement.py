@@ -8,7 +8,7 @@ import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, paint_markers, render_board_view
-from deepcharuco.detection import placement
+from deepcharuco.detection import placement, settling, verification
 from deepcharuco.networks.cells import CellCandidates
 from evaluate.paper.false_positives import look_alikes
 
@@ -31,10 +31,10 @@ def blur(image: np.ndarray, k: int = 10) -> np.ndarray:
 
 
 def test_rank_z_counts_standard_errors_above_chance():
-    assert placement.rank_z(np.zeros(0)) == 0.0
-    assert placement.rank_z(np.full(10, 0.5)) == pytest.approx(0.0)
-    assert placement.rank_z(np.ones(12)) == pytest.approx(6.0)  # (1 - 0.5) * sqrt(12 * 12)
-    assert placement.rank_z(np.zeros(12)) == pytest.approx(-6.0)
+    assert verification.rank_z(np.zeros(0)) == 0.0
+    assert verification.rank_z(np.full(10, 0.5)) == pytest.approx(0.0)
+    assert verification.rank_z(np.ones(12)) == pytest.approx(6.0)  # (1 - 0.5) * sqrt(12 * 12)
+    assert verification.rank_z(np.zeros(12)) == pytest.approx(-6.0)
 
 
 @pytest.mark.parametrize("best, ranks, chosen_by, verified", [
@@ -48,23 +48,23 @@ def test_view_verified_by_ranks_beside_the_fraction_rule(monkeypatch, best, rank
     readable = np.arange(40)
     reads_best = np.arange(40) < best
     rank = np.linspace(0, 1, 40) if ranks == "uniform" else np.full(40, ranks)
-    monkeypatch.setattr(placement, "_expected_ranks", lambda *args: (readable, reads_best, rank))
+    monkeypatch.setattr(verification, "_expected_ranks", lambda *args: (readable, reads_best, rank))
     ids = placement.board_markers(board).ids if chosen_by == "all" else None
-    assert placement.view_is_verified(np.zeros((240, 320), np.uint8), board, np.eye(3), chosen_by=ids) is verified
+    assert verification.view_is_verified(np.zeros((240, 320), np.uint8), board, np.eye(3), chosen_by=ids) is verified
 
 
 def test_blurred_small_markers_verified_by_rank(monkeypatch):
     image, truth, homography = view(SMALL_MARKERS, tilt_x_deg=20, tilt_y_deg=-10, roll_deg=5)
     blurred = blur(image)
-    agreeing, readable = placement.marker_agreement(blurred, SMALL_MARKERS, homography)
-    assert agreeing < placement.MIN_MARKER_AGREEMENT * readable  # the fraction rule alone refuses the right view
-    assert placement.view_is_verified(blurred, SMALL_MARKERS, homography)
+    agreeing, readable = verification.marker_agreement(blurred, SMALL_MARKERS, homography)
+    assert agreeing < verification.MIN_MARKER_AGREEMENT * readable  # the fraction rule alone refuses the right view
+    assert verification.view_is_verified(blurred, SMALL_MARKERS, homography)
     detector = Detector(board=SMALL_MARKERS)
     found = detector.detect(blurred)
     moved = truth + np.array([0.5, 0.0])  # OpenCV's even kernel shifts the content by half a pixel
     assert len(found.ids) >= 0.8 * SMALL_MARKERS.num_corners
     assert np.linalg.norm(found.corners - moved[found.ids], axis=1).max() < 3.0
-    monkeypatch.setattr(placement, "MIN_RANK_Z", np.inf)  # without the rank rule: nothing
+    monkeypatch.setattr(verification, "MIN_RANK_Z", np.inf)  # without the rank rule: nothing
     assert len(detector.detect(blurred).ids) == 0
 
 
@@ -79,7 +79,7 @@ def assert_look_alike_refused(target: BoardSpec, name: str, degradations, **view
         for degrade in degradations:
             degraded = degrade(image)
             assert len(detector.detect(degraded).ids) == 0
-            assert not placement.view_is_verified(degraded, target, homography)
+            assert not verification.view_is_verified(degraded, target, homography)
 
 
 @pytest.mark.parametrize("name", ["other marker IDs", "mirrored", "other dictionary DICT_5X5_250"])
@@ -121,24 +121,24 @@ def test_filled_in_corners_refined_away_from_their_neighbours_are_left_out():
     scores[[7, 8]] = 0.1  # two filled-in corners (below the threshold), inner ones
     corners = truth.astype(np.float32).copy()
     corners[23] += 2.0  # a confident corner as far off at the board's corner: its neighbours all on one side, unchecked
-    agree = placement.FILL_IN_AGREE_PX
+    agree = settling.FILL_IN_AGREE_PX
     corners[7] += [0.6 * agree, 0.0]  # within the limit of where its neighbours put it: kept
     corners[8] += [0.0, 1.25 * agree]  # beyond it (a corner washed out by glare, refined onto the glare): dropped
-    kept_ids, kept, kept_scores = placement.settle_corners(board_xy, ids, corners, scores, threshold=0.25)
+    kept_ids, kept, kept_scores = settling.settle_corners(board_xy, ids, corners, scores, threshold=0.25)
     assert kept_ids.tolist() == [i for i in ids.tolist() if i != 8]  # order kept
     assert np.array_equal(kept, np.delete(corners, 8, axis=0)) and np.array_equal(kept_scores, np.delete(scores, 8))
     # In the dark every corner scatters: where the confident neighbours scatter ~1 px about their own fit, a fill-in
     # 1.6 px off is as good as they are and stays.
     noisy = corners + np.random.default_rng(0).normal(0.0, 1.0, corners.shape).astype(np.float32)
     noisy[7], noisy[8] = truth[7], truth[8] + [0.0, 1.6 * agree]
-    assert 8 in placement.settle_corners(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
+    assert 8 in settling.settle_corners(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
     # The same corners all confident: 1.25 px is within the looser limit for a corner the point head is sure of.
-    assert 1.25 * agree < placement.OUTLYING_PX
-    out = placement.settle_corners(board_xy, ids, corners, np.full(len(ids), 0.9, np.float32), threshold=0.25)
+    assert 1.25 * agree < settling.OUTLYING_PX
+    out = settling.settle_corners(board_xy, ids, corners, np.full(len(ids), 0.9, np.float32), threshold=0.25)
     assert len(out[0]) == len(ids)
     # A fill-in with fewer than 4 confident corners within LOCAL_SQUARES squares cannot be checked: dropped.
     alone = np.array([0, 1, 6, 7]), truth[[0, 1, 6, 7]].astype(np.float32), np.array([0.9, 0.9, 0.9, 0.1], np.float32)
-    assert placement.settle_corners(board_xy, *alone, threshold=0.25)[0].tolist() == [0, 1, 6]
+    assert settling.settle_corners(board_xy, *alone, threshold=0.25)[0].tolist() == [0, 1, 6]
 
 
 def test_local_predictions_match_opencv_homographies():
@@ -156,11 +156,11 @@ def test_local_predictions_match_opencv_homographies():
     offsets = np.r_[grid[others] - grid[target], [[5.0, 5.0], [-3.0, 7.0]]][None]
     image = np.r_[noisy[others], [[0.0, 0.0], [1e4, -1e4]]][None]
     weight = np.r_[np.ones(len(others)), [0.0, 0.0]][None]
-    predicted, misfit = placement.local_predictions(offsets, weight, image)
+    predicted, misfit = settling.local_predictions(offsets, weight, image)
     # Least squares on the normalised linear equations vs OpenCV's refined fit: the same to well under 0.05 px.
     assert np.linalg.norm(predicted[0] - expected) < 0.05
     assert np.all(misfit[0, -2:] == 0.0)
-    scatter = placement._scatter(misfit, weight)[0]
+    scatter = settling._scatter(misfit, weight)[0]
     assert abs(scatter - expected_scatter) < 0.02 and 0.1 < scatter < 0.4
 
 
@@ -171,25 +171,25 @@ def test_confident_corners_refined_away_from_their_neighbours_are_left_out():
     ids = np.arange(board.num_corners)
     scores = np.full(len(ids), 0.9, np.float32)
     corners = truth.astype(np.float32).copy()
-    limit = placement.OUTLYING_PX
+    limit = settling.OUTLYING_PX
     corners[3] += [1.3 * limit, 0.0]  # on the top row, neighbours either side along it: checked, dropped (glare)
     corners[14] += [0.0, 0.6 * limit]  # inside, within the limit: kept
     corners[0] += [2.0 * limit, 0.0]  # the board's corner: its neighbours all on one side, unchecked, kept
-    kept_ids, kept, kept_scores = placement.settle_corners(board_xy, ids, corners, scores, threshold=0.25)
+    kept_ids, kept, kept_scores = settling.settle_corners(board_xy, ids, corners, scores, threshold=0.25)
     assert kept_ids.tolist() == [i for i in ids.tolist() if i != 3]  # order kept
     assert np.array_equal(kept, np.delete(corners, 3, axis=0)) and np.array_equal(kept_scores, np.delete(scores, 3))
     # Below the threshold (a fill-in) the same corner meets the stricter limit: dropped too.
     weak = scores.copy()
     weak[3] = 0.1
-    assert 3 not in placement.settle_corners(board_xy, ids, corners, weak, threshold=0.25)[0].tolist()
+    assert 3 not in settling.settle_corners(board_xy, ids, corners, weak, threshold=0.25)[0].tolist()
     # In the dark every corner scatters: where the neighbours scatter ~1 px about their own fit, a corner 2 px off
     # is as good as they are and stays.
     noisy = truth + np.random.default_rng(0).normal(0.0, 1.0, truth.shape).astype(np.float32)
     noisy[3] = truth[3] + [1.3 * limit, 0.0]
-    assert 3 in placement.settle_corners(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
+    assert 3 in settling.settle_corners(board_xy, ids, noisy, scores, threshold=0.25)[0].tolist()
     # One row of corners: nothing spans both board axes, nothing is checked.
     row = np.arange(6)
-    kept_ids = placement.settle_corners(board_xy, row, corners[row], scores[row], threshold=0.25)[0]
+    kept_ids = settling.settle_corners(board_xy, row, corners[row], scores[row], threshold=0.25)[0]
     assert kept_ids.tolist() == row.tolist()
 
 
@@ -201,15 +201,15 @@ def test_corners_far_from_the_others_are_left_out_of_large_detections():
     ids = np.concatenate([block, lone, pair])
     corners = (board_xy[ids] * 1000).astype(np.float32)
     scores = np.linspace(1.0, 0.5, len(ids)).astype(np.float32)
-    kept_ids, kept, kept_scores = placement.drop_isolated(board_xy, ids, corners, scores)
+    kept_ids, kept, kept_scores = settling.drop_isolated(board_xy, ids, corners, scores)
     # Each of the pair has 1 neighbour, the lone corner none: fewer than MIN_NEIGHBOURS (3); each of the block's corners
     # has 8 within LOCAL_SQUARES squares and stays.
-    assert placement.MIN_NEIGHBOURS == 3 and kept_ids.tolist() == block.tolist()
+    assert settling.MIN_NEIGHBOURS == 3 and kept_ids.tolist() == block.tolist()
     assert np.array_equal(kept, corners[:12]) and np.array_equal(kept_scores, scores[:12])
     # A detection smaller than ISOLATION_MIN_CORNERS (darkness, a small board) is left as it is.
     small = np.concatenate([block[:4], pair])
-    assert len(small) < placement.ISOLATION_MIN_CORNERS
-    assert placement.drop_isolated(board_xy, small, (board_xy[small] * 1000).astype(np.float32),
+    assert len(small) < settling.ISOLATION_MIN_CORNERS
+    assert settling.drop_isolated(board_xy, small, (board_xy[small] * 1000).astype(np.float32),
                                    np.ones(len(small), np.float32))[0].tolist() == small.tolist()
 
 
@@ -240,16 +240,16 @@ def test_sampled_maps_equal_the_point_list_sampler_at_any_map_size():
 
 
 # A 3x3 board: 4 corners, 4 markers. Its markers cannot prove the view by ranking among the board's own (4 of 4
-# agreeing is a 1.5e-5 chance), so their codes do (`placement.code_errors`).
+# agreeing is a 1.5e-5 chance), so their codes do (`verification.code_errors`).
 TINY = BoardSpec(squares_x=3, squares_y=3, square_length=0.04, marker_length=0.03, dictionary="DICT_5X5_100")
 
 
 def test_code_chance_needs_two_close_codes_and_half_the_readable_ones():
-    assert placement.code_error_limit(TINY) == 2  # DICT_5X5_100 corrects 3 bits; 25 bits allow 2
-    assert placement.code_error_limit(SMALL_MARKERS) == 0  # DICT_4X4_1000 corrects none
-    assert placement.code_chance(np.array([0, 9, 9, 9]), 25, 2) == 1.0  # one close code
-    assert placement.code_chance(np.array([0, 1, 9, 9, 9]), 25, 2) == 1.0  # two, but fewer than half
-    assert placement.code_chance(np.array([0, 2, 9]), 25, 2) == pytest.approx((1 / 2 ** 25) * (326 / 2 ** 25))
+    assert verification.code_error_limit(TINY) == 2  # DICT_5X5_100 corrects 3 bits; 25 bits allow 2
+    assert verification.code_error_limit(SMALL_MARKERS) == 0  # DICT_4X4_1000 corrects none
+    assert verification.code_chance(np.array([0, 9, 9, 9]), 25, 2) == 1.0  # one close code
+    assert verification.code_chance(np.array([0, 1, 9, 9, 9]), 25, 2) == 1.0  # two, but fewer than half
+    assert verification.code_chance(np.array([0, 2, 9]), 25, 2) == pytest.approx((1 / 2 ** 25) * (326 / 2 ** 25))
 
 
 def test_a_3x3_board_in_a_5_megapixel_frame_is_found_by_its_codes():
