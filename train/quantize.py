@@ -32,7 +32,8 @@ from tqdm import tqdm
 from datagen.shards import list_shards
 from deepcharuco.cli.common import run_command
 from deepcharuco.core.errors import DeepCharucoError
-from deepcharuco.detection.deep_detector import Detector, network_input
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.levels import network_input
 from deepcharuco.networks.checkpoint import read_checkpoint, save_atomically
 from deepcharuco.networks.runtime import INT8_KEY, float_onnx, onnxruntime_available, weights_fingerprint
 from evaluate.paper.data import load_frames

@@ -16,8 +16,6 @@
 
 from __future__ import annotations
 
-from concurrent.futures import Future
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -32,12 +30,13 @@ from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.errors import OptionError
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.core.stage_times import stage, tally
-from deepcharuco.core.vectors import lengths
 from deepcharuco.detection.board_check import (
     GEOMETRY_MODES, MIN_CONSENSUS, TOLERANCE_PX, apply_homography, assign_ids, fit_board_homography, id_hypotheses,
 )
 from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
+from deepcharuco.detection.levels import (EarlyRefinement, Found, candidates_in_image, moves_limited, network_input, nudged,
+                                          on_cell_grid, patches_around, reduced, to_level)
 from deepcharuco.detection.marker_reader import READERS
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.placement import PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers
@@ -47,177 +46,75 @@ from deepcharuco.detection.tracking import search_region
 from deepcharuco.detection.verification import marker_view_verified
 from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
-from deepcharuco.networks.cells import CELL, CellCandidates, best_per_id, cell_candidates, cell_confidence
-from deepcharuco.networks.offsets import PATCH, soft_argmax_offsets
+from deepcharuco.networks.cells import CELL, best_per_id, cell_candidates, cell_confidence
+from deepcharuco.networks.offsets import soft_argmax_offsets
 from deepcharuco.networks.onnx_bundle import (
     BundleError, OnnxBundle, bundle_path, check_exported_from, checked_runner, is_bundle, read_bundle,
 )
 from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 
+
 REFINE_MODES = ("refinenet", "subpix", "none")
 DEFAULT_THRESHOLD = 0.3
-PATCH_ORIGIN = 12  # a candidate pixel sits at patch pixel 12, inside the central 8x8 (8..15)
+
+
 # Longest side the network searches at first: it finds squares of ~12-64 px best (trained at 320x240);
 # a 1280x720 frame is searched at 320x180, then 640x360, then 1280x720, until the board's squares are at
 # least MIN_SQUARE_PX wide, and its corners are refined at full resolution.
 WORKING_SIZE = 320
 MIN_SQUARE_PX = 16
+
+
 # An image no larger than the working size is previewed at half size first (a quarter of the network's
 # cost): the preview's corners stand when they are the whole board in view with squares of at least
 # MIN_PREVIEW_SQUARE_PX there; anything less and the full image is searched as without a preview.
 # Chosen on validation renders (datagen.render --n 160 --seed 2000): no protocol level lost more than 0.001.
 MIN_PREVIEW_SQUARE_PX = 12
+
+
 # A board found by its markers: RefineNet starts on the confident candidates on a second thread while the markers
 # are read (`EarlyRefinement`), unless they number more than this per board corner.
 MAX_EARLY_PER_CORNER = 2
-# A preview's corners are centred by cornerSubPix (5x5 window there, 10x10 at full size), at most 1.5 px,
-# before RefineNet refines them at full resolution: one RefineNet pass instead of two. Chosen on validation
-# (renders seed 2000, all protocol levels within 0.002 of two RefineNet passes, 213 vs 233 wrong corners;
-# sequences seed 2001, good light: corner error 0.074 vs 0.075 px, eps_re 0.058 vs 0.060). A 7x7 window or
-# a 1.0 / 2.5 px limit did no better.
-PREVIEW_SUBPIX_HALF_WINDOW = 2
-PREVIEW_MAX_NUDGE_PX = 1.5
+
+
 # The finest level searched: an 8000x6000 photo at full resolution took 145 s and 9.5 GB in the network;
 # at 2048 px its squares need to be >= ~50 px (12 px at this level) to be found, and every corner is still
 # refined at full resolution.
 MAX_SEARCH_SIZE = 2048
+
+
 # Search levels no longer than this are searched whole; finer ones only around what the level before found or saw
 # (`Detector._search`, `deepcharuco.detection.search_regions`): a frame without a board is not searched above 640 px, and a
 # small board in a large frame costs the pixels around it. 320 was faster still (a 1280x720 frame without a board
 # 12 ms) but lost boards whose squares are large enough yet unreadable at 320 px (calibtargets' defocused 22x22
 # board: 22 of 89 corners, one frame none), which only a whole finer level finds (docs/detector.md).
 WHOLE_SEARCH_SIZE = 640
+
+
 # Regions covering more of a level than this: the level is searched whole (one network pass beats many crops).
 MAX_REGION_SHARE = 0.5
+
+
 # RefineNet may move a corner this far from the point head's own pixel, no farther: in near darkness it drew
 # some good corners 3-6 px off, onto noise; beyond the protocols' own 3 px the point head's pixel is kept.
 # Chosen on validation renders (seed 2000): no protocol level lower (darkness k=9 0.378 -> 0.401), wrong
 # corners 332 -> 234, good-light eps_re unchanged.
 MAX_REFINE_MOVE_PX = TOLERANCE_PX
+
+
 # A cell's second likeliest ID goes to RANSAC only where the ID head gives it at least this much: in good
 # light the second IDs are all near 0 and only slow RANSAC down (validation renders, seed 2000: detection
 # 13 % faster, no protocol level lower by more than 0.001; 0.003 and above lost blur k=7 0.016).
 SECOND_ID_MIN_PROB = 0.001
+
+
 # "hybrid": OpenCV first, kept when the board's geometry verifies it; the networks only where it fails.
 MODES = ("deep", "hybrid")
+
+
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
-
-
-def network_input(gray: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 -> ChArUcoNet's input (1, 1, H', W') float32 in [0, 1]: the network sees whole 8x8 cells,
-    so the image is padded right and bottom to multiples of 8 by replicating its border."""
-    height, width = gray.shape
-    padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
-    return padded[None, None] / np.float32(255.0)
-
-
-def _reduced(image: np.ndarray, scale: float) -> np.ndarray:
-    """``image`` scaled by ``scale`` < 1 (area-averaged, as a sensor's larger pixels would see it)."""
-    height, width = image.shape
-    return cv2.resize(image, (max(1, round(width * scale)), max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
-
-
-def _nudged(gray: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """(N, 2) corner pixels -> (N, 2) float32 moved by cornerSubPix (window `PREVIEW_SUBPIX_HALF_WINDOW`),
-    each by at most `PREVIEW_MAX_NUDGE_PX`: a corner it would move farther keeps its pixel."""
-    window = (PREVIEW_SUBPIX_HALF_WINDOW, PREVIEW_SUBPIX_HALF_WINDOW)
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
-    nudged = cv2.cornerSubPix(gray, pixels.reshape(-1, 1, 2).astype(np.float32), window, (-1, -1), criteria).reshape(-1, 2)
-    return _within(nudged, pixels, PREVIEW_MAX_NUDGE_PX)
-
-
-def _within(refined: np.ndarray, pixels: np.ndarray, max_move: float) -> np.ndarray:
-    """(N, 2) ``refined`` corners, each one moved farther than ``max_move`` px from its ``pixels`` row put back there."""
-    far = lengths(refined - pixels) > max_move
-    refined[far] = pixels[far]
-    return refined
-
-
-def _patches(gray: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2) integer corner pixels -> (their patches' top-left pixels (N, 2) int64, (N, 1, 24, 24) float32
-    patches in [0, 1] whose pixel 12 is each corner pixel; the image's border replicated beyond its edges)."""
-    border = PATCH
-    padded = cv2.copyMakeBorder(gray, border, border, border, border, cv2.BORDER_REPLICATE)
-    origins = pixels.astype(np.int64) - PATCH_ORIGIN
-    windows = np.lib.stride_tricks.sliding_window_view(padded, (PATCH, PATCH))  # a view: (H', W', 24, 24)
-    patches = windows[origins[:, 1] + border, origins[:, 0] + border]
-    return origins, patches[:, None] / np.float32(255.0)
-
-
-@dataclass(frozen=True)
-class EarlyRefinement:
-    """RefineNet run on a second thread for the confident candidates of one search level while its markers are
-    read (the decoding is numpy on one core, the other idle): ``gray`` the level's image, ``pixels`` (N, 2)
-    integer candidate pixels, ``origins`` (N, 2) their patches' top-left pixels, ``logits`` the future of
-    RefineNet's (N, 4096) logits."""
-
-    gray: np.ndarray
-    pixels: np.ndarray
-    origins: np.ndarray
-    logits: Future
-
-    def lookup(self, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(M, 2) pixels -> ((M,) bool whether each was refined here, (K,) its rows in ``self.pixels``)."""
-        width = self.gray.shape[1] + 2 * PATCH  # keys stay distinct for pixels a little outside the image too
-        keys = self.pixels[:, 1].astype(np.int64) * width + self.pixels[:, 0].astype(np.int64)
-        wanted = pixels[:, 1].astype(np.int64) * width + pixels[:, 0].astype(np.int64)
-        order = np.argsort(keys, kind="stable")
-        at = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
-        done = (keys[order][at] == wanted) & (pixels == np.rint(pixels)).all(axis=1)
-        return done, order[at[done]]
-
-
-def _on_cell_grid(box: Box, scale: float, image_size: tuple[int, int]) -> Box:
-    """``box`` (full pixels) widened onto the cell grid of the level ``scale`` times the full image (W, H)
-    ``image_size``: its region, reduced, is then the same pixels and the same cells the network sees in the whole
-    level (where 8 / ``scale`` is a whole number of pixels), so a region finds what the whole level would there."""
-    step = CELL / scale
-    width, height = image_size
-    x0, y0, x1, y1 = box
-    return (int(np.floor(x0 / step) * step), int(np.floor(y0 / step) * step),
-            min(int(np.ceil(np.ceil(x1 / step) * step)), width), min(int(np.ceil(np.ceil(y1 / step) * step)), height))
-
-
-@dataclass(frozen=True)
-class Found:
-    """What one search level found: ``box`` (x0, y0, x1, y1) the region of the canonical image it searched (full
-    pixels, exclusive ends), ``region`` that part of the image, ``gray`` the same at the level's scale (``region``
-    itself at full scale), (ids (N,), integer pixels (N, 2) in ``gray``, scores (N,)), whether it is the
-    half-size ``preview``, and its `EarlyRefinement` or None."""
-
-    box: Box
-    region: np.ndarray
-    gray: np.ndarray
-    ids: np.ndarray
-    pixels: np.ndarray
-    scores: np.ndarray
-    preview: bool
-    early: EarlyRefinement | None
-
-    def ratio(self) -> np.ndarray:
-        """(2,) float32 full-resolution pixels per ``gray`` pixel, in x and y."""
-        return np.array([self.region.shape[1] / self.gray.shape[1], self.region.shape[0] / self.gray.shape[0]],
-                        np.float32)
-
-
-def _to_level(view: np.ndarray | None, box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]
-              ) -> np.ndarray | None:
-    """``view`` (3x3, board -> a full image's pixels) -> board -> the pixels of the search level that reduced the
-    full image's ``box`` (its (H, W) ``region_shape``) to ``level_shape`` (pixel centres to centres); None stays None."""
-    if view is None:
-        return None
-    rx, ry = level_shape[1] / region_shape[1], level_shape[0] / region_shape[0]
-    x0, y0 = box[:2]
-    to_level = np.array([[rx, 0.0, 0.5 * rx - 0.5 - rx * x0], [0.0, ry, 0.5 * ry - 0.5 - ry * y0], [0.0, 0.0, 1.0]])
-    return to_level @ view
-
-
-def _inside(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:
-    """The candidates inside the (width, height) image, not in the padding the network saw."""
-    width, height = image_size
-    return candidates.subset((candidates.pixels[:, 0] < width) & (candidates.pixels[:, 1] < height))
 
 
 def shipped_weights(board: BoardSpec | None) -> Path:
@@ -601,7 +498,7 @@ class Detector:
         """``corners`` (N, 2) with the rows ``seen`` refined from their integer ``pixels`` in the level ``gray``,
         then again in ``full`` where the level was reduced by ``ratio``."""
         if seen.any():
-            refined = _nudged(gray, pixels[seen]) if preview and self.refine == "refinenet" else \
+            refined = nudged(gray, pixels[seen]) if preview and self.refine == "refinenet" else \
                 self._refine(gray, pixels[seen], early=early)
             if gray is not full:
                 refined = self._refine(full, (refined + 0.5) * ratio - 0.5, window_scale=float(ratio.max()))
@@ -632,7 +529,7 @@ class Detector:
         height, width = full.shape
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
-            gray = _reduced(full, 0.5)
+            gray = reduced(full, 0.5)
             ids, pixels, scores, early, _ = self._find(gray, full, "preview")
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
                 return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early), True
@@ -652,14 +549,14 @@ class Detector:
             tally("levels")
             level_found, next_boxes = None, []
             for box in boxes:
-                box = _on_cell_grid(box, scale, (width, height))
+                box = on_cell_grid(box, scale, (width, height))
                 x0, y0, x1, y1 = box
                 region = full[y0:y1, x0:x1]
-                gray = region if scale == 1.0 else _reduced(region, scale)
+                gray = region if scale == 1.0 else reduced(region, scale)
                 if level == 0:
                     dim = is_dim(gray)  # the whole frame at the coarse level
                 ids, pixels, scores, early, confidence = self._find(gray, region, level,
-                                                                    _to_level(prior, box, gray.shape, region.shape))
+                                                                    to_level(prior, box, gray.shape, region.shape))
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
                                to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,
@@ -736,7 +633,7 @@ class Detector:
         if self.geometry == "markers":
             # Weaker cells too: they may only fill in corners of the view the confident ones found (`placement`).
             with stage("candidates"):
-                candidates = _inside(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE),
+                candidates = candidates_in_image(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE),
                                                      confidence), (width, height))
             tally("candidate cells", int((candidates.confidence >= self.threshold).sum()))
             early = self._refine_early(gray, candidates.pixels[candidates.confidence >= self.threshold])
@@ -752,7 +649,7 @@ class Detector:
         board corner (a noisy frame's: refining them would take the core the next work needs)."""
         if self.refine != "refinenet" or not 0 < len(pixels) <= MAX_EARLY_PER_CORNER * len(self._board_xy):
             return None
-        origins, patches = _patches(gray, pixels)
+        origins, patches = patches_around(gray, pixels)
         future = self.runner.refinenet_in_background(patches)
         return None if future is None else EarlyRefinement(gray=gray, pixels=pixels, origins=origins, logits=future)
 
@@ -787,7 +684,7 @@ class Detector:
         width, height = image_size
         # A score is at most its cell's confidence: cells less confident than the threshold never count.
         with stage("candidates"):
-            candidates = _inside(cell_candidates(point_logits, id_logits, self.threshold, confidence), image_size)
+            candidates = candidates_in_image(cell_candidates(point_logits, id_logits, self.threshold, confidence), image_size)
             ids, pixels, scores = best_per_id(candidates, self.threshold)
         tally("candidate cells", len(candidates))
         view = None
@@ -827,9 +724,9 @@ class Detector:
                 refined[done] = self._corners(early.origins, early.logits.result())[rows]
                 todo = ~done
         if todo.any():
-            origins, patches = _patches(gray, pixels[todo])
+            origins, patches = patches_around(gray, pixels[todo])
             refined[todo] = self._corners(origins, self.runner.refinenet(patches))
-        return _within(refined, pixels, max_move)
+        return moves_limited(refined, pixels, max_move)
 
     def _corners(self, origins: np.ndarray, logits: np.ndarray) -> np.ndarray:
         """Patch top-left pixels (N, 2), RefineNet's logits (N, 4096) -> (N, 2) float32 refined corners."""

@@ -6,7 +6,7 @@ protocol; `deepcharuco.networks.runtime` makes one from networks loaded with PyT
 
 Threads: each network runs on as many threads as PyTorch would (`network_threads`; idle workers sleep);
 `OnnxRunner.refinenet_in_background` runs RefineNet on one thread of its own while the caller's numpy
-decoding holds the other core (`deep_detector.EarlyRefinement`), and the detector runs numpy's BLAS on one
+decoding holds the other core (`levels.EarlyRefinement`), and the detector runs numpy's BLAS on one
 thread (`single_threaded_blas`): its spinning workers would take that core from the networks.
 """
 

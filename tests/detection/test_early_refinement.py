@@ -1,4 +1,4 @@
-"""RefineNet started on a second thread while a board's markers are read (`deep_detector.EarlyRefinement`)."""
+"""RefineNet started on a second thread while a board's markers are read (`levels.EarlyRefinement`)."""
 
 import multiprocessing
 

@@ -53,7 +53,7 @@ def test_a_preview_costs_one_refinenet_pass_at_full_resolution(camera):
 
 
 def test_a_preview_corner_is_nudged_onto_the_corner_at_most_one_and_a_half_pixels():
-    from deepcharuco.detection.deep_detector import PREVIEW_MAX_NUDGE_PX, _nudged
+    from deepcharuco.detection.levels import PREVIEW_MAX_NUDGE_PX, nudged
 
     # A chessboard X-junction at (30.3, 20.6): dark top-left and bottom-right quadrants, drawn 8x oversampled.
     size, scale, corner = (40, 60), 8, np.array([30.3, 20.6])
@@ -62,10 +62,10 @@ def test_a_preview_corner_is_nudged_onto_the_corner_at_most_one_and_a_half_pixel
     fine = np.where((x < corner[0]) == (y < corner[1]), 40.0, 210.0)
     gray = fine.reshape(size[0], scale, size[1], scale).mean(axis=(1, 3)).astype(np.uint8)
     start = np.array([[30.0, 21.0]], np.float32)  # the point head's pixel
-    assert np.linalg.norm(_nudged(gray, start)[0] - corner) < 0.1
+    assert np.linalg.norm(nudged(gray, start)[0] - corner) < 0.1
     off = np.array([[32.0, 22.0]], np.float32)  # 2.2 px off: cornerSubPix reaches the corner, too far a move
     assert np.linalg.norm(cv2.cornerSubPix(gray, off[:, None].copy(), (2, 2), (-1, -1), CRITERIA).ravel() - corner) < 0.1
-    assert PREVIEW_MAX_NUDGE_PX < 2.2 and np.array_equal(_nudged(gray, off), off)
+    assert PREVIEW_MAX_NUDGE_PX < 2.2 and np.array_equal(nudged(gray, off), off)
 
 
 def test_a_partial_or_small_preview_leaves_the_full_image_to_decide(camera):

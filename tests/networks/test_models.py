@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from deepcharuco import BoardSpec, DeepCharucoError
-from deepcharuco.detection.deep_detector import PATCH_ORIGIN, Detector
+from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.levels import PATCH_ORIGIN
 from deepcharuco.networks import (
     ChArUcoNet, ChArUcoNetConfig, CheckpointError, fold_batch_norm, RefineNet, RefineNetConfig, cell_to_offset, decode_offsets,
     load_charuconet, offset_to_cell, save_checkpoint,
