@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.dictionaries import MARKER_FAMILIES
 from deepcharuco.core.errors import DeepCharucoError
 
 # Family name -> its dictionaries, smallest first (each a prefix of the next): the runtime's table, which

@@ -11,7 +11,8 @@ The subpackages, bottom to top (each imports only those below it; docs/architect
 
 from typing import TYPE_CHECKING
 
-from deepcharuco.boards.board import BoardSpec, BoardTexture, dictionary_names
+from deepcharuco.boards.board import BoardSpec, BoardTexture
+from deepcharuco.boards.dictionaries import dictionary_names
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import BoardSpecError, CameraFileError, DeepCharucoError, ImageError, OptionError
 from deepcharuco.core.version import __version__

@@ -45,7 +45,8 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec, dictionary_size
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.dictionaries import MARKER_FAMILIES, dictionary_size
 from deepcharuco.cli.common import output_folder, pick_device, run_command
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError

@@ -1,4 +1,5 @@
-"""ChArUco board geometry: the board description, its corner points and its printable texture.
+"""ChArUco board geometry: the board description (`BoardSpec`), its corner points and its printable texture (its
+dictionaries in `dictionaries`, its files read by `board_files`).
 
 Board frame (OpenCV's, >= 4.6): origin at the top-left outer corner of the square grid,
 X to the right along a row, Y down along a column, Z into the board; units are metres.
@@ -16,71 +17,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from deepcharuco.boards.board_files import REQUIRED_FIELDS, read_board_text, read_flat_yaml, read_toml_board
+from deepcharuco.boards.dictionaries import dictionary_id, dictionary_size, more_markers_advice
 from deepcharuco.core.errors import BoardSpecError
 from deepcharuco.core.files import write_atomic
 
-# The fields a board file must spell out; the flags default to false.
-REQUIRED_FIELDS = ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")
-# A board file is a few lines; anything larger is the wrong file, and is not read further than this.
-MAX_BOARD_FILE_BYTES = 64 * 1024
+
 # Textures larger than this per side are almost certainly a units mistake (px/mm vs px/m).
 MAX_TEXTURE_SIDE = 16384
 
 
-def dictionary_names() -> list[str]:
-    """The ArUco dictionary names OpenCV knows, e.g. ``DICT_5X5_50`` (upper case, sorted)."""
-    return sorted({name.upper() for name in dir(cv2.aruco) if name.startswith("DICT_")})
-
-
 # The comment in every YAML board file this project writes: `deepcharuco board` replaces only such files.
 BOARD_FILE_MARK = "deepcharuco board file: --board for detect and calibrate"
-
-
-def _dictionary_id(name: str) -> int:
-    for attr in dir(cv2.aruco):
-        if attr.upper() == name.upper() and attr.startswith("DICT_"):
-            return int(getattr(cv2.aruco, attr))
-    raise BoardSpecError(
-        f"unknown ArUco dictionary {name!r}; use one of: {', '.join(dictionary_names())}"
-    )
-
-
-# Marker family -> its OpenCV dictionaries, smallest first (each a prefix of the next: a board of any of them is a
-# board of the family, `datagen.family.check_prefixes`). One family model reads them all.
-MARKER_FAMILIES: dict[str, tuple[str, ...]] = {
-    "DICT_4X4": ("DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000"),
-    "DICT_5X5": ("DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250", "DICT_5X5_1000"),
-    "DICT_6X6": ("DICT_6X6_50", "DICT_6X6_100", "DICT_6X6_250", "DICT_6X6_1000"),
-    "DICT_7X7": ("DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000"),
-    "APRILTAG_36H11": ("DICT_APRILTAG_36h11",),
-}
-
-
-def dictionary_size(name: str) -> int:
-    """How many markers the OpenCV dictionary ``name`` holds."""
-    return int(cv2.aruco.getPredefinedDictionary(_dictionary_id(name)).bytesList.shape[0])
-
-
-def _more_markers_advice(dictionary: str, needed: int, otherwise: str = "fewer squares") -> str:
-    """What to use when ``dictionary`` holds fewer than ``needed`` markers: the smallest larger dictionary of its
-    family that holds them, else ``otherwise`` (never the same or a smaller dictionary)."""
-    family = marker_family(dictionary)
-    names = MARKER_FAMILIES.get(family, ()) if family else ()
-    larger = [name for name in names if dictionary_size(name) >= needed]
-    if larger:
-        return f"use the larger dictionary {larger[0]} or {otherwise}"
-    if names:
-        return (f"no {family} dictionary holds {needed} (the largest, {names[-1]}, has {dictionary_size(names[-1])}): "
-                f"use {otherwise}")
-    return f"use {otherwise}"
-
-
-def marker_family(dictionary: str) -> str | None:
-    """The `MARKER_FAMILIES` family a dictionary belongs to (any case): ``DICT_4X4_250`` -> ``DICT_4X4``,
-    ``DICT_APRILTAG_36h11`` -> ``APRILTAG_36H11``; None for the others (``DICT_ARUCO_ORIGINAL``, the smaller
-    AprilTag sets)."""
-    name = dictionary.upper()
-    return next((family for family, names in MARKER_FAMILIES.items() if name in {n.upper() for n in names}), None)
 
 
 @dataclass(frozen=True)
@@ -151,13 +99,13 @@ class BoardSpec:
         if self.num_markers > holds:
             raise BoardSpecError(
                 f"a {self.squares_x}x{self.squares_y} board needs {self.num_markers} markers but "
-                f"{self.dictionary} has only {holds}; {_more_markers_advice(self.dictionary, self.num_markers)}"
+                f"{self.dictionary} has only {holds}; {more_markers_advice(self.dictionary, self.num_markers)}"
             )
         if first and first + self.num_markers > holds:
             raise BoardSpecError(
                 f"a {self.squares_x}x{self.squares_y} board with markers from ID {first} needs IDs up to "
                 f"{first + self.num_markers - 1} but {self.dictionary} has only {holds} markers; "
-                f"{_more_markers_advice(self.dictionary, first + self.num_markers, 'a smaller first_marker_id')}"
+                f"{more_markers_advice(self.dictionary, first + self.num_markers, 'a smaller first_marker_id')}"
             )
         for name in ("legacy", "inverted", "mirrored"):
             value = getattr(self, name)
@@ -193,7 +141,7 @@ class BoardSpec:
         return self.layout == other.layout
 
     def cv_dictionary(self) -> cv2.aruco.Dictionary:
-        return cv2.aruco.getPredefinedDictionary(_dictionary_id(self.dictionary))
+        return cv2.aruco.getPredefinedDictionary(dictionary_id(self.dictionary))
 
     def __getstate__(self) -> dict:
         # Cached OpenCV objects do not pickle (worker processes are sent board specs): rebuilt there on first use.
@@ -309,9 +257,9 @@ class BoardSpec:
         if suffix not in (".json", ".yaml", ".yml", ".toml"):
             raise BoardSpecError(f"cannot tell the format of {path}: name it .json, .yaml or .yml (or caliscope's "
                                  f".toml)")
-        text = _read_board_text(path)
+        text = read_board_text(path)
         if suffix == ".toml":
-            return cls.from_dict(_read_toml_board(text, path), source=str(path))
+            return cls.from_dict(read_toml_board(text, path), source=str(path))
         if suffix == ".json":
             try:
                 data = json.loads(text)
@@ -321,131 +269,7 @@ class BoardSpec:
                 raise BoardSpecError(f"{path} nests too deeply to be a board file: a board is one flat mapping of "
                                      f"fields ({', '.join(REQUIRED_FIELDS)}, ...)") from None
             return cls.from_dict(data, source=str(path))
-        return cls.from_dict(_read_flat_yaml(text, path), source=str(path))
-
-
-# caliscope's charuco.toml (or the [charuco] table of its config.toml): its keys, and how they make a board.
-CALISCOPE_KEYS = {"columns", "rows", "board_height", "board_width", "dictionary", "units", "aruco_scale",
-                  "square_size_overide_cm", "square_size_override_cm", "inverted", "legacy_pattern"}
-CM_PER_INCH = 2.54
-
-
-def _read_toml_board(text: str, path: Path) -> dict:
-    """A TOML board file as `BoardSpec.from_dict` takes it: caliscope's (``columns``, ``rows``, ``aruco_scale``,
-    the square from ``square_size_overide_cm`` or, as caliscope computes it, the largest square that fits
-    ``board_width`` x ``board_height`` in ``units``), or this project's own fields in TOML."""
-    try:
-        import tomllib
-    except ImportError:  # Python < 3.11
-        try:
-            import tomli as tomllib
-        except ImportError:
-            raise BoardSpecError(f"reading {path} needs Python 3.11 or the tomli package (pip install tomli)") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise BoardSpecError(f"{path} is not valid TOML: {error}") from None
-    if isinstance(data.get("charuco"), dict):  # caliscope's config.toml keeps the board in a [charuco] table
-        data = data["charuco"]
-    if "columns" not in data and "rows" not in data:
-        return data  # this project's fields, written as TOML
-    unknown = sorted(set(data) - CALISCOPE_KEYS)
-    missing = [key for key in ("columns", "rows", "dictionary") if key not in data]
-    if unknown or missing:
-        raise BoardSpecError(f"{path}: {'unknown field(s) ' + str(unknown[:5]) if unknown else ''}"
-                             f"{'; ' if unknown and missing else ''}{'missing ' + str(missing) if missing else ''}: "
-                             f"a caliscope board has {sorted(CALISCOPE_KEYS)}")
-    override = data.get("square_size_overide_cm", data.get("square_size_override_cm"))
-    if override:
-        square = float(override) / 100.0
-    else:
-        if "board_height" not in data or "board_width" not in data:
-            raise BoardSpecError(f"{path}: give square_size_overide_cm or board_width and board_height")
-        to_metres = CM_PER_INCH / 100.0 if data.get("units", "inch") == "inch" else 0.01
-        square = min(float(data["board_height"]) * to_metres / data["rows"],
-                     float(data["board_width"]) * to_metres / data["columns"])
-    # Lengths to the nanometre: 5.4 cm / 100 is 0.054, not float's 0.054000000000000006.
-    return {"squares_x": data["columns"], "squares_y": data["rows"], "square_length": round(square, 9),
-            "marker_length": round(square * float(data.get("aruco_scale", 0.75)), 9), "dictionary": data["dictionary"],
-            "inverted": bool(data.get("inverted", False)), "legacy": bool(data.get("legacy_pattern", False))}
-
-
-def _read_board_text(path: Path) -> str:
-    """The text of a board file, refused when larger than `MAX_BOARD_FILE_BYTES` (read no further) or not text."""
-    with open(path, "rb") as handle:
-        data = handle.read(MAX_BOARD_FILE_BYTES + 1)
-    if len(data) > MAX_BOARD_FILE_BYTES:
-        raise BoardSpecError(f"{path} is over {MAX_BOARD_FILE_BYTES // 1024} KiB, too large for a board file (a few "
-                             f"lines of 'field: value'): is it the right file?")
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise BoardSpecError(f"{path} is not a text file ({exc}): a board file is YAML or JSON text") from None
-
-
-def _read_flat_yaml(text: str, path: Path) -> dict:
-    """Read a board file: a flat YAML mapping of scalars, ``#`` comments allowed anywhere.
-
-    OpenCV's FileStorage YAML (``%YAML:1.0`` / ``---`` header, quoted strings) reads too. Its own
-    parser is not used because it keeps trailing comments in values and fails on an empty file
-    with an assertion instead of a reason.
-    """
-    lines = text.splitlines()
-    data: dict = {}
-    for number, raw in enumerate(lines, start=1):
-        line = _strip_comment(raw).rstrip()
-        if not line.strip() or line.startswith(("%YAML", "---", "...")):
-            continue
-        where = f"{path}, line {number}"
-        if line[0].isspace() or line.lstrip().startswith("-"):
-            raise BoardSpecError(f"{where}: a board file is a flat list of 'field: value' lines; got {_shown(raw)}")
-        key, colon, value = line.partition(":")
-        key, value = key.strip(), value.strip()
-        if not colon or not key.isidentifier():
-            raise BoardSpecError(f"{where}: expected 'field: value', got {_shown(raw)}")
-        if not value or value[0] in "[{|>":
-            raise BoardSpecError(f"{where}: field {key!r} must be a single value (a number, name or true/false)")
-        if key in data:
-            raise BoardSpecError(f"{where}: field {key!r} is given twice")
-        data[key] = _scalar(value)
-    if not data:
-        raise BoardSpecError(f"{path} holds no board fields; write e.g. 'squares_x: 5' lines "
-                             f"for {', '.join(REQUIRED_FIELDS)}")
-    return data
-
-
-def _shown(line: str, limit: int = 60) -> str:
-    """A line of the file as an error message quotes it: at most ``limit`` characters."""
-    line = line.strip()
-    return repr(line if len(line) <= limit else line[:limit] + "...")
-
-
-def _strip_comment(line: str) -> str:
-    """``line`` without a ``#`` comment (a ``#`` inside quotes is text)."""
-    quote = ""
-    for index, char in enumerate(line):
-        if quote:
-            quote = "" if char == quote else quote
-        elif char in "'\"":
-            quote = char
-        elif char == "#" and (index == 0 or line[index - 1].isspace()):
-            return line[:index]
-    return line
-
-
-def _scalar(text: str) -> bool | int | float | str:
-    """A YAML scalar: quoted string, true/false, integer, real, or a bare string."""
-    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
-        return text[1:-1]
-    lowered = text.lower()
-    if lowered in ("true", "false"):
-        return lowered == "true"
-    for parse in (int, float):
-        try:
-            return parse(text)
-        except ValueError:
-            pass
-    return text
+        return cls.from_dict(read_flat_yaml(text, path), source=str(path))
 
 
 def _coverage_1d(n_px: int, lo: float, hi: float) -> tuple[int, np.ndarray]:

@@ -15,7 +15,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec, dictionary_size, marker_family
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.dictionaries import MARKER_FAMILIES, dictionary_size, marker_family
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 

@@ -21,7 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco.boards.board import BoardSpec, marker_family
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.dictionaries import marker_family
 from deepcharuco.boards.print_face import (canonical_view, canonical_view_local_white, corners_from_canonical,
                                            covariances_from_canonical)
 from deepcharuco.core.checks import check_choice

@@ -25,7 +25,7 @@ from datagen.render import RenderJob, scene_config
 from datagen.scene import fitted_diag_frac, sample_scene
 from datagen.shards import FrameLabels, MarkerLabels, ShardError, ShardReader, list_shards, write_shard
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.boards.board import marker_family
+from deepcharuco.boards.dictionaries import marker_family
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 
 

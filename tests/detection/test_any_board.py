@@ -334,7 +334,7 @@ def test_inverted_print_negated_about_its_local_white(camera):
 
 
 def test_marker_family_of_dictionaries():
-    from deepcharuco.boards.board import MARKER_FAMILIES, marker_family
+    from deepcharuco.boards.dictionaries import MARKER_FAMILIES, marker_family
 
     for family, dictionaries in MARKER_FAMILIES.items():
         assert {marker_family(name) for name in dictionaries} == {family}
@@ -368,7 +368,7 @@ def test_detector_loads_the_shipped_weights_of_the_board_family(tmp_path, monkey
 def test_shipped_family_models_are_point_heads_named_for_their_family():
     from pathlib import Path
 
-    from deepcharuco.boards.board import MARKER_FAMILIES
+    from deepcharuco.boards.dictionaries import MARKER_FAMILIES
     from deepcharuco.detection import deep_detector
     from deepcharuco.networks.checkpoint import load_charuconet
 

@@ -12,7 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from deepcharuco.boards.board import MARKER_FAMILIES
+from deepcharuco.boards.dictionaries import MARKER_FAMILIES
 from deepcharuco.cli.common import check_output_folder, output_folder, run_command
 from train.pipeline.checks import repair
 from train.pipeline.cluster import write_cluster_scripts

@@ -6,7 +6,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from deepcharuco.boards.board import MARKER_FAMILIES, BoardSpec, marker_family
+from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.dictionaries import MARKER_FAMILIES, marker_family
 from train.pipeline.plan import Sizes, Target
 from train.pipeline.records import now, slug
 
