@@ -29,7 +29,8 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            border_margin)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder, run_command
-from deepcharuco.cli.detect import make_detector, open_source
+from deepcharuco.cli.detect import make_detector
+from deepcharuco.cli.sources import open_source
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.core.image import to_gray_u8

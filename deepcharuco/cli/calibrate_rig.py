@@ -29,7 +29,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            within_border)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
-from deepcharuco.cli.detect import Source, frame_numbers, open_source
+from deepcharuco.cli.sources import Source, frame_numbers, open_source
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.core.image import to_gray_u8
@@ -90,7 +90,7 @@ def detect_synchronised(sources: list[Source], detectors: list, offsets: list[in
                         ) -> tuple[list[list[list[FrameDetection]]], list[tuple[int, int] | None]]:
     """``detections[c][b]``: camera c's `FrameDetection` of board b (``detectors[b]``'s) at every ``step``-th
     instant (the instant as its index), and each camera's frame size. Frame ``n + offsets[c]`` of source c is
-    instant n, by the frames' numbers in their recordings (`deepcharuco.cli.detect.frame_numbers`): a frame a reader
+    instant n, by the frames' numbers in their recordings (`deepcharuco.cli.sources.frame_numbers`): a frame a reader
     skipped (a damaged stretch of video, an unreadable image) leaves that camera out of its instant and shifts no
     other frame. Reading stops when the first source ends. ``pool``: a `DetectorPool` whose finders are these
     detectors (worker processes; default: these detectors in this process)."""

@@ -15,12 +15,8 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
-import os
 import sys
 import time
-from collections import Counter
-from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import partial
@@ -33,11 +29,12 @@ from tqdm import tqdm
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.cli.common import output_folder, run_command
 from deepcharuco.cli.draw import draw_detection
-from deepcharuco.cli.video import VideoFrames
-from deepcharuco.core.detection import Detection, largest_sigmas
+from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
+from deepcharuco.cli.sources import Source, open_source
+from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import (
-    atomic_file, png_mark, png_marked, refuse_foreign, starts_with, temporary_name, write_atomic,
+    atomic_file, png_mark, refuse_foreign, starts_with, write_atomic,
 )
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.board_hints import what_matches
@@ -48,127 +45,25 @@ from deepcharuco.geometry.camera import Camera, read_camera
 from deepcharuco.geometry.pose import Pose
 from deepcharuco.networks.backends import BACKENDS
 
+
 # Frames kept (spread over the source, every HINT_STRIDE-th of a camera's, until the board is found) to say what
 # they show when no frame has the board.
 HINT_FRAMES, HINT_STRIDE = 12, 5
 CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`deepcharuco.detection.parallel`)
+
+
 # --search-every's default for a camera (`BoardTracker`'s search_every). Measured on caliscope's four 1280x720 webcam
 # videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.2-2.3x the frames a second of 1,
 # lit and dark, and found the same frames but 13 of the 684 with a board (cam_1's 5 lit and 5 dark, port_2's 3 dark):
 # boards of small squares (22-34 px on cam_1), found a frame or two later.
 CAMERA_SEARCH_EVERY = 3
+
+
 # --search-every's default for a video. A video looks back (`BoardTracker.push`): the frames searched at the coarse
 # level alone wait for the next frame that finds the board, which finds it in them, so the quicker search loses no
 # frame. The camera's 3, not tuned again; on the same five videos (docs/detector.md, 2026-11-26), against every level
 # of every frame: 1.2-2.5x the frames a second, lit and dark, every frame found again and 3 more.
 VIDEO_SEARCH_EVERY = 3
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
-CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
-              "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
-# What a CSV of this command begins with, in this version and those before the sigmas column: safe to overwrite.
-CSV_SIGNATURE = ",".join(CSV_FIELDS[:6])
-
-
-class SourceError(DeepCharucoError):
-    """An input the CLI cannot open."""
-
-
-@dataclass
-class Source:
-    """Frames to process: ``frames`` yields (name, BGR or gray image); ``skipped`` collects the
-    "name: reason" of a folder's images that could not be read (as ``frames`` meets them)."""
-
-    stem: str
-    kind: str  # "image" | "images" | "video" | "camera"
-    frames: Iterator[tuple[str, np.ndarray]]
-    fps: float
-    total: int | None
-    skipped: list[str] = field(default_factory=list)
-    overlay_names: dict[str, str] = field(default_factory=dict)  # folder: image file name -> overlay file name
-    video: VideoFrames | None = None  # a video or camera: what was read, skipped as undecodable, or stopped
-
-    def problems(self) -> list[str]:
-        """What could not be read, one line each: a folder's unreadable images (counted), a video's damaged
-        stretches, a camera that stopped delivering frames."""
-        lines = [f"{self.stem}: {len(self.skipped)} unreadable image(s) skipped"] if self.skipped else []
-        if self.video is not None and self.video.skipped:
-            lines.append(self.video.describe_skipped(self.stem))
-        if self.video is not None and self.video.stopped_at is not None:
-            lines.append(f"{self.stem} stopped delivering frames after {self.video.stopped_at}: is it still connected?")
-        return lines
-
-
-def overlay_names(images: list[Path]) -> dict[str, str]:
-    """Overlay file names for a folder's images: ``<stem>.png``, or ``<stem>_<ext>.png`` where two
-    images share a stem (a.png and a.jpg), so that every image gets its own overlay."""
-    stems = Counter(p.stem for p in images)
-    return {p.name: f"{p.stem}.png" if stems[p.stem] == 1 else f"{p.stem}_{p.suffix.lstrip('.').lower()}.png"
-            for p in images}
-
-
-def _folder_frames(images: list[Path], skipped: list[str]) -> Iterator[tuple[str, np.ndarray]]:
-    """The folder's readable images; the others are reported on stderr and listed in ``skipped``."""
-    for path in images:
-        try:
-            yield path.name, _read_image(path)
-        except SourceError as error:
-            skipped.append(f"{path.name}: {error}")
-            print(f"skipping {path.name}: {error}", file=sys.stderr)
-
-
-def _read_image(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise SourceError(f"cannot read image {path}: not an image file OpenCV can decode")
-    if image.dtype == np.uint16:  # 16-bit PNG/TIFF from machine-vision cameras
-        image = (image >> 8).astype(np.uint8)
-    return image
-
-
-def _named(frames: VideoFrames) -> Iterator[tuple[str, np.ndarray]]:
-    """A video's frames named by their number in the recording (a damaged stretch skipped leaves a gap)."""
-    for index, frame in frames:
-        yield str(index), frame
-
-
-def open_source(source: str, max_frames: int | None = None) -> Source:
-    """Image file, directory of images, video file, or an integer camera index."""
-    if source.isdigit() and not Path(source).exists():
-        capture = cv2.VideoCapture(int(source))
-        if not capture.isOpened():
-            raise SourceError(f"cannot open camera {source}: is it connected and not in use?")
-        video = VideoFrames(capture, limit=max_frames, live=True)
-        return Source(f"camera{source}", "camera", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, max_frames,
-                      video=video)
-    path = Path(source)
-    if not path.exists():
-        raise SourceError(f"{path} does not exist: give an image, a folder of images, a video or a camera index")
-    if path.is_dir():
-        images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:max_frames]
-        if not images:
-            raise SourceError(f"{path} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
-        skipped: list[str] = []
-        return Source(path.name, "images", _folder_frames(images, skipped), 0.0, len(images), skipped,
-                      overlay_names(images))
-    if path.suffix.lower() in IMAGE_SUFFIXES:
-        return Source(path.stem, "image", iter([(path.name, _read_image(path))]), 0.0, 1)
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise SourceError(f"cannot open {path} as a video: unknown format or codec")
-    video = VideoFrames(capture, limit=max_frames)
-    count = video.count
-    total = min(count, max_frames) if count and max_frames else count or max_frames
-    return Source(path.stem, "video", _named(video), capture.get(cv2.CAP_PROP_FPS) or 30.0, total, video=video)
-
-
-def frame_numbers(source: Source) -> Iterator[tuple[int, str, np.ndarray]]:
-    """(frame number, name, BGR or grey image) of ``source``'s frames: the number is the frame's place in the
-    recording, whatever was skipped before it: a video's (and a camera's) frame number (`VideoFrames` keeps it
-    past a damaged stretch), a folder's image's place in its sorted listing (an unreadable image keeps its
-    number), 0 for a single image. A rig pairs its cameras' frames by these (`deepcharuco.cli.calibrate_rig`)."""
-    places = {name: k for k, name in enumerate(source.overlay_names)} if source.kind == "images" else {}
-    for name, image in source.frames:
-        yield places[name] if source.kind == "images" else int(name) if source.kind != "image" else 0, name, image
 
 
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
@@ -196,32 +91,6 @@ def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights
     detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
                  for board in boards]
     return [BoardTracker(d, refresh_every, search_every, look_back) if refresh_every > 1 else d for d in detectors]
-
-
-def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
-    record = {"frame": index, "source": name, "num_corners": len(detection), **detection.to_dict()}
-    record["pose"] = None if pose is None else pose.to_dict()
-    return record
-
-
-def _join(values) -> str:
-    return " ".join(f"{v:g}" for v in values)
-
-
-def _csv_row(record: dict) -> dict:
-    """One CSV row per frame: lists as space-separated numbers, corners as x0 y0 x1 y1 ..."""
-    pose = record["pose"] or {}
-    return {
-        "frame": record["frame"], "source": record["source"], "num_corners": record["num_corners"],
-        "ids": " ".join(str(i) for i in record["ids"]),
-        "corners": _join(np.ravel(record["corners"])), "scores": _join(record["scores"]),
-        "rvec": _join(pose.get("rvec", [])), "tvec": _join(pose.get("tvec", [])),
-        "reprojection_error": pose.get("reprojection_error", ""),
-        "num_inliers": len(pose["inliers"]) if pose else "",
-        # each corner's standard deviation along its least certain direction (px); nan where none is given
-        "sigmas": _join(largest_sigmas([[[c[0], c[1]], [c[1], c[2]]] if c else [[math.nan] * 2] * 2
-                                        for c in record["covariances"]])),
-    }
 
 
 def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
@@ -294,14 +163,14 @@ def run(args: argparse.Namespace) -> dict:
         refuse_foreign(board_run.csv_path, starts_with(CSV_SIGNATURE.encode()), "detection CSV", args.force)
         refuse_foreign(board_run.json_path, starts_with(JSON_START), "detection JSON", args.force)
     if not args.no_overlay:
-        for path in _Overlays(out, source).images():
+        for path in Overlays(out, source).images():
             refuse_foreign(path, png_mark(OVERLAY_MARK), "PNG overlay written by deepcharuco detect", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detectors[0], "weights", None) is not None:
         print(f"weights: {detectors[0].weights} (decoding: {detectors[0].geometry})", file=sys.stderr)
 
-    overlays = _Overlays(out, source)
+    overlays = Overlays(out, source)
     interrupted = False
     hint_stride = max(1, (source.total or HINT_FRAMES * HINT_STRIDE) // HINT_FRAMES)  # spread over the source
     frames_read = 0
@@ -351,7 +220,7 @@ def run(args: argparse.Namespace) -> dict:
                         board_run.found, board_run.samples = True, []  # the board is there: no hint needed
                     elif not board_run.found and len(board_run.samples) < HINT_FRAMES and index % hint_stride == 0:
                         board_run.samples.append(to_gray_u8(frame))
-                    rows.writerow(_csv_row(record))
+                    rows.writerow(csv_row(record))
                     if not args.no_overlay:
                         overlay = draw_detection(overlay, detection, pose,
                                                  *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None),
@@ -408,80 +277,6 @@ def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, came
     print(f"{len(records)} frames{' (incomplete: interrupted)' if interrupted else ''},{which} board corners in {found}, "
           f"pose in {with_pose}{''.join(f', {line}' for line in lost)} -> {board_run.json_path.parent}/")
     return summary
-
-
-# How every detection JSON of this command begins: what a rerun may overwrite without --force.
-JSON_START = b'{"board": '
-# The text chunk inside every overlay PNG this command writes: a rerun replaces only such PNGs without --force.
-OVERLAY_MARK = "deepcharuco detect overlay"
-
-
-class _Overlays:
-    """The overlay of each frame: a PNG per image (each written whole or not at all), or one MP4 for a video or
-    camera, written under a temporary name and renamed into place only when it reads back complete."""
-
-    def __init__(self, out: Path, source: Source):
-        self.out, self.source = out, source
-        self.writer: cv2.VideoWriter | None = None
-        self.video = out / f"{source.stem}_overlay.mp4"
-        self.written = 0
-
-    def images(self) -> list[Path]:
-        """The overlay PNGs this source's frames would be written to (none for a video or camera)."""
-        if self.source.kind == "image":
-            return [self.out / f"{self.source.stem}_overlay.png"]
-        if self.source.kind == "images":
-            return [self.out / f"{self.source.stem}_overlay" / name for name in self.source.overlay_names.values()]
-        return []
-
-    def add(self, name: str, overlay: np.ndarray) -> None:
-        if self.source.kind == "image":
-            _write_image(self.out / f"{self.source.stem}_overlay.png", overlay)
-        elif self.source.kind == "images":
-            folder = self.out / f"{self.source.stem}_overlay"
-            folder.mkdir(exist_ok=True)
-            _write_image(folder / self.source.overlay_names[name], overlay)
-        else:
-            if self.writer is None:
-                self.writer = cv2.VideoWriter(str(temporary_name(self.video)), cv2.VideoWriter_fourcc(*"mp4v"),
-                                              self.source.fps, (overlay.shape[1], overlay.shape[0]))
-                if not self.writer.isOpened():
-                    self.writer = None
-                    raise DeepCharucoError(f"cannot write the overlay video {self.video}: choose a writable --out "
-                                           f"with free space, or pass --no-overlay")
-            self.writer.write(overlay)
-            self.written += 1
-
-    def close(self, keep: bool) -> None:
-        """Finish the overlay video: renamed into place when it reads back with every frame written, else
-        removed and reported (OpenCV's video writer does not report a full disk itself)."""
-        if self.writer is None:
-            return
-        self.writer.release()
-        self.writer = None
-        temporary = temporary_name(self.video)
-        if not keep:
-            temporary.unlink(missing_ok=True)
-            return
-        check = cv2.VideoCapture(str(temporary))
-        frames = int(check.get(cv2.CAP_PROP_FRAME_COUNT)) if check.isOpened() else 0
-        check.release()
-        if frames != self.written:
-            temporary.unlink(missing_ok=True)
-            raise DeepCharucoError(f"could not write the overlay video {self.video} (is the disk full?): free some "
-                                   f"space, choose another --out, or pass --no-overlay")
-        os.replace(temporary, self.video)
-
-
-def _write_image(path: Path, image: np.ndarray) -> None:
-    """The overlay image, whole or not at all (cv2.imwrite reports a full disk only by returning False)."""
-    ok, encoded = cv2.imencode(path.suffix, image)
-    if not ok:
-        raise DeepCharucoError(f"could not encode the overlay {path}: pass --no-overlay")
-    try:
-        write_atomic(path, png_marked(encoded.tobytes(), OVERLAY_MARK), "the overlay")
-    except DeepCharucoError as error:
-        raise DeepCharucoError(f"{error} (or pass --no-overlay)") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.cli.detect import IMAGE_SUFFIXES
+from deepcharuco.cli.sources import IMAGE_SUFFIXES
 from deepcharuco.cli.video import VideoFrames
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.image import to_gray_u8

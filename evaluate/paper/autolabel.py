@@ -32,7 +32,7 @@ from datagen.shards import FrameLabels, ShardReader, list_shards, write_shard
 import deepcharuco
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.cli.common import output_folder, run_command
-from deepcharuco.cli.detect import open_source
+from deepcharuco.cli.sources import open_source
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.image import to_gray_u8
