@@ -28,13 +28,13 @@ import cv2
 import numpy as np
 
 from deepcharuco import BoardSpec, OpenCVDetector
-from deepcharuco.detection import lattice, marker_reader
 import deepcharuco.detection.deep_detector as deep_detector
-from deepcharuco.detection.placement import corners_from_markers
+from deepcharuco.detection.markers import lattice, marker_reader
+from deepcharuco.detection.markers.placement import corners_from_markers
 from deepcharuco.networks.onnx_runner import single_threaded_blas
 from evaluate.captures.reader import video_frames
-from evaluate.speed.machine import cpu_description
 from evaluate.paper.protocols import darken
+from evaluate.speed.machine import cpu_description
 
 DARK_K = 7
 

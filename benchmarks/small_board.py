@@ -6,7 +6,7 @@ A 3x3 DICT_5X5_100 board (4 corners, 4 markers) drawn at 8-15 % of the width of 
 clutter (`evaluate.speed.realistic`, as `benchmarks/detect.py`'s 5 MP row draws them), then the same frames darkened
 (k = 7). For OpenCV + cornerSubPix, the deep detector and hybrid, in one run: frames found, frames whose every corner
 lies within 3 px of the truth, and ms a frame. Seed 0 drew the frames the small-board rules were chosen on
-(`deepcharuco.detection.verification.code_errors`, `deepcharuco.detection.search_regions.board_like_boxes`); other seeds measure.
+(`deepcharuco.detection.markers.verification.code_errors`, `deepcharuco.detection.search_regions.board_like_boxes`); other seeds measure.
 """
 
 from __future__ import annotations

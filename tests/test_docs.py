@@ -53,7 +53,7 @@ def test_relative_links_resolve(document):
         assert (path.parent / target).exists(), f"{document} links to {target}, which does not exist"
 
 
-# A path into the project's source folders as documents write it (`deepcharuco/detection/placement.py`).
+# A path into the project's source folders as documents write it (`deepcharuco/detection/markers/placement.py`).
 SOURCE_PATH = re.compile(r"(?<![\w./-])((?:deepcharuco|evaluate|train|datagen|benchmarks|blender_scenes|tests|docs)/"
                          r"[\w/-]*\w\.(?:py|md))\b")
 COMMAND = re.compile(r"python -m ((?:deepcharuco|evaluate|train|datagen|benchmarks)(?:\.\w+)*)")
@@ -77,8 +77,8 @@ def test_source_paths_and_commands_resolve(document):
 
 def test_the_path_check_sees_a_moved_module():
     old = "deepcharuco/" + "placement.py"  # before the runtime's subpackages (spelled so that no rewrite moves it)
-    assert SOURCE_PATH.findall(f"see `{old}` and deepcharuco/detection/placement.py.") == [
-        old, "deepcharuco/detection/placement.py"]
+    assert SOURCE_PATH.findall(f"see `{old}` and deepcharuco/detection/markers/placement.py.") == [
+        old, "deepcharuco/detection/markers/placement.py"]
     assert not (ROOT / old).exists()
     assert COMMAND.findall("python -m deepcharuco.detect IMAGE; python -m evaluate.report") == [
         "deepcharuco.detect", "evaluate.report"]

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepcharuco.detection.marker_reader import MAX_BIT_LOGIT, rectify_squares
+from deepcharuco.detection.markers.marker_reader import MAX_BIT_LOGIT, rectify_squares
 from deepcharuco.networks.bit_reader import SIZES, BitReader, BitReaderConfig, normalise_patches, save_bit_reader
 
 # Families per inner size: the _1000 dictionaries hold the _50/_100/_250 ones as prefixes.
@@ -413,7 +413,7 @@ def compare_readers(views: list, readers: tuple[str, ...] = ("sampled", "learned
     """The deep detector's corner accuracy (ID right, < 3 px, over the corners inside the image) on ``views``
     under `VALIDATION_CONDITIONS`, with each marker reader -> {reader: {condition: mean accuracy}}."""
     from deepcharuco import Detector
-    from deepcharuco.detection import marker_reader
+    from deepcharuco.detection.markers import marker_reader
     from deepcharuco.detection.metrics import match_corners
     from evaluate.paper.protocols import darken, motion_blur
 

@@ -35,8 +35,8 @@ from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.board_check import GEOMETRY_MODES
 from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
 from deepcharuco.detection.metrics import match_corners
-from deepcharuco.detection.placement import WEAK_CONFIDENCE
 from deepcharuco.networks.checkpoint import id_head_trained, read_checkpoint, save_bundle
 from train.dataset import FrameDataset, split_shards
 

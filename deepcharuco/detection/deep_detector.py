@@ -38,13 +38,13 @@ from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, fit_corners, vie
 from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
 from deepcharuco.detection.levels import (EarlyRefinement, Found, candidates_in_image, moves_limited, network_input, nudged,
                                           on_cell_grid, patches_around, reduced, to_level)
-from deepcharuco.detection.marker_reader import READERS
+from deepcharuco.detection.markers.marker_reader import READERS
+from deepcharuco.detection.markers.placement import PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers
+from deepcharuco.detection.markers.settling import drop_isolated, neighbour_distances, settle_corners
+from deepcharuco.detection.markers.verification import marker_view_verified
 from deepcharuco.detection.opencv_detector import OpenCVDetector
-from deepcharuco.detection.placement import PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers
 from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
-from deepcharuco.detection.settling import drop_isolated, neighbour_distances, settle_corners
 from deepcharuco.detection.tracking import search_region
-from deepcharuco.detection.verification import marker_view_verified
 from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.cells import CELL, best_per_id, cell_candidates, cell_confidence
@@ -228,12 +228,12 @@ class Detector:
             corners that fit no view are dropped, fewer are returned unchecked.
             "markers": the ID head is not used; the markers in the chessboard cells between the point
             head's corners are read and matched to the board's own, and the view that 2 or more distinct
-            markers agree on names every corner (`deepcharuco.detection.placement`). A board with other markers
+            markers agree on names every corner (`deepcharuco.detection.markers.placement`). A board with other markers
             (another dictionary, other IDs, mirrored) yields nothing.
         backend: how the networks run (`deepcharuco.networks.runtime`): "auto" (default: on CPU, ONNX Runtime with the
             weights' accepted int8 ChArUcoNet if they carry one, else float32 ONNX Runtime when installed, else
             PyTorch), "torch", "onnx" or "onnx-int8".
-        reader: how markers are read (`deepcharuco.detection.marker_reader.READERS`): "sampled" (the default, 4 samples
+        reader: how markers are read (`deepcharuco.detection.markers.marker_reader.READERS`): "sampled" (the default, 4 samples
             per bit correlated with the board's markers) or "learned" (a 9.5k-parameter CNN's bit logits).
         boards: several boards to find in each image instead of ``board`` (boards of different dictionaries, or of
             one dictionary with other ``first_marker_id``s: rigs cover a room with several). `detect_boards`

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec, BoardTexture
-from deepcharuco.detection.marker_reader import sample_maps
+from deepcharuco.detection.markers.marker_reader import sample_maps
 
 SAMPLES = 16  # samples along each board axis of the window around a corner
 HALF_WINDOW = 0.5  # ... which spans this many squares each way: half of each of the four squares at the corner

@@ -8,10 +8,10 @@ import pytest
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view, texture_homography
 from deepcharuco.detection import deep_detector
-from deepcharuco.detection import placement
-from deepcharuco.detection.lattice import cell_homographies, find_cells, squarest_cells
-from deepcharuco.detection.marker_reader import board_markers, correlate, read_squares
-from deepcharuco.detection.verification import marker_agreement
+from deepcharuco.detection.markers import placement
+from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, squarest_cells
+from deepcharuco.detection.markers.marker_reader import board_markers, correlate, read_squares
+from deepcharuco.detection.markers.verification import marker_agreement
 
 # Boards of other layouts than the shipped weights' 5x5 DICT_5X5_50 (none of them seen in training).
 UNSEEN = [

@@ -10,8 +10,9 @@ import torch
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from deepcharuco.core.errors import DeepCharucoError
-from deepcharuco.detection import marker_reader
-from deepcharuco.detection.marker_reader import BIT_READER_WEIGHTS, board_markers, correlate, learned_bits, rectify_squares
+from deepcharuco.detection.markers import marker_reader
+from deepcharuco.detection.markers.marker_reader import (BIT_READER_WEIGHTS, board_markers, correlate, learned_bits,
+                                                         rectify_squares)
 from deepcharuco.networks.bit_reader import (
     MARGIN_BITS, SAMPLES_PER_BIT, BitReader, load_bit_reader, patch_side, save_bit_reader,
 )

@@ -14,7 +14,7 @@ from deepcharuco.core.detection import Detection
 from deepcharuco.detection.corner_fit import (FALLBACK_SIGMA_PX, _quadrant_signs, board_axes, fit_corners,
                                               view_homography)
 from deepcharuco.detection.junction import printed_pattern
-from deepcharuco.detection.settling import neighbour_distances
+from deepcharuco.detection.markers.settling import neighbour_distances
 
 CAMERA = Camera.from_fov(640, 480, hfov_deg=60.0)
 BOARDS = {

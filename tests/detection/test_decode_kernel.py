@@ -11,7 +11,7 @@ from conftest import ROOT
 
 from deepcharuco import BoardSpec, Camera, Detector
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
-from deepcharuco.detection import lattice, marker_reader, placement
+from deepcharuco.detection.markers import lattice, marker_reader, placement
 
 
 SAMPLES = ROOT / "evaluate" / "captures_sample"
@@ -98,7 +98,7 @@ def random_squares(rng: np.random.Generator, count: int, size: tuple[int, int]) 
 
 
 def test_kernels_compute_the_numpy_paths_values():
-    kernel = pytest.importorskip("deepcharuco.detection.decode_kernel")
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
     rng = np.random.default_rng(7)
     size, ratio = 6, 0.7
     homographies = random_squares(rng, 300, (640, 480))
@@ -116,7 +116,7 @@ def test_kernels_compute_the_numpy_paths_values():
 
 
 def test_squarest_cells_kernel_keeps_the_same_cells():
-    kernel = pytest.importorskip("deepcharuco.detection.decode_kernel")
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
     rng = np.random.default_rng(3)
     # a sheared, jittered lattice and clutter: many quads, rivals on shared sides
     x, y = np.meshgrid(np.arange(12), np.arange(9))

@@ -10,8 +10,8 @@ from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.boards.print_face import canonical_view
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view
 from deepcharuco.detection import deep_detector
-from deepcharuco.detection import placement
 from deepcharuco.detection.junction import locate_by_pattern, pattern_evidence
+from deepcharuco.detection.markers import placement
 from deepcharuco.networks.cells import CellCandidates
 
 BOARD = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")

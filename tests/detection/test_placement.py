@@ -1,4 +1,4 @@
-"""The markers decoding (`deepcharuco.detection.placement`): the final marker check's rank rule (blurred small markers that
+"""The markers decoding (`deepcharuco.detection.markers.placement`): the final marker check's rank rule (blurred small markers that
 rarely read best as themselves still rank their own marker high; look-alikes rank it at chance) and the weak point
 candidates that fill in corners of a verified view."""
 
@@ -8,7 +8,7 @@ import pytest
 
 from deepcharuco import BoardSpec, Camera, Detector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, paint_markers, render_board_view
-from deepcharuco.detection import placement, settling, verification
+from deepcharuco.detection.markers import placement, settling, verification
 from deepcharuco.networks.cells import CellCandidates
 from evaluate.paper.false_positives import look_alikes
 
@@ -228,7 +228,7 @@ def test_agreement_test_is_the_pixel_distance_without_division():
 
 
 def test_sampled_maps_equal_the_point_list_sampler_at_any_map_size():
-    from deepcharuco.detection.marker_reader import MAX_REMAP_SIDE, _sample, sample_maps
+    from deepcharuco.detection.markers.marker_reader import MAX_REMAP_SIDE, _sample, sample_maps
 
     rng = np.random.default_rng(4)
     gray = rng.integers(0, 256, (60, 80), dtype=np.uint8)

@@ -10,7 +10,7 @@ import pytest
 from conftest import ROOT
 from deepcharuco import Detector, OpenCVDetector
 from deepcharuco.boards.print_face import canonical_view
-from deepcharuco.detection.marker_reader import READERS, board_markers, match_markers, read_squares
+from deepcharuco.detection.markers.marker_reader import READERS, board_markers, match_markers, read_squares
 from deepcharuco.geometry.pose import estimate_pose
 from evaluate.captures.measure import compare_with_reference
 from evaluate.captures.reader import open_capture_set

@@ -258,7 +258,7 @@ def test_the_coarse_level_alone_finds_a_large_board_and_not_a_small_one():
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
     """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
     away: the same corners as the search through the cells, which does not run."""
-    import deepcharuco.detection.placement as placement
+    import deepcharuco.detection.markers.placement as placement
 
     board = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
                       dictionary="DICT_4X4_1000", inverted=True)

@@ -10,7 +10,7 @@ import pytest
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.cli.detect import make_detector
-from deepcharuco.detection.verification import MAX_CHANCE, chance_of_agreement
+from deepcharuco.detection.markers.verification import MAX_CHANCE, chance_of_agreement
 from evaluate.paper.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
 
 

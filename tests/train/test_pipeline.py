@@ -17,7 +17,7 @@ from conftest import ROOT, VIEW_POSES, make_view, needs_bpy, process_group
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
-from deepcharuco.detection.placement import WEAK_CONFIDENCE
+from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
 from deepcharuco.networks import load_charuconet
 from deepcharuco.networks.checkpoint import PointsOnlyBoard, read_checkpoint
 from train.bundle import choose_threshold

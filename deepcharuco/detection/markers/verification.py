@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.detection.marker_reader import (DEFAULT_READER, board_markers, correlate, read_squares)
+from deepcharuco.detection.markers.marker_reader import (DEFAULT_READER, board_markers, correlate, read_squares)
 
 
 # Two distinct markers in agreement: one read can be a fluke (4x4 markers have 16 bits), two that also

@@ -25,11 +25,12 @@ from deepcharuco.core.detection import corner_spacing, no_corners
 from deepcharuco.core.vectors import lengths, pairwise_distances
 from deepcharuco.detection.board_check import BoardView, apply_homography, assign_ids, in_image
 from deepcharuco.detection.junction import pattern_evidence
-from deepcharuco.detection.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
-from deepcharuco.detection.marker_reader import (QUARTER_TURNS, board_markers, match_markers,
-                                                 read_squares)
-from deepcharuco.detection.settling import _fittable, _neighbourhoods, local_predictions
-from deepcharuco.detection.verification import MIN_MARKERS, marker_view_verified, reading_image, square_translations
+from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
+from deepcharuco.detection.markers.marker_reader import (QUARTER_TURNS, board_markers, match_markers,
+                                                         read_squares)
+from deepcharuco.detection.markers.settling import _fittable, _neighbourhoods, local_predictions
+from deepcharuco.detection.markers.verification import (MIN_MARKERS, marker_view_verified, reading_image,
+                                                        square_translations)
 from deepcharuco.networks.cells import CellCandidates
 
 

@@ -39,7 +39,7 @@ from deepcharuco.core.checks import check_choice
 from deepcharuco.networks.shipped import WEIGHTS_DIR
 
 try:  # the reads' loops compiled (pip install deepcharuco[fast]); else numpy's, the same values
-    import deepcharuco.detection.decode_kernel as compiled_kernel
+    import deepcharuco.detection.markers.decode_kernel as compiled_kernel
 except ImportError:
     compiled_kernel = None
 

@@ -22,7 +22,7 @@ import numpy as np
 from deepcharuco.core.vectors import lengths, pairwise_distances
 
 try:  # `squarest_cells`' loop compiled (pip install deepcharuco[fast]); else Python's, the same choice
-    import deepcharuco.detection.decode_kernel as compiled_kernel
+    import deepcharuco.detection.markers.decode_kernel as compiled_kernel
 except ImportError:
     compiled_kernel = None
 
