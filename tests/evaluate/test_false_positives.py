@@ -2,11 +2,12 @@
 and the marker check's chance rule that keeps the deep detector silent on them."""
 
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+from conftest import ROOT
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.cli.detect import make_detector
@@ -52,7 +53,7 @@ def test_no_pose_on_look_alikes_and_photos_and_the_targets_say_so():
     assert not targets(result)[0][3]
 
 
-SAMPLES = Path(__file__).parents[1] / "evaluate" / "captures_sample"
+SAMPLES = ROOT / "evaluate" / "captures_sample"
 
 
 def _layouts(folder: str) -> tuple[BoardSpec, dict[str, BoardSpec], list[np.ndarray]]:

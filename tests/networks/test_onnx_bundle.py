@@ -7,12 +7,11 @@ import re
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, make_view
+from conftest import ROOT, VIEW_POSES, make_view
 from deepcharuco import BoardSpec, Detector, DeepCharucoError
 from deepcharuco.networks.checkpoint import load_charuconet, load_refinenet
 from deepcharuco.networks.onnx_bundle import BundleError, bundle_path, read_bundle
@@ -61,6 +60,7 @@ def test_detections_without_torch_are_those_with_it(tmp_path, camera):
     with_torch = _detect(images, boards)
     code = f"""
 import json, sys
+import numpy as np
 sys.modules["torch"] = None
 from deepcharuco import BoardSpec, Detector
 boards = [BoardSpec(**b) for b in json.loads(open(r"{tmp_path / 'boards.json'}").read())]
@@ -152,9 +152,9 @@ def test_a_model_file_other_than_the_one_exported_is_refused_by_its_sha256(tmp_p
     (folder / "refinenet.onnx").write_bytes((folder / "charuconet_points.onnx").read_bytes())
     with pytest.raises(BundleError, match="refinenet.onnx is not the model exported into this bundle"):
         read_bundle(folder)
-    done = subprocess.run([sys.executable, "-m", "deepcharuco.detect", str(Path(__file__).parents[1] / "deepcharuco"
+    done = subprocess.run([sys.executable, "-m", "deepcharuco.detect", str(ROOT / "deepcharuco"
                            / "examples" / "board_320x240.png"), "--weights", str(folder), "--out", str(tmp_path / "o")],
-                          capture_output=True, text=True, cwd=Path(__file__).parents[1])
+                          capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 2 and "refinenet.onnx is not the model exported into this bundle" in \
         done.stderr.strip().splitlines()[-1]
     assert "Traceback" not in done.stderr and not (tmp_path / "o").exists()
@@ -173,6 +173,7 @@ def test_an_exported_bundle_records_its_files_and_is_refused_once_its_weights_ch
     assert meta["models_sha256"] == {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.glob("*.onnx")}
     assert meta["weights_file_sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
     code = f"""
+import sys
 sys.modules["torch"] = None  # as without PyTorch: the bundle beside the weights is read
 from deepcharuco import Detector
 from deepcharuco.networks.onnx_bundle import BundleError
