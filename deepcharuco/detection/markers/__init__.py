@@ -4,4 +4,5 @@ marker (`marker_reader`, compiled in `decode_kernel` where numba is), the marker
 settled against their neighbours (`settling`). Needs no training: any dictionary, size and layout reads the same way.
 """
 
-__all__ = ["lattice", "marker_reader", "decode_kernel", "placement", "verification", "settling"]
+# decode_kernel is left out: it needs numba (the `fast` extra), and the readers fall back without it.
+__all__ = ["lattice", "marker_reader", "placement", "verification", "settling"]
