@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import io
 import math
 import sys
 import time
@@ -59,7 +58,7 @@ from deepcharuco.networks.onnx_runner import _session
 from deepcharuco.networks.runtime import float_onnx
 from train.charuconet import POINT_CONFIDENCE, match_points
 from train.draw import DrawConfig, FrameDrawer
-from train.loop import _Stop
+from train.loop import _Stop, truncate_log
 
 # Options --resume may change: they do not decide what the run computes.
 RESUME_MAY_CHANGE = ("resume", "out", "steps", "quiet", "device", "threads", "checkpoint_minutes", "log_every")
@@ -260,7 +259,7 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
         optimizer.load_state_dict(saved["training"]["optimizer"])
         step, best = saved["training"]["step"], saved["training"]["best"]
         elapsed, metrics = saved["training"]["seconds"], saved["training"]["metrics"]
-        _truncate_log(out / "log.csv", step)
+        truncate_log(out / "log.csv", step)
     student.train()
     started = time.perf_counter()
 
@@ -323,19 +322,6 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
     if stop.requested and stop_at is None:
         print(f"stopped at step {step}: {last_path} saved; rerun with --resume to continue")
     return {"step": step, "best": best, "metrics": metrics, "signal": stop.signal}
-
-
-def _truncate_log(path: Path, step: int) -> None:
-    """Cut ``log.csv`` back to the rows of steps <= ``step``: the steps logged after the checkpoint run again."""
-    if not path.is_file():
-        return
-    rows = list(csv.reader(io.StringIO(path.read_text())))
-    if not rows:
-        return
-    kept = [rows[0]] + [r for r in rows[1:] if len(r) == len(rows[0]) and r[0].isdigit() and int(r[0]) <= step]
-    buffer = io.StringIO()
-    csv.writer(buffer, lineterminator="\r\n").writerows(kept)
-    path.write_text(buffer.getvalue(), newline="")
 
 
 def parser() -> argparse.ArgumentParser:

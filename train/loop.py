@@ -168,7 +168,7 @@ def _path_differs(name: str, saved: dict, config: TrainConfig) -> bool:
     return not (name == "data" and saved.get("data_shards") and saved["data_shards"] == data_shards(given))
 
 
-def _truncate_log(path: Path, step: int) -> None:
+def truncate_log(path: Path, step: int) -> None:
     """Cut ``log.csv`` back to the rows of steps <= ``step`` (and drop a line a kill left half-written)."""
     if not path.is_file():
         return
@@ -218,7 +218,7 @@ def train(task: Task, config: TrainConfig, kind: str, stop_at: int | None = None
         scaler.load_state_dict(state["training"]["scaler"])
         step, best = state["training"]["step"], state["training"]["best"]
         if rank == 0:
-            _truncate_log(out / "log.csv", step)
+            truncate_log(out / "log.csv", step)
     elif last_path.exists():
         raise DeepCharucoError(f"{out} already holds a run (last.pt): pass --resume to continue it or choose another --out")
     elif config.init:

@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.detection.markers.marker_reader import (DEFAULT_READER, board_markers, correlate, read_squares)
+from deepcharuco.detection.markers.marker_reader import (DEFAULT_READER, BoardMarkers, board_markers, correlate,
+                                                     read_squares)
 
 
 # Two distinct markers in agreement: one read can be a fluke (4x4 markers have 16 bits), two that also
@@ -83,17 +84,24 @@ def reading_image(gray: np.ndarray, read_gray: np.ndarray | None) -> tuple[np.nd
     return read_gray, np.array([[rx, 0, 0.5 * rx - 0.5], [0, ry, 0.5 * ry - 0.5], [0, 0, 1]])
 
 
+def _read_markers(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None
+                  ) -> tuple[BoardMarkers, np.ndarray, np.ndarray]:
+    """Read every marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly in ``gray``.
+    -> (`board_markers`, every square's read bits (`read_squares`), the readable squares' indices (R,))."""
+    markers = board_markers(board)
+    scale = np.diag([board.square_length, board.square_length, 1.0])
+    squares = homography @ scale @ square_translations(markers.squares)  # (M, 3, 3): each marker's square frame -> pixels
+    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
+    return markers, bits, np.flatnonzero(contrast > 0)
+
+
 def _expected_ranks(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read every marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly in ``gray``.
     -> (readable markers' indices (R,) into `board_markers`, whether each read correlates best with the marker
     printed there in the right turn (R,) bool, the rank of that (marker, turn) among all the board's (R,) in [0, 1]:
     the fraction of the other (marker, turn) pairs that correlate less, ties counted half)."""
-    markers = board_markers(board)
-    scale = np.diag([board.square_length, board.square_length, 1.0])
-    squares = homography @ scale @ square_translations(markers.squares)  # (M, 3, 3): each marker's square frame -> pixels
-    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
-    readable = np.flatnonzero(contrast > 0)
+    markers, bits, readable = _read_markers(gray, board, homography, reader)
     if len(readable) == 0:
         return readable, np.zeros(0, bool), np.zeros(0)
     ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
@@ -155,11 +163,7 @@ def contradicting_markers(gray: np.ndarray, board: BoardSpec, homography: np.nda
     another: a board file of another layout (transposed, other or shifted IDs) whose markers happen to fit a
     view. A right layout has none: two codes of one dictionary (any turns) differ in more than twice the bits the
     limit allows, and a square that reads as no code (blur, glare, dark) contradicts nothing."""
-    markers = board_markers(board)
-    scale = np.diag([board.square_length, board.square_length, 1.0])
-    squares = homography @ scale @ square_translations(markers.squares)
-    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
-    readable = np.flatnonzero(contrast > 0)
+    markers, bits, readable = _read_markers(gray, board, homography, reader)
     if len(readable) == 0:
         return 0
     white = _thresholded(bits[readable], reader)  # (R, n * n)
@@ -219,11 +223,7 @@ def code_errors(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, read
     """(R,) for each marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly and readably
     in canonical ``gray``: how many of its inner bits, read and thresholded (sampled reads: halfway between the read's
     darkest and brightest bit; learned: the logit's sign), differ from the code printed there."""
-    markers = board_markers(board)
-    scale = np.diag([board.square_length, board.square_length, 1.0])
-    squares = homography @ scale @ square_translations(markers.squares)
-    bits, contrast = read_squares(gray, squares, markers.size, markers.ratio, reader)
-    readable = np.flatnonzero(contrast > 0)
+    markers, bits, readable = _read_markers(gray, board, homography, reader)
     if len(readable) == 0:
         return np.zeros(0, np.int64)
     white = _thresholded(bits[readable], reader)
