@@ -34,7 +34,7 @@ from deepcharuco.cli.sources import Source, open_source
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import (
-    atomic_file, png_mark, refuse_foreign, starts_with, write_atomic,
+    atomic_file, mp4_mark, png_mark, refuse_foreign, starts_with, write_atomic,
 )
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.board_hints import what_matches
@@ -165,6 +165,9 @@ def run(args: argparse.Namespace) -> dict:
     if not args.no_overlay:
         for path in Overlays(out, source).images():
             refuse_foreign(path, png_mark(OVERLAY_MARK), "PNG overlay written by deepcharuco detect", args.force)
+        video = Overlays(out, source).video_path()
+        if video is not None:
+            refuse_foreign(video, mp4_mark(OVERLAY_MARK), "video overlay written by deepcharuco detect", args.force)
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detectors[0], "weights", None) is not None:

@@ -16,7 +16,7 @@ from deepcharuco.cli.sources import Source
 from deepcharuco.core.detection import Detection, largest_sigmas
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import (
-    png_marked, temporary_name, write_atomic,
+    mp4_marked, png_marked, temporary_name, write_atomic,
 )
 from deepcharuco.geometry.pose import Pose
 
@@ -59,7 +59,8 @@ def csv_row(record: dict) -> dict:
 JSON_START = b'{"board": '
 
 
-# The text chunk inside every overlay PNG this command writes: a rerun replaces only such PNGs without --force.
+# The mark inside every overlay this command writes (a PNG text chunk, an MP4 free box): a rerun replaces only those
+# without --force.
 OVERLAY_MARK = "deepcharuco detect overlay"
 
 
@@ -72,6 +73,10 @@ class Overlays:
         self.writer: cv2.VideoWriter | None = None
         self.video = out / f"{source.stem}_overlay.mp4"
         self.written = 0
+
+    def video_path(self) -> Path | None:
+        """The overlay MP4 this source's frames would be written to (None for images)."""
+        return None if self.source.kind in ("image", "images") else self.video
 
     def images(self) -> list[Path]:
         """The overlay PNGs this source's frames would be written to (none for a video or camera)."""
@@ -110,6 +115,10 @@ class Overlays:
         if not keep:
             temporary.unlink(missing_ok=True)
             return
+        try:
+            mp4_marked(temporary, OVERLAY_MARK)
+        except (OSError, ValueError):
+            pass  # left unmarked: a rerun asks for --force before replacing it, and loses nothing
         check = cv2.VideoCapture(str(temporary))
         frames = int(check.get(cv2.CAP_PROP_FRAME_COUNT)) if check.isOpened() else 0
         check.release()

@@ -145,6 +145,61 @@ def png_mark(software: str) -> Callable[[Path], bool]:
     return lambda path: starts_with(PNG_SIGNATURE)(path) and marked(path)
 
 
+
+# An MP4 (ISO base media file) is a run of boxes, each (size: 4 bytes big-endian, type: 4 bytes, payload); a top-level
+# "free" box is padding every reader skips, so a mark in one changes no frame.
+MP4_FREE = b"free"
+MAX_MP4_BOXES = 4096
+
+
+def _mp4_boxes(path: Path) -> Iterator[tuple[bytes, int, int]]:
+    """(type, payload offset, payload size) of each top-level box of the MP4 ``path``; ``ValueError`` where its box
+    sizes do not add up to the file (not an MP4, or cut short), or a box runs to the end of the file (size 0)."""
+    end = path.stat().st_size
+    with open(path, "rb") as handle:
+        offset = 0
+        for _ in range(MAX_MP4_BOXES):
+            if offset == end:
+                return
+            handle.seek(offset)
+            header = handle.read(8)
+            if len(header) < 8:
+                raise ValueError("cut short")
+            size, kind = int.from_bytes(header[:4], "big"), header[4:]
+            start = offset + 8
+            if size == 1:  # a 64-bit size follows the type
+                size, start = int.from_bytes(handle.read(8), "big"), offset + 16
+            if size < start - offset or offset + size > end:
+                raise ValueError("not an MP4 box")
+            yield kind, start, offset + size - start
+            offset += size
+        raise ValueError("too many boxes")
+
+
+def mp4_marked(path: str | Path, software: str) -> None:
+    """Append to the MP4 file ``path`` a top-level ``free`` box holding ``software``: the mark by which a command
+    later knows a video as one it wrote (`mp4_mark`). ``ValueError`` where ``path`` is not a well-formed MP4."""
+    path = Path(path)
+    list(_mp4_boxes(path))  # its boxes add up: the new one lands after the last
+    payload = software.encode("latin-1")
+    with open(path, "ab") as handle:
+        handle.write((8 + len(payload)).to_bytes(4, "big") + MP4_FREE + payload)
+
+
+def mp4_mark(software: str) -> Callable[[Path], bool]:
+    """An ``is_ours`` test for `refuse_foreign`: an MP4 that `mp4_marked` marked with ``software``."""
+    payload = software.encode("latin-1")
+
+    def test(path: Path) -> bool:
+        with open(path, "rb") as handle:
+            for kind, start, size in _mp4_boxes(path):
+                if kind == MP4_FREE and size == len(payload):
+                    handle.seek(start)
+                    if handle.read(size) == payload:
+                        return True
+        return False
+    return test
+
 class OutputLock:
     """Held while a command writes ``path``: a second command for the same file is refused at once
     (`OutputError`) instead of both writing it and the last one winning. The lock is the hidden file

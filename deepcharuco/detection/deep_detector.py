@@ -37,11 +37,11 @@ from deepcharuco.detection.board_check import (
 from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
 from deepcharuco.detection.levels import (EarlyRefinement, Found, candidates_in_image, moves_limited, network_input, nudged,
-                                          on_cell_grid, patches_around, reduced, to_level)
+                                          from_level, on_cell_grid, patches_around, reduced, to_level)
 from deepcharuco.detection.markers.marker_reader import READERS
 from deepcharuco.detection.markers.placement import PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers
 from deepcharuco.detection.markers.settling import drop_isolated, neighbour_distances, settle_corners
-from deepcharuco.detection.markers.verification import marker_view_verified
+from deepcharuco.detection.markers.verification import layout_ends_short, marker_view_verified
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
 from deepcharuco.detection.tracking import search_region
@@ -148,7 +148,13 @@ def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle
     if is_bundle(weights):
         if refine_weights is not None:
             raise DeepCharucoError(f"{weights} is an ONNX bundle and holds its own RefineNet: leave refine_weights out")
-        return read_bundle(weights)
+        bundle = read_bundle(weights)
+        if _torch_installed():  # the network's own fingerprint; without PyTorch, the file's sha256 stands in
+            from deepcharuco.networks.runtime import check_fingerprint
+            check_fingerprint(bundle)
+        else:
+            check_exported_from(bundle, bundle.path.parent / str(bundle.meta.get("weights")))
+        return bundle
     if _torch_installed():
         return None
     if is_bundle(bundle_path(weights)) and refine_weights is None:
@@ -447,8 +453,30 @@ class Detector:
                 # junction's pattern, which allows the edge, keeps it (tests/detection/test_junction.py)
                 corners, covariances = self._fitted(region, ids, corners, keep=scores == PATTERN_SCORE)
         corners = corners + np.array(found.box[:2], np.float32)
+        if self._layout_ends_short(full, found, ids, corners):
+            return Detection.empty()
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
                          covariances=covariances_from_canonical(covariances, self.board))
+
+    def _layout_ends_short(self, full: np.ndarray, found: Found, ids: np.ndarray, corners: np.ndarray) -> bool:
+        """Whether the board's own markers are printed beyond the edge of the view the markers verified, read in
+        the whole canonical frame ``full`` (`verification.layout_ends_short`): the board file's layout is not the
+        print's (its IDs shifted), though every marker inside the view agrees with it. The view is fitted to the
+        refined corners (``ids``, ``corners`` in ``full``'s pixels) where they span the board in both directions (a
+        level's whole cell pixels put squares two beyond the board a marker's width off), else it is the markers'
+        view (``found.view``) mapped to ``full``."""
+        if found.view is None:
+            return False
+        with stage("markers"):
+            xy = self._board_xy[ids]
+            if len(ids) >= 4 and np.linalg.matrix_rank(xy - xy.mean(axis=0), tol=1e-9) == 2:
+                view, _ = cv2.findHomography(xy.astype(np.float64), corners.astype(np.float64), 0)
+            else:
+                view = from_level(found.view, found.box, found.gray.shape, found.region.shape)
+            if layout_ends_short(full, self.board, view, self.reader):
+                tally("views beyond the print")
+                return True
+        return False
 
     def _expected_view(self, expected: Detection | None, width: int) -> np.ndarray | None:
         """(3, 3) board metres -> the canonical image's pixels fitted to ``expected``'s corners (an image ``width`` px
@@ -531,9 +559,9 @@ class Detector:
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
             gray = reduced(full, 0.5)
-            ids, pixels, scores, early, _ = self._find(gray, full, "preview")
+            ids, pixels, scores, early, _, view = self._find(gray, full, "preview")
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
-                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early), True
+                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True
             # part of the board, or squares too small to trust: the full image decides alone
         found, board_like, boxes, dim = None, False, [whole], False
         for level, scale in enumerate(self._level_scales(max(height, width), working_size)[:levels]):
@@ -556,14 +584,14 @@ class Detector:
                 gray = region if scale == 1.0 else reduced(region, scale)
                 if level == 0:
                     dim = is_dim(gray)  # the whole frame at the coarse level
-                ids, pixels, scores, early, confidence = self._find(gray, region, level,
+                ids, pixels, scores, early, confidence, view = self._find(gray, region, level,
                                                                     to_level(prior, box, gray.shape, region.shape))
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
                                to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,
                                        (x1 - x0, y1 - y0))]
                 if len(ids) and (level_found is None or len(ids) > len(level_found.ids)):
-                    level_found = Found(box, region, gray, ids, pixels, scores, preview=False, early=early)
+                    level_found = Found(box, region, gray, ids, pixels, scores, preview=False, early=early, view=view)
             board_like = board_like or bool(next_boxes) or level_found is not None
             boxes = next_boxes
             if level_found is not None:
@@ -620,9 +648,10 @@ class Detector:
         return scales
 
     def _find(self, gray: np.ndarray, full: np.ndarray, level: int | str = 0, prior: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None, np.ndarray]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None, np.ndarray, np.ndarray | None]:
         """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``, the
-        `EarlyRefinement` started for them (or None), and the (Hc, Wc) cell confidences; markers are read in
+        `EarlyRefinement` started for them (or None), the (Hc, Wc) cell confidences, and the view the markers
+        verified (3x3, board metres -> ``gray``'s pixels; None: none, or not found by markers); markers are read in
         ``full``, the same image at full resolution; ``level`` names the search level in stage times
         (`deepcharuco.core.stage_times`); ``prior``: where the board is expected, board metres -> ``gray``'s pixels
         (boards found by their markers)."""
@@ -639,10 +668,10 @@ class Detector:
             tally("candidate cells", int((candidates.confidence >= self.threshold).sum()))
             early = self._refine_early(gray, candidates.pixels[candidates.confidence >= self.threshold])
             with stage("markers"):
-                found = corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
-                                             threshold=self.threshold, expected=prior)[0]
-            return (*found, early, confidence)
-        return (*self.decode(point_logits, id_logits, (width, height), gray, full, confidence), None, confidence)
+                found, view = corners_from_markers(gray, self.board, candidates, read_gray=full, reader=self.reader,
+                                                   threshold=self.threshold, expected=prior)
+            return (*found, early, confidence, None if view is None else view.view.homography)
+        return (*self.decode(point_logits, id_logits, (width, height), gray, full, confidence), None, confidence, None)
 
     def _refine_early(self, gray: np.ndarray, pixels: np.ndarray) -> EarlyRefinement | None:
         """RefineNet started on ``pixels`` of ``gray`` on the runner's background thread, or None where the

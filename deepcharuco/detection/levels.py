@@ -112,7 +112,8 @@ class Found:
     """What one search level found: ``box`` (x0, y0, x1, y1) the region of the canonical image it searched (full
     pixels, exclusive ends), ``region`` that part of the image, ``gray`` the same at the level's scale (``region``
     itself at full scale), (ids (N,), integer pixels (N, 2) in ``gray``, scores (N,)), whether it is the
-    half-size ``preview``, and its `EarlyRefinement` or None."""
+    half-size ``preview``, its `EarlyRefinement` or None, and the view its markers verified (3x3, board metres ->
+    ``gray``'s pixels; None where the corners were not found by their markers)."""
 
     box: Box
     region: np.ndarray
@@ -122,6 +123,7 @@ class Found:
     scores: np.ndarray
     preview: bool
     early: EarlyRefinement | None
+    view: np.ndarray | None = None
 
     def ratio(self) -> np.ndarray:
         """(2,) float32 full-resolution pixels per ``gray`` pixel, in x and y."""
@@ -129,16 +131,24 @@ class Found:
                         np.float32)
 
 
-def to_level(view: np.ndarray | None, box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]
-              ) -> np.ndarray | None:
-    """``view`` (3x3, board -> a full image's pixels) -> board -> the pixels of the search level that reduced the
-    full image's ``box`` (its (H, W) ``region_shape``) to ``level_shape`` (pixel centres to centres); None stays None."""
-    if view is None:
-        return None
+def level_map(box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]) -> np.ndarray:
+    """3x3 map from a full image's pixels to those of the search level that reduced the full image's ``box`` (its
+    (H, W) ``region_shape``) to ``level_shape`` (pixel centres to centres)."""
     rx, ry = level_shape[1] / region_shape[1], level_shape[0] / region_shape[0]
     x0, y0 = box[:2]
-    to_level = np.array([[rx, 0.0, 0.5 * rx - 0.5 - rx * x0], [0.0, ry, 0.5 * ry - 0.5 - ry * y0], [0.0, 0.0, 1.0]])
-    return to_level @ view
+    return np.array([[rx, 0.0, 0.5 * rx - 0.5 - rx * x0], [0.0, ry, 0.5 * ry - 0.5 - ry * y0], [0.0, 0.0, 1.0]])
+
+
+def to_level(view: np.ndarray | None, box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]
+             ) -> np.ndarray | None:
+    """``view`` (3x3, board -> a full image's pixels) -> board -> the search level's pixels (`level_map`); None stays
+    None."""
+    return None if view is None else level_map(box, level_shape, region_shape) @ view
+
+
+def from_level(view: np.ndarray, box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]) -> np.ndarray:
+    """``view`` (3x3, board -> a search level's pixels) -> board -> the full image's pixels (`level_map` inverted)."""
+    return np.linalg.inv(level_map(box, level_shape, region_shape)) @ view
 
 
 def candidates_in_image(candidates: CellCandidates, image_size: tuple[int, int]) -> CellCandidates:

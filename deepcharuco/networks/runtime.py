@@ -28,7 +28,7 @@ import hashlib
 import warnings
 from concurrent.futures import Future
 from dataclasses import replace
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import torch
@@ -42,6 +42,9 @@ from deepcharuco.networks.onnx_runner import (  # noqa: F401 (re-exported: the r
                                               BackgroundThread, OnnxRunner, network_threads, onnxruntime_available, single_threaded_blas,
                                               )
 from deepcharuco.networks.refinenet import PATCH, RefineNet
+
+if TYPE_CHECKING:
+    from deepcharuco.networks.onnx_bundle import OnnxBundle
 
 INT8_KEY = "int8"  # in a ChArUcoNet checkpoint: {"onnx": bytes, "calibration": ..., "validation": ...}
 
@@ -72,6 +75,23 @@ def weights_fingerprint(model: torch.nn.Module) -> str:
         digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
     return digest.hexdigest()
 
+
+
+def check_fingerprint(bundle: "OnnxBundle") -> None:
+    """`BundleError` where the weights named in ``bundle.json`` lie beside ``bundle`` and their network, as loaded, is
+    not the one the bundle was exported from (``weights_sha256``, `weights_fingerprint`: retrained or replaced
+    since). Without those weights there is nothing to compare; the bundle's own files are checked by their sha256
+    when it is read (`onnx_bundle.read_bundle`)."""
+    from deepcharuco.networks.checkpoint import load_charuconet
+    from deepcharuco.networks.onnx_bundle import BundleError, bundle_fix
+
+    recorded, name = bundle.meta.get("weights_sha256"), bundle.meta.get("weights")
+    source = bundle.path.parent / str(name)
+    if not recorded or not name or not source.is_file():
+        return
+    if weights_fingerprint(load_charuconet(source)[0]) != recorded:
+        raise BundleError(f"{bundle.path} was exported from another network than {source} holds now (weights_sha256 "
+                          f"differs: retrained or replaced since): {bundle_fix(bundle.path)}")
 
 def int8_model(checkpoint: dict, fingerprint: str | None = None) -> bytes | None:
     """The accepted int8 ChArUcoNet (serialized ONNX) a checkpoint carries, or None; with ``fingerprint``

@@ -290,6 +290,46 @@ def test_detect_replaces_only_the_overlays_it_wrote(tmp_path, capsys):
     assert detect_cli.main([str(image), "--out", str(out), "--quiet"]) == 0  # its own overlay: replaced unasked
 
 
+def test_detect_replaces_only_the_overlay_video_it_wrote(tmp_path, camera, capsys):
+    """The overlay MP4 carries the command's mark (a top-level ``free`` box, which players skip: every frame still
+    reads back); a user's own clip_overlay.mp4 in --out is kept, refused naming --force, as any PNG overlay is."""
+    from deepcharuco.cli.outputs import OVERLAY_MARK
+    from deepcharuco.core.files import mp4_mark
+
+    clip = _write_video(tmp_path / "clip.mp4", [make_view(BoardSpec(), camera, **VIEW_POSES[i % 3])[0] for i in range(4)])
+    out = tmp_path / "out"
+    out.mkdir()
+    theirs = clip.read_bytes()  # any MP4 of the user's: here the input itself under the overlay's name
+    (out / "clip_overlay.mp4").write_bytes(theirs)
+    assert not mp4_mark(OVERLAY_MARK)(out / "clip_overlay.mp4")
+    assert detect_cli.main([str(clip), "--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "clip_overlay.mp4 exists and is not a video overlay written by deepcharuco detect" in error[0]
+    assert "--force" in error[0] and (out / "clip_overlay.mp4").read_bytes() == theirs
+    assert sorted(p.name for p in out.iterdir()) == ["clip_overlay.mp4"]
+    assert detect_cli.main([str(clip), "--out", str(out), "--quiet", "--force"]) == 0
+    ours = out / "clip_overlay.mp4"
+    assert mp4_mark(OVERLAY_MARK)(ours) and cv2.VideoCapture(str(ours)).get(cv2.CAP_PROP_FRAME_COUNT) == 4
+    assert detect_cli.main([str(clip), "--out", str(out), "--quiet"]) == 0  # its own overlay: replaced unasked
+
+
+def test_mp4_marks_are_read_from_the_box_structure(tmp_path):
+    """Only a well-formed MP4 is marked, and only a free box whose whole payload is the mark counts: the mark's text
+    elsewhere (inside another box) or a file cut short is not ours."""
+    from deepcharuco.core.files import mp4_mark, mp4_marked
+
+    box = lambda kind, payload: (8 + len(payload)).to_bytes(4, "big") + kind + payload  # noqa: E731
+    video = tmp_path / "v.mp4"
+    video.write_bytes(box(b"ftyp", b"isom0000") + box(b"mdat", b"made by me"))
+    mp4_marked(video, "made by me")
+    assert mp4_mark("made by me")(video) and not mp4_mark("made by you")(video)
+    video.write_bytes(box(b"ftyp", b"isom0000") + box(b"mdat", b"made by me"))  # the text, in another box
+    assert not mp4_mark("made by me")(video)
+    video.write_bytes(box(b"ftyp", b"isom0000")[:10])
+    with pytest.raises(ValueError):
+        mp4_marked(video, "made by me")
+
+
 @pytest.mark.parametrize("hidden, argv, message", [
     ("torch", ["train.charuconet", "--data", "nowhere", "--out", "run"],
      "training needs torch, which is not installed: pip install 'deepcharuco[train]'"),

@@ -11,7 +11,7 @@ from conftest import ROOT
 
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.cli.detect import make_detector
-from deepcharuco.detection.markers.verification import MAX_CHANCE, chance_of_agreement
+from deepcharuco.detection.markers.verification import MAX_CHANCE, chance_of_agreement, markers_beyond_contradict
 from evaluate.paper.false_positives import board_free_photos, false_positive_experiment, look_alikes, sections, targets
 
 
@@ -27,6 +27,15 @@ def test_chance_rule_asks_more_markers_of_small_boards():
     assert chance_of_agreement(2, 3, 12) > MAX_CHANCE >= chance_of_agreement(3, 3, 12)  # 12 markers: 3 of 3
     assert chance_of_agreement(2, 3, 200) <= MAX_CHANCE  # 200 markers: 2 of 3 is already rare
     assert chance_of_agreement(0, 5, 12) == pytest.approx(1.0)
+
+
+def test_markers_beyond_the_edge_refuse_a_view_beyond_chance():
+    """A square beyond the board reads as one of a 4x5 DICT_4X4_1000 board's 10 codes (1 bit off allowed) with chance
+    10 x 17 / 2^16: one such read of 20 is chance, three of 20 are not; a 22x22 board's 242 codes need more."""
+    small, large = BoardSpec(4, 5, 0.05, 0.04, "DICT_4X4_1000"), BoardSpec(22, 22, 0.05, 0.04, "DICT_4X4_1000")
+    assert not markers_beyond_contradict(20, 0, small) and not markers_beyond_contradict(20, 1, small)
+    assert markers_beyond_contradict(20, 3, small)
+    assert not markers_beyond_contradict(20, 3, large) and markers_beyond_contradict(20, 8, large)
 
 
 def test_photos_are_bundled_gray_uint8():
@@ -61,6 +70,9 @@ def _layouts(folder: str) -> tuple[BoardSpec, dict[str, BoardSpec], list[np.ndar
     wrong = {"transposed": replace(board, squares_x=board.squares_y, squares_y=board.squares_x)}
     if folder == "caliscope_cam1":  # IDs two on: every row's markers sit where the next row's are printed
         wrong["shifted"] = replace(board, first_marker_id=board.first_marker_id + 2)
+    else:  # IDs one and two on: the view fits every marker it covers; the print's others lie beyond its edge
+        wrong["shifted by one"] = replace(board, first_marker_id=board.first_marker_id + 1)
+        wrong["shifted by two"] = replace(board, first_marker_id=board.first_marker_id + 2)
     return board, wrong, [cv2.imread(str(p)) for p in sorted((SAMPLES / folder).glob("*.jpg"))]
 
 
@@ -70,8 +82,10 @@ def test_a_board_file_of_another_layout_with_the_same_ids_is_not_reported(folder
     """Real frames (the shipped samples: caliscope's inverted 4x5 DICT_4X4_1000 board, OpenCV's tutorial 5x7
     DICT_6X6_250) searched with a board file of their IDs in another layout: every detector finds nothing, for
     the markers it reads contradict that layout (`placement.contradicting_markers`; OpenCV's interpolation
-    already names no corner that its markers do not back); the right layout is found in the frames it was before. (The deep and hybrid
-    detectors reported 9 corners of a transposed caliscope board at scores 0.94-1.0, and 4-7 of the shifted one.)"""
+    already names no corner that its markers do not back), or the print's own markers lie beyond the edge of the view
+    (`verification.layout_ends_short`); the right layout is found in the frames it was before. (The deep and hybrid
+    detectors reported 9 corners of a transposed caliscope board at scores 0.94-1.0, 4-7 of the one shifted by two
+    rows, and 8-15 of the tutorial board shifted by one or two markers.)"""
     board, wrong, frames = _layouts(folder)
     right = make_detector(name, board, "subpix" if name == "opencv" else "refinenet")
     found = [len(right.detect(frame)) for frame in frames]

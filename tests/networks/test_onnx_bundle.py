@@ -27,6 +27,9 @@ def test_each_shipped_bundle_is_its_weights_exported_as_the_runtime_exports_them
     bundle = read_bundle(bundle_path(weights))
     charuconet, board, checkpoint = load_charuconet(weights)
     assert bundle.meta["weights_sha256"] == weights_fingerprint(charuconet)
+    # each file's sha256 too, so that a damaged shipped model or a changed .pt is named, not run
+    assert bundle.meta["models_sha256"] == {name: hashlib.sha256(data).hexdigest() for name, data in bundle.models.items()}
+    assert bundle.meta["weights_file_sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
     assert bundle.meta["threshold"] == checkpoint.get("threshold") and bundle.board.to_dict() == board.to_dict()
     assert same_network(bundle.models["charuconet_points.onnx"], float_onnx(charuconet, points_only=True), (1, 1, 64, 96))
     assert bundle.id_head == ("charuconet.onnx" in bundle.models)
@@ -136,6 +139,14 @@ def test_a_damaged_model_file_is_named_not_a_traceback(tmp_path, damage, board, 
     folder = tmp_path / "mine.onnx"
     shutil.copytree(bundle_path(DEFAULT_WEIGHTS), folder)
     damage(folder)
+    if (folder / "bundle.json").is_file() and "empty" not in message:
+        # the shipped bundle records its files' sha256: the changed file is named before ONNX Runtime sees it
+        with pytest.raises(BundleError, match="is not the model exported into this bundle"):
+            Detector(weights=folder, board=board)
+        # one exported before the sha256s were recorded: ONNX Runtime's load and the outputs tell
+        meta = json.loads((folder / "bundle.json").read_text())
+        del meta["models_sha256"]
+        (folder / "bundle.json").write_text(json.dumps(meta))
     with pytest.raises(BundleError, match=re.escape(message)):
         Detector(weights=folder, board=board)
 
@@ -187,3 +198,20 @@ except BundleError as error:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "mine.onnx was exported from another mine.pt than the one beside it" in done.stdout
+
+
+def test_a_bundle_given_as_weights_is_refused_when_the_network_beside_it_is_another(tmp_path):
+    """With PyTorch installed, a bundle folder given as the weights is checked against the network of the weights
+    file it names beside it (``weights_sha256``, the loaded network's fingerprint): a retrained or replaced .pt is
+    named; the same network saved again (other bytes) is not."""
+    import torch
+    from deepcharuco.cli.export import write_onnx_bundle
+
+    weights = tmp_path / "mine.pt"
+    shutil.copyfile(DEFAULT_WEIGHTS, weights)
+    folder = write_onnx_bundle(weights)
+    torch.save(torch.load(weights, weights_only=False), weights)  # re-saved: other bytes, the same network
+    assert Detector(weights=folder).runner.name.startswith("onnx")
+    shutil.copyfile(FAMILY_WEIGHTS_DIR / "DICT_4X4.pt", weights)  # another network under the name
+    with pytest.raises(BundleError, match=r"mine.onnx was exported from another network than .*mine.pt holds now"):
+        Detector(weights=folder)

@@ -2,8 +2,9 @@
 check): each square the view predicts is read, and the view stands when enough markers agree with the board's
 layout, beyond chance (`view_is_verified`, `marker_view_verified`: agreement, rank against the other codes, the
 chance tail), and not too many read as other codes of the dictionary than the layout prints there
-(`layout_contradicted`: a board file of another layout with the same IDs). Board units are metres; pixels
-OpenCV's.
+(`layout_contradicted`: a board file of another layout with the same IDs), and none of its markers are printed
+beyond the edge the view puts the board's at (`layout_ends_short`: a board file with shifted IDs). Board units are
+metres; pixels OpenCV's.
 """
 
 from __future__ import annotations
@@ -191,6 +192,61 @@ def layout_contradicted(agreeing: int, readable: int, contradicting: int, board:
     tail = sum(math.comb(n, k) * p ** k * (1 - p) ** (n - k) for k in range(contradicting, n + 1))
     return tail <= MAX_CHANCE
 
+
+
+# The squares around a board that a view's lattice is continued to, on each side: a board file whose IDs are shifted
+# by one marker (two squares along a row) or by a row leaves printed markers there.
+BEYOND_SQUARES = 2
+
+
+def markers_beyond(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None
+                   ) -> tuple[int, int]:
+    """Read the squares of the board's lattice continued `BEYOND_SQUARES` squares past each edge that ``homography``
+    (board metres -> pixels) puts wholly and readably in canonical ``gray`` (the whole frame: a search region's crop
+    may cut them off). -> (readable squares, those whose code reads as one of the board's own markers, within
+    `code_error_limit` bits, in the orientation the board's own markers have in the view).
+
+    A right layout has paper margin or background there, which reads as no marker of the board. A board file whose
+    IDs are shifted (or a larger board file with the print's IDs) fits the markers it covers, and every marker in
+    that view agrees with it; the printed markers it leaves out are then seen beyond its edge, each a marker of this
+    board where its layout has none: evidence from the print itself, which darkness or occlusion can hide but not
+    fake."""
+    columns = np.arange(-BEYOND_SQUARES, board.squares_x + BEYOND_SQUARES)
+    rows = np.arange(-BEYOND_SQUARES, board.squares_y + BEYOND_SQUARES)
+    grid = np.stack(np.meshgrid(columns, rows), axis=-1).reshape(-1, 2)
+    outside = grid[(grid[:, 0] < 0) | (grid[:, 0] >= board.squares_x) | (grid[:, 1] < 0)
+                   | (grid[:, 1] >= board.squares_y)]
+    markers = board_markers(board)
+    scale = np.diag([board.square_length, board.square_length, 1.0])
+    bits, contrast = read_squares(gray, homography @ scale @ square_translations(outside), markers.size,
+                                  markers.ratio, reader)
+    readable = np.flatnonzero(contrast > 0)
+    if len(readable) == 0:
+        return 0, 0
+    white = _thresholded(bits[readable], reader)  # (R, n * n)
+    own = markers.bits[:, 0].reshape(len(markers.ids), -1)  # (M, n * n), in the board's own frame
+    errors = np.sum(white[:, None, :] != own[None, :, :], axis=2)
+    return len(readable), int(np.sum(errors.min(axis=1) <= code_error_limit(board)))
+
+
+def markers_beyond_contradict(readable: int, found: int, board: BoardSpec) -> bool:
+    """Whether ``found`` of the ``readable`` squares beyond the board's edge (`markers_beyond`) reading as its own
+    markers is more than chance explains (binomial tail at most `MAX_CHANCE`): a square that shows no marker of the
+    board reads within `code_error_limit` bits of one of its M codes, in one orientation, with chance
+    M x sum_{j <= limit} C(n, j) / 2^n (n inner bits)."""
+    if found == 0:
+        return False
+    size = board.cv_dictionary().markerSize ** 2
+    p = min(1.0, board.num_markers * sum(math.comb(size, j) for j in range(code_error_limit(board) + 1)) / 2.0 ** size)
+    tail = sum(math.comb(readable, k) * p ** k * (1 - p) ** (readable - k) for k in range(found, readable + 1))
+    return tail <= MAX_CHANCE
+
+
+def layout_ends_short(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None) -> bool:
+    """True when the board's own markers are printed beyond the edge of the view ``homography`` (board metres ->
+    canonical ``gray``'s pixels, the whole frame) puts the board at (`markers_beyond`, `markers_beyond_contradict`):
+    the board file's layout is not the print's."""
+    return markers_beyond_contradict(*markers_beyond(gray, board, homography, reader), board)
 
 @cache
 def dictionary_codes(dictionary: str) -> np.ndarray:
