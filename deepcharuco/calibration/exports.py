@@ -178,8 +178,8 @@ def ros_name(name: str) -> str:
 def kalibr_camchain(rig: ExportRig) -> str:
     """Kalibr's camchain YAML (module docstring): ``cam0``.. with the camera model, intrinsics, distortion,
     resolution, rostopic ``/<name>/image_raw``, and from ``cam1`` on ``T_cn_cnm1`` and ``cam_overlaps``."""
-    lines = [f"{MARK} kalibr: Kalibr's camchain layout; T_cn_cnm1 takes camera n-1's frame to camera n's "
-             "(x_n = T x_nm1), metres"]
+    lines = [f"{MARK} kalibr: Kalibr's camchain layout; T_cn_cnm1 takes camera n-1's frame to camera n's (x_n = T "
+             f"x_nm1), metres"]
     for c, (camera, name) in enumerate(zip(rig.cameras, rig.names)):
         model, coefficients = kalibr_model(camera, name)
         K = camera.K
@@ -191,8 +191,8 @@ def kalibr_camchain(rig: ExportRig) -> str:
             lines += ["  T_cn_cnm1:"] + [f"  - {_flow(row)}" for row in T]
         if len(rig.cameras) > 1:
             lines.append(f"  cam_overlaps: [{', '.join(str(o) for o in rig.overlaps[c])}]")
-        lines += [f"  rostopic: /{ros_name(name)}/image_raw", f"  resolution: [{camera.image_size[0]}, "
-                  f"{camera.image_size[1]}]"]
+        width, height = camera.image_size
+        lines += [f"  rostopic: /{ros_name(name)}/image_raw", f"  resolution: [{width}, {height}]"]
     return "\n".join(lines) + "\n"
 
 
@@ -265,8 +265,8 @@ def export_layout(formats: list[str], names: list[str], folder: Path, maps: bool
                                                             "COLMAP rig config it wrote")
     if "opencv" in formats:
         opencv = contains(stereo.GENERATOR.encode())
-        files[folder / "opencv" / ("stereo.yaml" if len(names) == 2 else "undistort.yaml")] = (opencv, "rectification "
-                                                                                                "it wrote")
+        name = "stereo.yaml" if len(names) == 2 else "undistort.yaml"
+        files[folder / "opencv" / name] = (opencv, "rectification it wrote")
         if maps:
             files[folder / "opencv" / "rectify_maps.npz"] = (stereo.is_maps_npz, "rectify maps file it wrote")
     return files

@@ -23,11 +23,11 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
+from deepcharuco.calibration.exports import ExportRig
 from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
 from deepcharuco.calibration.solve import MODELS
 from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, VIEW_WEIGHT_SPREAD,
                                            border_margin)
-from deepcharuco.calibration.exports import ExportRig
 from deepcharuco.cli.calibration_exports import (add_export_options, export_folder, export_outputs, export_problems,
                                                 refuse_foreign_exports)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views

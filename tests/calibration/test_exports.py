@@ -2,13 +2,13 @@
 format's reference reader (pycolmap for COLMAP) or checked against its documented layout (Kalibr's camchain, ROS's
 camera_info), then the board projected with the numbers read back onto the pixels the OpenCV camera file puts it at."""
 
-import json
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from deepcharuco import Camera, read_camera
+from deepcharuco import Camera, read_camera, write_camera
 from deepcharuco.calibration.exports import ExportRig, check_cameras, export_files, parse_exports
 from deepcharuco.cli.calibrate import main
 from deepcharuco.core.errors import ExportError
@@ -18,9 +18,9 @@ yaml = pytest.importorskip("yaml")
 pycolmap = pytest.importorskip("pycolmap")
 
 SIZE = (640, 480)
-# What each reprojection must meet (the issue's target); the numbers read back are the files' decimal text.
-TOLERANCE_PX = 1e-6
-ALL = ["kalibr", "ros", "colmap", "opencv"]
+# What each reprojection must meet: the target was 1e-6 px; the files' decimal text round-trips every float, and the
+# exports measure <= 2e-13 px from the camera files' own projections.
+TOLERANCE_PX = 1e-9
 
 
 def truth(model: str, cameras: int = 3, seed: int = 5) -> tuple[ExportRig, np.ndarray]:
@@ -218,7 +218,7 @@ def test_a_pair_is_rectified_rows_agree_and_the_maps_lead_back_to_each_cameras_p
         assert inside.sum() > 100
         back = np.column_stack([bilinear(maps[f"cam{c}_map_x"], pixels[inside]),
                                 bilinear(maps[f"cam{c}_map_y"], pixels[inside])])
-        assert worst(back, opencv_pixels(camera, in_camera(rig, c, flat[inside]))) < 0.01
+        assert worst(back, opencv_pixels(camera, in_camera(rig, c, flat[inside]))) < 2e-3
     assert worst(rectified[0][:, 1], rectified[1][:, 1]) < TOLERANCE_PX  # one row in both rectified images
     # Q takes (u, v, disparity) back to the point in the first rectified camera's frame.
     disparity = rectified[0][:, 0] - rectified[1][:, 0]
@@ -247,14 +247,14 @@ def test_one_cameras_undistortion_and_its_maps(tmp_path):
     assert inside.sum() > 50
     back = np.column_stack([bilinear(maps["solo_map_x"], undistorted[inside]),
                             bilinear(maps["solo_map_y"], undistorted[inside])])
-    assert worst(back, opencv_pixels(rig.cameras[0], flat[inside])) < 0.01
+    assert worst(back, opencv_pixels(rig.cameras[0], flat[inside])) < 2e-3
 
 
 @pytest.mark.parametrize("formats, model, cameras, message", [
     (["kalibr"], "pinhole_k3", 3, "--export kalibr: cam0 has k3, which Kalibr's radtan model (k1 k2 p1 p2) has no term"),
     (["kalibr"], "rational", 3, "cam0 has k3..k6 (the rational model)"),
-    (["opencv"], "pinhole", 3, "--export opencv is a stereo pair's rectification (or one camera's undistortion); this "
-                               "rig has 3 cameras"),
+    (["opencv"], "pinhole", 3, ("--export opencv is a stereo pair's rectification (or one camera's undistortion); "
+                                "this rig has 3 cameras")),
 ])
 def test_a_camera_a_format_cannot_hold_is_refused(model, formats, cameras, message):
     rig, _ = truth(model, cameras)
@@ -279,10 +279,11 @@ def test_other_refusals_and_the_names():
 # ----------------------------------------------------------------------------------------------- the command
 @pytest.fixture(scope="module")
 def drawn(tmp_path_factory):
-    """Two cameras' folders of drawn frames (good light), a board file."""
+    """Two cameras' folders of drawn frames (good light), a board file, and the true cameras' files (k1 k2: radtan)."""
     truth_rig = drawn_rig(RIG_BOARD, seed=11, cameras=2, instants=16)
     root = tmp_path_factory.mktemp("pair")
-    return truth_rig.save_frames(root), RIG_BOARD.save(root / "board.yaml")
+    cameras = [write_camera(root / f"true{c}.yaml", camera) for c, camera in enumerate(truth_rig.cameras)]
+    return truth_rig.save_frames(root), RIG_BOARD.save(root / "board.yaml"), cameras
 
 
 def camera_file(path) -> tuple[Camera, np.ndarray, np.ndarray]:
@@ -293,18 +294,19 @@ def camera_file(path) -> tuple[Camera, np.ndarray, np.ndarray]:
 
 
 def test_the_command_exports_a_pair_in_every_format_matching_its_camera_files(tmp_path, drawn, capsys):
-    folders, board = drawn
+    folders, board, true_files = drawn
     out = tmp_path / "rig"
+    # The intrinsics held at the true cameras' (the quicker solve: the exports are what is tested here).
     assert main([*map(str, folders), "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet",
-                 "--no-report", "--fix-k3", "--export", "kalibr,ros", "--export", "colmap", "--export", "opencv",
-                 "--rectify-maps"]) == 0
+                 "--no-report", "--camera", str(true_files[0]), "--camera", str(true_files[1]), "--export",
+                 "kalibr,ros", "--export", "colmap", "--export", "opencv", "--rectify-maps"]) == 0
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
     assert files == sorted(["cam0.yaml", "cam1.yaml", "colmap/cameras.txt", "colmap/rig_config.json", "kalibr/camchain.yaml",
                      "opencv/rectify_maps.npz", "opencv/stereo.yaml", "ros/cam0.yaml", "ros/cam1.yaml", "rig.toml"])
     written = [camera_file(out / f"cam{c}.yaml") for c in range(2)]
     rig = ExportRig([w[0] for w in written], ["cam0", "cam1"], np.stack([w[1] for w in written]),
                     np.stack([w[2] for w in written]))
-    assert all(camera.dist[4] == 0 for camera in rig.cameras)  # --fix-k3: radtan holds them exactly
+    assert all(camera.dist[4] == 0 for camera in rig.cameras)  # radtan holds them exactly
     _, points = truth("pinhole", 2, seed=11)
     flat = points.reshape(-1, 3)
     chain = read_kalibr(out / "kalibr" / "camchain.yaml")
@@ -351,23 +353,26 @@ def test_the_command_exports_a_pair_in_every_format_matching_its_camera_files(tm
     (["--export", "ros,bundler"], 2, "--export bundler is not a format written here"),
     (["--export", "kalibr"], 2, "--export kalibr: Kalibr's radtan model has k1 k2 p1 p2 and no k3: add --fix-k3"),
     (["--export", "kalibr", "--model", "rational"], 2, "--export kalibr: a rational model (k4 k5 k6) cannot be written"),
-    (["--export", "opencv"], 3, "--export opencv is a stereo pair's rectification (or one camera's undistortion); 3 "
-                                "sources are not a pair"),
+    (["--export", "opencv"], 3, ("--export opencv is a stereo pair's rectification (or one camera's undistortion); 3 "
+                                "sources are not a pair")),
     (["--export", "ros", "--rectify-maps"], 2, "--rectify-maps writes the maps of --export opencv's rectification"),
     (["--export", "kalibr", "--model", "rational"], 1, "--export kalibr: a rational model (k4 k5 k6)"),
+    (["--export", "kalibr", "--camera", "K3.yaml", "--camera", "K3.yaml"], 2, "--export kalibr: K3.yaml has k3, which Kalibr's radtan"),
 ])
 def test_export_options_are_refused_before_any_work(tmp_path, drawn, capsys, monkeypatch, extra, sources, message):
-    folders, board = drawn
+    folders, board, _ = drawn
     monkeypatch.chdir(tmp_path)
+    if "K3.yaml" in extra:  # a camera held at a file with k3, which radtan cannot hold
+        write_camera(tmp_path / "K3.yaml", Camera(np.diag([500.0, 500, 1]), np.array([-0.2, 0.05, 0, 0, 0.01]), SIZE))
     given = [str(folders[0]), str(folders[1]), str(folders[0])][:sources]
     with pytest.raises(SystemExit) as stop:
         main([*given, "--board", str(board), "--detector", "opencv", "--out", "out", *extra])
     assert stop.value.code == 2 and message in capsys.readouterr().err
-    assert not list(tmp_path.iterdir())
+    assert not (tmp_path / "out").exists()
 
 
 def test_an_export_file_in_the_way_is_refused_before_the_solve(tmp_path, drawn, capsys, monkeypatch):
-    folders, board = drawn
+    folders, board, _ = drawn
     (tmp_path / "rig" / "kalibr").mkdir(parents=True)
     (tmp_path / "rig" / "kalibr" / "camchain.yaml").write_text("cam0: {camera_model: pinhole}  # the user's own\n")
 
@@ -380,3 +385,15 @@ def test_an_export_file_in_the_way_is_refused_before_the_solve(tmp_path, drawn, 
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "kalibr/camchain.yaml exists and is not a Kalibr camchain it wrote" in error[0]
     assert "the user's own" in (tmp_path / "rig" / "kalibr" / "camchain.yaml").read_text()
+
+
+def test_yaml_numbers_read_back_as_the_same_floats():
+    """YAML 1.1 (PyYAML, Kalibr's and ROS's Python readers) reads 1e-05 as a string: every number is written so that
+    it reads back as the float it was."""
+    camera = Camera(np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), np.array([-0.2, 1e-05, 3e-20, -1e-7, 0]),
+                    SIZE)
+    rig = ExportRig.single(camera, "tiny")
+    files = export_files(["kalibr", "ros"], rig, Path("x"))
+    kalibr, ros = (yaml.safe_load(text) for text in files.values())
+    assert kalibr["cam0"]["distortion_coeffs"] == [-0.2, 1e-05, 3e-20, -1e-7]
+    assert ros["distortion_coefficients"]["data"] == [-0.2, 1e-05, 3e-20, -1e-7, 0.0]
