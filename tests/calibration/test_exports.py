@@ -80,6 +80,9 @@ def read_kalibr(path) -> list[tuple[dict, np.ndarray]]:
         assert len(entry["intrinsics"]) == 4 and len(entry["distortion_coeffs"]) == 4
         assert all(isinstance(v, float) for v in entry["intrinsics"] + entry["distortion_coeffs"])
         assert entry["rostopic"].startswith("/") and all(isinstance(v, int) for v in entry["resolution"])
+        # What Kalibr's own reader (kalibr_common.ConfigReader) checks besides: a principal point >= 0, overlaps that
+        # name cameras of the chain.
+        assert min(entry["intrinsics"][2:]) >= 0 and all(0 <= o < len(chain) for o in entry.get("cam_overlaps", []))
         if c:
             step = np.array(entry["T_cn_cnm1"], np.float64)
             assert step.shape == (4, 4) and np.array_equal(step[3], [0, 0, 0, 1])
