@@ -273,34 +273,32 @@ def export_layout(formats: list[str], names: list[str], folder: Path, maps: bool
 
 
 def export_files(formats: list[str], rig: ExportRig, folder: Path, maps: bool = False) -> dict[Path, str | bytes]:
-    """{path: contents} of every file of `export_layout`; `ExportError` (`check_cameras`) before any is composed."""
+    """{path: contents} of every file of `export_layout` (composed in its order); `ExportError` (`check_cameras`)
+    before any is composed."""
     check_cameras(formats, rig.cameras, rig.names)
-    paths = iter(export_layout(formats, rig.names, folder, maps))
     pair = None
     if len(rig.cameras) == 2 and ("opencv" in formats or "ros" in formats):
         try:
             pair = stereo.stereo_rectify(rig.cameras[0], rig.cameras[1], *rig.relative(0, 1), tuple(rig.names))
         except ExportError:  # ROS alone: two cameras of two sizes or models are two mono cameras
             pair = None
-    files: dict[Path, str | bytes] = {}
+    contents: list[str | bytes] = []
     if "kalibr" in formats:
-        files[next(paths)] = kalibr_camchain(rig)
+        contents.append(kalibr_camchain(rig))
     if "ros" in formats:
         for c, (camera, name) in enumerate(zip(rig.cameras, rig.names)):
             rectified = (None, None) if pair is None else ((pair.R1, pair.P1) if c == 0 else (pair.R2, pair.P2))
-            files[next(paths)] = ros_camera_info(camera, name, *rectified)
+            contents.append(ros_camera_info(camera, name, *rectified))
     if "colmap" in formats:
-        files[next(paths)] = colmap_cameras(rig)
-        if len(rig.cameras) > 1:
-            files[next(paths)] = colmap_rig_config(rig)
+        contents += [colmap_cameras(rig)] + ([colmap_rig_config(rig)] if len(rig.cameras) > 1 else [])
     if "opencv" in formats:
         if pair is not None:
-            files[next(paths)] = stereo.stereo_text(rig.cameras[0], rig.cameras[1], tuple(rig.names), pair)
+            contents.append(stereo.stereo_text(rig.cameras[0], rig.cameras[1], tuple(rig.names), pair))
             rectified = [(pair.R1, pair.P1), (pair.R2, pair.P2)]
         else:
-            files[next(paths)] = stereo.undistort_text(rig.cameras[0], rig.names[0])
+            contents.append(stereo.undistort_text(rig.cameras[0], rig.names[0]))
             rectified = [(np.eye(3), stereo.undistorted_matrix(rig.cameras[0]))]
         if maps:
-            files[next(paths)] = stereo.maps_npz({name: stereo.rectify_maps(camera, R, P) for camera, name, (R, P)
-                                                  in zip(rig.cameras, rig.names, rectified)})
-    return files
+            contents.append(stereo.maps_npz({name: stereo.rectify_maps(camera, R, P) for camera, name, (R, P)
+                                             in zip(rig.cameras, rig.names, rectified)}))
+    return dict(zip(export_layout(formats, rig.names, folder, maps), contents, strict=True))

@@ -67,7 +67,7 @@ def export_folder(out: Path, rig: bool) -> Path:
 def refuse_foreign_exports(args: argparse.Namespace, folder: Path, names: list[str]) -> None:
     """Before any work: an export file in the way that this command did not write is refused (unless --force)."""
     for path, (is_ours, what) in export_layout(args.export, names, folder, args.rectify_maps).items():
-        refuse_foreign(path, is_ours, what, args.force, "--export")
+        refuse_foreign(path, is_ours, what, args.force)
 
 
 def export_outputs(args: argparse.Namespace, folder: Path, rig: ExportRig | RigResult) -> dict[Path, str | bytes]:
