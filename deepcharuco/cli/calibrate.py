@@ -23,10 +23,13 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
+from deepcharuco.calibration.exports import ExportRig
 from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
 from deepcharuco.calibration.solve import MODELS
 from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, VIEW_WEIGHT_SPREAD,
                                            border_margin)
+from deepcharuco.cli.calibration_exports import (add_export_options, export_folder, export_outputs, export_problems,
+                                                refuse_foreign_exports)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder, run_command
 from deepcharuco.cli.detect import make_detector
@@ -130,6 +133,7 @@ def run(args: argparse.Namespace) -> CalibrationResult:
     if report is not None:
         refuse_foreign(report, starts_with(REPORT_START), "calibration report", args.force,
                        "--report" if args.report else "--out's report")
+    refuse_foreign_exports(args, export_folder(out, False), [out.stem])
     out.parent.mkdir(parents=True, exist_ok=True)
     with OutputLock(out, "another calibrate"):
         return _calibrate_into(args, out, report)
@@ -164,6 +168,7 @@ def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) ->
             report.parent.mkdir(parents=True, exist_ok=True)
             files[report] = report_html(result, board, title=f"Calibration of {source.stem} ({args.detector} detector)",
                                         command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+    files.update(export_outputs(args, export_folder(out, False), ExportRig.single(result.camera, out.stem)))
     write_together(files)  # both or neither: a full disk leaves the previous files as they were
     K, std = result.camera.K, result.std
     deviation = (lambda name: f" +- {std[name]:.2f}" if name in std else "")  # noqa: E731
@@ -250,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "~jobs x the frames a second where the cores are there; the same detections)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (a camera: required)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_export_options(parser)
     return parser
 
 
@@ -295,6 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         problems.append("--fix-k3 is for the pinhole and rational models (fisheye has k1..k4)")
     if args.max_views < args.min_views:
         problems.append(f"--max-views ({args.max_views}) must be >= --min-views ({args.min_views})")
+    problems += export_problems(args, rig)
     if problems:
         parser.error("; ".join(problems))
     def body() -> None:

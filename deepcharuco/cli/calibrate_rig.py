@@ -27,6 +27,7 @@ from deepcharuco.calibration.rig_files import is_rig_toml, rig_camera_text, rig_
 from deepcharuco.calibration.rig_model import RigError, RigResult, RigView, rotations_from_vectors
 from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, border_margin,
                                            within_border)
+from deepcharuco.cli.calibration_exports import export_outputs, refuse_foreign_exports
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
@@ -332,6 +333,7 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
     refuse_foreign(out / TOML_NAME, is_rig_toml, "rig file", args.force)
     if not args.no_report:
         refuse_foreign(out / REPORT_NAME, starts_with(REPORT_START), "rig report", args.force)
+    refuse_foreign_exports(args, out, names)
     mapping = None  # with --timestamps: per source, {frame: instant}
     if args.timestamps is None:
         check_lengths(sources, args.sync_offsets)
@@ -397,6 +399,7 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
             files[out / REPORT_NAME] = report_html(
                 result, boards, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
                 command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+    files.update(export_outputs(args, out, result))
     write_together(files)
     print(f"{len(names)} cameras, {len({i for i, _ in result.board_poses})} instants, {len(result.views)} views: RMS {result.rms:.3f} px"
           f" -> {out}/")

@@ -23,3 +23,8 @@ class OptionError(DeepCharucoError, ValueError):
 
 class ShapeError(DeepCharucoError, ValueError):
     """An array of the wrong shape or with non-finite values (`deepcharuco.core.checks.check_shape`)."""
+
+
+class ExportError(DeepCharucoError, ValueError):
+    """A calibration that a file format cannot hold (a rational model in Kalibr's radtan), or a rectification asked
+    of cameras that have none (not a pair, two image sizes)."""
