@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from datagen.family import FamilySampling, check_prefixes, parse_families
+from datagen.render_cluster import add_options as add_cluster_options, submit_render
 from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
 from datagen.shards import INDEX_NAME, ShardReader, list_shards, temporary_prefix, update_index, write_shard
 from datagen.workers import TaskError, death_cause, report_progress, run_tasks
@@ -246,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", action="store_true", help="continue a run in --out, rendering only missing shards")
     parser.add_argument("--recycle", type=int, default=500, help="replace each worker process after about this many frames")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_cluster_options(parser)
     args = parser.parse_args(argv)
 
     problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
@@ -262,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--shard-index must be in [0, --num-shards), got {args.shard_index} of {args.num_shards}")
     if problems:
         parser.error("; ".join(problems))
-    def body() -> None:
+    def body() -> int | None:
         # The workers import Blender's module: without it each would fail after the run had started.
         require_extra("python -m datagen.render", ("bpy", "h5py"), "render",
                       " (bpy 5.0.1 installs on Python 3.11 only)")
@@ -281,6 +283,9 @@ def main(argv: list[str] | None = None) -> int:
                         samples=args.samples or (64 if args.clean else None), shard_size=args.shard_size,
                         clean=args.clean, device=args.device, threads=threads, families=families,
                         distortion_p=float(distortion_p), shadow_p=args.shadow_probability)
+        if args.cluster or args.submit:
+            check_existing(job, [], resume=True)  # shards of other arguments in --out: refused before submitting
+            return submit_render(args)
         started = time.perf_counter()
         index = run(job, workers=args.workers, shard_index=args.shard_index, num_shards=args.num_shards,
                     resume=args.resume, recycle=args.recycle, quiet=args.quiet)
