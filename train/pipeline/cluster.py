@@ -157,23 +157,29 @@ def tracker(pipeline: Pipeline, stages: list[Stage], options: Options, partition
 
 def on_slurm(pipeline: Pipeline, stages: list[Stage], args: argparse.Namespace) -> int:
     """``--cluster slurm``: write the job scripts; ``--submit`` them (and follow them unless ``--no-wait``);
-    ``--status``: say where each stage stands."""
+    ``--status``: say where each stage stands. What the cluster cannot give is refused before anything is
+    written."""
     options = options_of(args)
-    if not (args.submit or args.status):
-        follow_up = tracker(pipeline, stages, options, None, args.num_shards)
-        for job in follow_up.jobs:
-            print(f"wrote {write_script(job, follow_up.folder, chdir=follow_up.chdir, partition=None, tag=follow_up.tag)}")
-        print("submit them in order (the render script as an array job) with the same command and --submit, "
-              "which also follows the jobs and resubmits failed ones")
-        return 0
-    partition = slurm.choose_partition(options.partition)
+    partition = slurm.choose_partition(options.partition) if args.submit or args.status else None
     follow_up = tracker(pipeline, stages, options, partition, args.num_shards)
     if args.status:
         for _, line in follow_up.lines():
             print(line)
         return 0
-    for job in follow_up.jobs:
-        slurm.check_fits(partition, job.resources, job.name)
+    if partition is not None:
+        for job in follow_up.jobs:
+            slurm.check_fits(partition, job.resources, job.name)
+    pipeline.save_plan()  # the jobs plan from it: the sizes fixed here
     for job in follow_up.jobs:  # this plan's scripts with these options (a job resubmitted later runs them)
-        write_script(job, follow_up.folder, chdir=follow_up.chdir, partition=partition, tag=follow_up.tag)
-    return follow(follow_up, wait=not args.no_wait, poll=options.poll)
+        path = write_script(job, follow_up.folder, chdir=follow_up.chdir, partition=partition, tag=follow_up.tag)
+        if not args.submit:
+            print(f"wrote {path}")
+    if not args.submit:
+        print("submit them with the same command and --submit: it chains them (the render as an array job), follows "
+              "them and resubmits failed ones")
+        return 0
+    code = follow(follow_up, wait=not args.no_wait, poll=options.poll)
+    if code == 0 and not args.no_wait:
+        print(f"done: {pipeline.run / 'detector.pt'} (Detector(weights=...), detect --weights); card "
+              f"{pipeline.run / 'MODEL_CARD.md'}")
+    return code

@@ -189,8 +189,6 @@ def plan_and_run(args: argparse.Namespace, target: Target, pipeline: Pipeline) -
             print(f"wrote {path}")
         return 0
     if args.cluster == "slurm":
-        if not args.status:
-            pipeline.save_plan()
         return on_slurm(pipeline, stages, args)
     pipeline.save_plan()
     # Outside a stage's subprocess (which gets the signal passed on), a SIGTERM ends the run as Ctrl-C does:
