@@ -38,6 +38,7 @@ from deepcharuco.core.platform import describe_os_error
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
 CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean", "family",
                 "distortion_probability", "shadow_probability")
+STALE_INDEX_S = 600  # an index temporary older than this belongs to no live task (each is renamed within ms)
 FAMILY_DISTORTION_P = 0.5  # --distortion-probability's default with --family (0 with one board, as before)
 
 
@@ -157,12 +158,17 @@ def check_existing(job: RenderJob, mine: list[int], resume: bool) -> set[int]:
 
 def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
     """Leftovers of a killed run for the shards this job owns (never complete, never read), and a half-written
-    index of a run killed while it rebuilt the index (this run rebuilds it)."""
+    index of a run killed while it rebuilt the index (this run rebuilds it). A fresh index temporary is left alone:
+    it may be another array task's, renamed a moment later (removing it made that task fail)."""
     for shard in shards:
         for path in out.glob(f"{temporary_prefix(shard)}*"):
             path.unlink(missing_ok=True)
     for path in out.glob(f".{INDEX_NAME}.tmp-*"):
-        path.unlink(missing_ok=True)
+        try:
+            if time.time() - path.stat().st_mtime > STALE_INDEX_S:
+                path.unlink(missing_ok=True)
+        except FileNotFoundError:  # renamed by its task meanwhile
+            pass
 
 
 def run_shard_tasks(function, tasks: list[tuple], shards: list[int], out: Path, *, noun: str = "shard",

@@ -58,9 +58,11 @@ def submit_render(args: argparse.Namespace) -> int:
     from train.cluster.jobs import Job, write_script
     from train.cluster.watch import Tracker, follow
 
+    if not args.cluster:
+        raise DeepCharucoError("--submit goes with --cluster slurm (and --num-shards K for K array tasks)")
     if not args.submit:
         raise DeepCharucoError("--cluster slurm renders through the scheduler: add --submit (and --num-shards K "
-                                 "for K array tasks)")
+                               "for K array tasks)")
     if args.cpus_per_task is not None and args.cpus_per_task < 1 or args.max_retries < 0 or args.poll <= 0:
         raise DeepCharucoError("--cpus-per-task must be >= 1, --max-retries >= 0, --poll > 0")
     slurm.require_sbatch()

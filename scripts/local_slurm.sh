@@ -42,7 +42,7 @@ if [ ! -s /etc/munge/munge.key ]; then
 fi
 chown munge:munge /etc/munge/munge.key && chmod 0400 /etc/munge/munge.key
 if ! munge -n </dev/null 2>/dev/null | unmunge >/dev/null 2>&1; then
-    runuser -u munge -- /usr/sbin/munged
+    runuser -u munge -- /usr/sbin/munged </dev/null >/dev/null 2>&1
     for _ in $(seq 50); do munge -n </dev/null 2>/dev/null | unmunge >/dev/null 2>&1 && break; sleep 0.2; done
 fi
 
@@ -79,8 +79,9 @@ ${node_line% UpTime*} NodeAddr=127.0.0.1 State=UNKNOWN
 PartitionName=debug Nodes=${node} Default=YES MaxTime=INFINITE State=UP
 EOF
 
-pgrep -x slurmctld >/dev/null || slurmctld
-pgrep -x slurmd >/dev/null || slurmd
+# The daemons get no stdout/stderr of ours: a caller reading this script's output to its end would wait on them.
+pgrep -x slurmctld >/dev/null || slurmctld </dev/null >/dev/null 2>&1
+pgrep -x slurmd >/dev/null || slurmd </dev/null >/dev/null 2>&1
 for _ in $(seq 100); do
     if node_up; then
         say "SLURM is up: $(sinfo -h -o '%P %D node(s) %c CPUs %T' | head -1)"
