@@ -17,7 +17,9 @@ import pytest
 from conftest import REQUIRE_ALL, ROOT, needs_bpy, process_group
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec
+from train.cluster.slurm import parse_minutes
 from train.pipeline import checks, command, plan, stages
+from train.pipeline.cluster import parse_memory
 
 SCRIPT = ROOT / "scripts" / "local_slurm.sh"
 BOARD = BoardSpec(squares_x=4, squares_y=4, square_length=0.04, marker_length=0.03, dictionary="DICT_4X4_50")
@@ -170,3 +172,14 @@ def test_submit_without_sbatch_is_refused(tmp_path, capsys, monkeypatch):
                         "--submit"])
     err = capsys.readouterr().err
     assert code == 2 and "--submit needs SLURM's sbatch" in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("text, minutes", [("90", 90), ("1:30", 2), ("4:00:00", 240), ("1-02", 1560),
+                                           ("2-00:30:00", 2910), ("infinite", None), ("UNLIMITED", None)])
+def test_slurm_times_read_as_sbatch_reads_them(text, minutes):
+    assert parse_minutes(text) == minutes
+
+
+@pytest.mark.parametrize("text, mb", [("16G", 16384), ("8000M", 8000), ("8000", 8000), ("1T", 1048576), ("512K", 1)])
+def test_memory_reads_as_sbatch_reads_it(text, mb):
+    assert parse_memory(text) == mb

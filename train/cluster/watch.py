@@ -45,6 +45,7 @@ class Tracker:
     say: Callable[[str], None] = field(default=lambda line: print(line, flush=True))
     attempts: dict = field(default_factory=dict)  # (job name, task or None) -> submissions in this session
     shown: dict = field(default_factory=dict)  # job name -> its last progress line
+    finished: set = field(default_factory=set)  # jobs found done in this session (their checks read every file)
 
     # -- the record of submissions
     @property
@@ -75,6 +76,12 @@ class Tracker:
             found.setdefault(by_id[base]["job"], {}).setdefault(index, []).append((slurm_id, state, reason))
         return found
 
+    def done(self, job: Job) -> bool:
+        """``job.done()``, asked until it says yes: its checks read every output (shards, checkpoints)."""
+        if job.name not in self.finished and job.done():
+            self.finished.add(job.name)
+        return job.name in self.finished
+
     # -- one pass
     def step(self) -> bool:
         """Submit what is neither done nor queued (see the module's docstring); True when every job is done.
@@ -83,7 +90,7 @@ class Tracker:
         upstream: list[str] = []  # the queued and new jobs of earlier stages not done
         replaced = False
         for position, job in enumerate(self.jobs):
-            if job.done():
+            if self.done(job):
                 continue
             mine = queued.get(job.name, {})
             if replaced and mine:  # they wait on jobs just replaced: submitted again after the new ones
@@ -115,7 +122,7 @@ class Tracker:
                          + (f" (tasks {','.join(map(str, todo))} of {job.tasks})" if job.tasks else "") + waits)
                 replaced = True
             upstream += [entry[0] for entries in mine.values() for entry in entries] + new
-        return all(job.done() for job in self.jobs)
+        return all(self.done(job) for job in self.jobs)
 
     def count(self, job: Job, todo: list) -> None:
         """Count a (re)submission of ``todo`` (array tasks, or [None]); say how the last one ended; raise
@@ -152,7 +159,7 @@ class Tracker:
         queued = self.queued()
         result = []
         for job in self.jobs:
-            if job.done():
+            if self.done(job):
                 result.append((job.name, f"{job.name}: done"))
                 continue
             entries = [e for es in queued.get(job.name, {}).values() for e in es]

@@ -5,7 +5,6 @@ against the Kubernetes API's schema, tests/train/test_kubernetes.py)."""
 from __future__ import annotations
 
 import json
-import math
 import shlex
 from pathlib import Path
 
@@ -23,8 +22,6 @@ def write_manifests(pipeline: Pipeline, num_shards: int) -> list[Path]:
     render = next(s for s in stages if s.name == "render")
     render_command = [a for a in render.command if a not in ("--resume", "--quiet")]
     render_command[0] = "python"
-    per_job = pipeline.rates["render_s_per_frame"] * pipeline.sizes.frames / num_shards
-    hours = max(1, math.ceil(2 * (per_job + 600) / 3600))  # twice the estimate, at least an hour
     folder = pipeline.run / "cluster"
     folder.mkdir(parents=True, exist_ok=True)
     pipeline_command = pipeline.reproduce_command()
