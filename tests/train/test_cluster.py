@@ -17,7 +17,9 @@ import pytest
 from conftest import REQUIRE_ALL, ROOT, needs_bpy, process_group
 from datagen.shards import ShardReader, list_shards
 from deepcharuco import BoardSpec
-from train.cluster.slurm import parse_minutes
+from train.cluster.jobs import Job
+from train.cluster.slurm import Resources, choose_partition, parse_minutes
+from train.cluster.watch import Tracker, follow
 from train.pipeline import checks, command, plan, stages
 from train.pipeline.cluster import parse_memory
 
@@ -103,6 +105,7 @@ def test_pipeline_on_slurm_resubmits_a_cancelled_render_task(local_slurm, tmp_pa
         log = run / "cluster" / "logs" / f"render-{render_id}_1.log"
         wait_for(lambda: log.is_file() and "-m datagen.render" in log.read_text(), watcher, output)
         assert not (renders / "shard-00003.h5").exists()  # task 1 renders shards 1 and 3: it is mid-render
+        assert "--shard-index 1 --num-shards 2" in log.read_text()  # its own share of the shards
         subprocess.run(["scancel", f"{render_id}_1"], check=True)
         assert watcher.wait(timeout=HANG_S) == 0, output.read_text()[-3000:]
     text = output.read_text()
@@ -183,3 +186,36 @@ def test_slurm_times_read_as_sbatch_reads_them(text, minutes):
 @pytest.mark.parametrize("text, mb", [("16G", 16384), ("8000M", 8000), ("8000", 8000), ("1T", 1048576), ("512K", 1)])
 def test_memory_reads_as_sbatch_reads_it(text, mb):
     assert parse_memory(text) == mb
+
+
+@needs_bpy
+def test_a_bare_render_as_an_array_job(local_slurm, tmp_path):
+    """datagen.render --num-shards 2 --cluster slurm --submit: two array tasks render the shards a direct render
+    makes, byte for byte, and the index counts them all."""
+    args = ["--n", "2", "--shard-size", "1", "--width", "64", "--height", "48", "--samples", "1"]
+    env = {**os.environ, **EPOCH, "PYTHONPATH": str(ROOT)}
+    render = [sys.executable, "-m", "datagen.render", *args]
+    cluster = subprocess.run([*render, "--out", str(tmp_path / "array"), "--num-shards", "2", "--cluster", "slurm",
+                              "--submit", "--cpus-per-task", "1", "--poll", "1"], cwd=ROOT, env=env,
+                             capture_output=True, text=True, timeout=HANG_S)
+    assert cluster.returncode == 0, cluster.stdout + cluster.stderr
+    assert "render: submitted job" in cluster.stdout and "(tasks 0,1 of 2)" in cluster.stdout
+    subprocess.run([*render, "--out", str(tmp_path / "direct"), "--quiet"], cwd=ROOT, env=env, check=True)
+    shards = list_shards(tmp_path / "array")
+    assert [p.name for p in shards] == ["shard-00000.h5", "shard-00001.h5"]
+    for shard in shards:
+        assert shard.read_bytes() == (tmp_path / "direct" / shard.name).read_bytes(), shard.name
+    assert json.loads((tmp_path / "array" / "index.json").read_text())["frames"] == 2
+
+
+def test_a_job_that_can_never_start_stops_the_watcher(local_slurm, tmp_path, capsys):
+    """A job sbatch accepts but no node can run (more CPUs than the partition's nodes: squeue's PartitionConfig)
+    is cancelled and reported, instead of being waited on for ever."""
+    partition = choose_partition(None)
+    job = Job("too-big", ["true"], Resources(cpus=partition.cpus + 1, mem_mb=0, gpus=0, minutes=15), lambda: False)
+    tracker = Tracker([job], tmp_path / "cluster", tmp_path, "never", partition, max_retries=0)
+    assert follow(tracker, wait=True, poll=0.5) == 1
+    err = capsys.readouterr().err
+    assert "too-big: job" in err and "can never start (SLURM says PartitionConfig)" in err, err
+    job_id = tracker.submissions()[0]["id"]
+    assert job_id not in subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout.split()

@@ -27,6 +27,12 @@ from train.cluster.jobs import Job, script_path, write_script
 from deepcharuco.core.files import write_atomic
 
 
+# squeue's reasons of a pending job that no wait will change (sbatch accepts such a job and it waits for ever).
+NEVER_STARTS = {"PartitionConfig", "PartitionTimeLimit", "PartitionNodeLimit", "BadConstraints", "InvalidQOS",
+                "InvalidAccount", "QOSMaxCpuPerJobLimit", "QOSMaxGRESPerJob", "QOSMaxMemoryPerJob",
+                "QOSMaxWallDurationPerJobLimit"}
+
+
 class StageFailed(Exception):
     """A stage (or array task) failed more often than ``max_retries`` allows: the message says how and where
     its log is."""
@@ -98,6 +104,13 @@ class Tracker:
                 slurm.cancel(ids)
                 self.say(f"{job.name}: cancelled {', '.join(ids)} (it waited on replaced jobs): submitted again")
                 mine = {}
+            stuck = [(i, r) for entries in mine.values() for i, state, r in entries if r in NEVER_STARTS]
+            if stuck:
+                ids = [entry[0] for j in self.jobs[position:] for es in queued.get(j.name, {}).values() for entry in es]
+                slurm.cancel(ids)
+                raise StageFailed(f"{job.name}: job {stuck[0][0]} can never start (SLURM says {stuck[0][1]}): "
+                                  f"cancelled it and the jobs after it; ask for resources the partition gives "
+                                  f"(sinfo -o '%P %c %m %G %l'), then rerun")
             if job.tasks:
                 todo = [i for i in range(job.tasks) if i not in mine and not job.task_done(i)]
             else:
