@@ -106,8 +106,7 @@ class Tracker:
                 mine = {}
             stuck = [(i, r) for entries in mine.values() for i, state, r in entries if r in NEVER_STARTS]
             if stuck:
-                ids = [entry[0] for j in self.jobs[position:] for es in queued.get(j.name, {}).values() for entry in es]
-                slurm.cancel(ids)
+                slurm.cancel(queued_ids(queued, self.jobs[position:]))
                 raise StageFailed(f"{job.name}: job {stuck[0][0]} can never start (SLURM says {stuck[0][1]}): "
                                   f"cancelled it and the jobs after it; ask for resources the partition gives "
                                   f"(sinfo -o '%P %c %m %G %l'), then rerun")
@@ -119,9 +118,8 @@ class Tracker:
             if todo:
                 try:
                     self.count(job, todo)
-                except StageFailed:
-                    later = [e[0] for j in self.jobs[position + 1:] for es in queued.get(j.name, {}).values() for e in es]
-                    slurm.cancel(later)
+                except StageFailed:  # the later stages' jobs would wait for ever on this one
+                    slurm.cancel(queued_ids(queued, self.jobs[position + 1:]))
                     raise
                 script = script_path(self.folder, job)
                 if not script.is_file():
@@ -189,6 +187,11 @@ class Tracker:
             if self.shown.get(name) != line:
                 self.shown[name] = line
                 self.say(f"[{time.strftime('%H:%M:%S')}] {line}")
+
+
+def queued_ids(queued: dict[str, dict], jobs: list[Job]) -> list[str]:
+    """The SLURM IDs in ``queued`` (`Tracker.queued`) of ``jobs``."""
+    return [entry[0] for job in jobs for entries in queued.get(job.name, {}).values() for entry in entries]
 
 
 def follow(tracker: Tracker, *, wait: bool, poll: float) -> int:
