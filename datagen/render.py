@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from datagen.family import FamilySampling, check_prefixes, parse_families
+from datagen.render_cluster import add_options as add_cluster_options, submit_render
 from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
 from datagen.shards import INDEX_NAME, ShardReader, list_shards, temporary_prefix, update_index, write_shard
 from datagen.workers import TaskError, death_cause, report_progress, run_tasks
@@ -37,6 +38,7 @@ from deepcharuco.core.platform import describe_os_error
 # Arguments that decide the pixels and labels; a resumed run must agree on all of them.
 CONTENT_ARGS = ("n", "seed", "board", "width", "height", "samples", "shard_size", "clean", "family",
                 "distortion_probability", "shadow_probability")
+STALE_INDEX_S = 600  # an index temporary older than this belongs to no live task (each is renamed within ms)
 FAMILY_DISTORTION_P = 0.5  # --distortion-probability's default with --family (0 with one board, as before)
 
 
@@ -156,12 +158,17 @@ def check_existing(job: RenderJob, mine: list[int], resume: bool) -> set[int]:
 
 def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
     """Leftovers of a killed run for the shards this job owns (never complete, never read), and a half-written
-    index of a run killed while it rebuilt the index (this run rebuilds it)."""
+    index of a run killed while it rebuilt the index (this run rebuilds it). A fresh index temporary is left alone:
+    it may be another array task's, renamed a moment later (removing it made that task fail)."""
     for shard in shards:
         for path in out.glob(f"{temporary_prefix(shard)}*"):
             path.unlink(missing_ok=True)
     for path in out.glob(f".{INDEX_NAME}.tmp-*"):
-        path.unlink(missing_ok=True)
+        try:
+            if time.time() - path.stat().st_mtime > STALE_INDEX_S:
+                path.unlink(missing_ok=True)
+        except FileNotFoundError:  # renamed by its task meanwhile
+            pass
 
 
 def run_shard_tasks(function, tasks: list[tuple], shards: list[int], out: Path, *, noun: str = "shard",
@@ -246,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", action="store_true", help="continue a run in --out, rendering only missing shards")
     parser.add_argument("--recycle", type=int, default=500, help="replace each worker process after about this many frames")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_cluster_options(parser)
     args = parser.parse_args(argv)
 
     problems = [f"--{name.replace('_', '-')} must be >= {low}, got {getattr(args, name)}"
@@ -262,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--shard-index must be in [0, --num-shards), got {args.shard_index} of {args.num_shards}")
     if problems:
         parser.error("; ".join(problems))
-    def body() -> None:
+    def body() -> int | None:
         # The workers import Blender's module: without it each would fail after the run had started.
         require_extra("python -m datagen.render", ("bpy", "h5py"), "render",
                       " (bpy 5.0.1 installs on Python 3.11 only)")
@@ -281,6 +289,9 @@ def main(argv: list[str] | None = None) -> int:
                         samples=args.samples or (64 if args.clean else None), shard_size=args.shard_size,
                         clean=args.clean, device=args.device, threads=threads, families=families,
                         distortion_p=float(distortion_p), shadow_p=args.shadow_probability)
+        if args.cluster or args.submit:
+            check_existing(job, [], resume=True)  # shards of other arguments in --out: refused before submitting
+            return submit_render(args)
         started = time.perf_counter()
         index = run(job, workers=args.workers, shard_index=args.shard_index, num_shards=args.num_shards,
                     resume=args.resume, recycle=args.recycle, quiet=args.quiet)

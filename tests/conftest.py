@@ -44,7 +44,7 @@ needs_bpy = pytest.mark.skipif(importlib.util.find_spec("bpy") is None,
 # Python where one is missing (bpy has wheels for 3.11 only) must not pass green with the renders untested.
 REQUIRE_ALL = os.environ.get("DEEPCHARUCO_REQUIRE_ALL", "") == "1"
 DEPENDENCY_SKIP = re.compile(r"\b(bpy|blender|numba|onnxruntime|onnx runtime|onnx|torch|pytorch|reportlab|h5py|skimage|"
-                             r"scikit-image|matplotlib|scipy|pillow|PIL|pycolmap|yaml)\b|\bshipped\b.*\bweights\b", re.IGNORECASE)
+                             r"scikit-image|matplotlib|scipy|pillow|PIL|pycolmap|yaml|kubernetes-validate)\b|\bshipped\b.*\bweights\b", re.IGNORECASE)
 
 
 def _dependency_skip(report) -> str | None:

@@ -46,7 +46,7 @@ def test_the_layer_check_finds_an_upward_import():
 
 
 PIPELINE_LAYERS = tuple(f"train.pipeline.{name}" for name in (
-    "records", "plan", "rates", "checks", "evaluation", "stages", "card", "run", "cluster", "command")) + ("train.pipeline",)
+    "records", "plan", "rates", "checks", "evaluation", "stages", "card", "run", "cluster", "kubernetes", "command")) + ("train.pipeline",)
 
 
 def test_the_pipeline_modules_import_in_their_order():

@@ -272,22 +272,30 @@ def test_budget_shrinks_what_was_not_given_and_says_so():
 
 
 def test_cluster_scripts_shard_the_render_and_run_training_under_torchrun(tmp_path, capsys):
+    """--cluster slurm writes one job script per stage (absolute paths, the render an array over its shards, the
+    trainers with their GPUs under torchrun); --cluster k8s the Indexed Job manifests. Nothing is run."""
     board_file = SMALL_BOARD.save(tmp_path / "board.yaml")
     run = tmp_path / "run"
     seed_rates(run)
     for kind in ("slurm", "k8s"):
         code = command.main(["--board", str(board_file), "--out", str(run), *TINY, "--cluster", kind,
-                              "--num-shards", "4", "--nproc-per-node", "2"])
+                              "--num-shards", "4", "--nproc-per-node", "2", "--device", "cuda", "--time", "90"])
         assert code == 0, capsys.readouterr().err
-    slurm = (run / "cluster" / "render.slurm").read_text()
-    assert "#SBATCH --array=0-3" in slurm and '--shard-index "$SLURM_ARRAY_TASK_ID" --num-shards 4' in slurm
-    assert "-m datagen.render" in slurm and f"--board {run / 'board.yaml'}" in slurm and "--n 4" in slurm
-    training = (run / "cluster" / "train.slurm").read_text()
-    assert "--nproc-per-node 2" in training and "python -m train.pipeline" in training and "DDP" in training
-    job = (run / "cluster" / "render-job.yaml").read_text()
+    folder = run.resolve() / "cluster"
+    render = (folder / "render.sbatch").read_text()
+    assert f"#SBATCH --chdir={run.resolve()}" in render and "#SBATCH --time=1:30:00" in render
+    assert '--stage render --shard-index "$SLURM_ARRAY_TASK_ID" --num-shards 4' in render
+    assert f"--board {run.resolve() / 'board.yaml'}" in render and "--frames 4" in render
+    training = (folder / "charuconet.sbatch").read_text()
+    assert "#SBATCH --gres=gpu:2" in training and "--nproc-per-node 2" in training and "--stage charuconet" in training
+    assert "--gres" not in (folder / "patches.sbatch").read_text()
+    names = sorted(p.stem for p in folder.glob("*.sbatch"))
+    assert names == sorted(["render", "patches", "charuconet", "refinenet", "bundle", "eval-data-4x4-dict_4x4_50",
+                            "evaluate", "card"])
+    job = (folder / "render-job.yaml").read_text()
     assert "completionMode: Indexed" in job and "completions: 4" in job and "parallelism: 4" in job
     assert "--shard-index $JOB_COMPLETION_INDEX --num-shards 4" in job and "kind: Job" in job
-    train_job = (run / "cluster" / "train-job.yaml").read_text()
+    train_job = (folder / "train-job.yaml").read_text()
     assert "--nproc-per-node 2" in train_job and "nvidia.com/gpu: 2" in train_job
     assert not (run / "stages").exists()  # written, nothing run
     trainer = make_pipeline(["--board", str(board_file), "--out", str(run), "--nproc-per-node", "2"])

@@ -37,7 +37,9 @@ def write_card(pipeline: Pipeline) -> Path:
               "| stage | size | time | command |", "|---|---|---|---|"]
     for stage in pipeline.stages():
         record = records.get(slug(stage.name), {})
-        lines.append(f"| {stage.name} | {stage.size} | {human(record['seconds']) if record else 'this stage'} | "
+        took = ("this stage" if not record else "array tasks" if record.get("seconds") is None
+                else human(record["seconds"]))  # a render split over a cluster's array tasks has no one time
+        lines.append(f"| {stage.name} | {stage.size} | {took} | "
                      f"`{record.get('command') or 'in-process'}` |")
     if pipeline.notes:
         lines += ["", "Fitted to the budget: " + "; ".join(pipeline.notes) + "."]

@@ -15,10 +15,12 @@ from pathlib import Path
 from deepcharuco.boards.dictionaries import MARKER_FAMILIES
 from deepcharuco.cli.common import check_output_folder, output_folder, run_command
 from train.pipeline.checks import repair
-from train.pipeline.cluster import write_cluster_scripts
+from train.cluster import slurm
+from train.pipeline.cluster import DEFAULT_CPUS, on_slurm
+from train.pipeline.kubernetes import write_manifests
 from train.pipeline.plan import MIN_EVAL_SEQUENCES, ROOT, PipelineError, Target, check_target, parse_duration
 from train.pipeline.records import remove_tree
-from train.pipeline.run import execute
+from train.pipeline.run import execute, run_stage
 from train.pipeline.stages import Pipeline
 
 
@@ -75,13 +77,54 @@ def build_parser() -> argparse.ArgumentParser:
     look.add_argument("--seed", type=int, default=0, help="render and training seed")
     look.add_argument("--nproc-per-node", type=int, default=1,
                       help="training processes (GPUs) on this machine: > 1 runs the trainers under torchrun")
-    cluster = parser.add_argument_group("cluster")
+    cluster = parser.add_argument_group("cluster (docs/training.md, On a cluster)")
     cluster.add_argument("--cluster", choices=("slurm", "k8s"), default=None,
-                         help="write (not submit) a render array job and a training job for this plan, then stop")
-    cluster.add_argument("--num-shards", type=int, default=16, help="--cluster: render jobs in the array")
+                         help="slurm: write a job script per stage (the render an array job) to OUT/cluster, and with "
+                              "--submit submit, follow and recover them; k8s: write Kubernetes Job manifests")
+    cluster.add_argument("--submit", action="store_true",
+                         help="--cluster slurm: submit the stages not done yet, chained with --dependency=afterok, and "
+                              "follow them until the run is done (resubmitting failed array tasks)")
+    cluster.add_argument("--no-wait", action="store_true", help="--submit: exit after submitting, printing the job IDs")
+    cluster.add_argument("--status", action="store_true", help="--cluster slurm: say where each stage of the run stands")
+    cluster.add_argument("--num-shards", type=int, default=16, help="render tasks in the array (at most one per shard)")
+    cluster.add_argument("--partition", default=None, help="SLURM partition (default: the cluster's default)")
+    cluster.add_argument("--cpus-per-task", type=int, default=None,
+                         help=f"CPUs per job and per render task (default: {DEFAULT_CPUS}, or the nodes' CPUs if fewer)")
+    cluster.add_argument("--mem", default=None, help="memory per job, e.g. 16G (default: 4G render, 16G trainers, "
+                                                     "8G the rest, or the nodes' memory if less)")
+    cluster.add_argument("--gpus", type=int, default=None,
+                         help="GPUs per trainer job (--gres=gpu:N; N > 1 runs the trainer under torchrun with N "
+                              "processes; default: --nproc-per-node with --device cuda, else none)")
+    cluster.add_argument("--time", default=None, help="time limit per job, e.g. 4:00:00 (default: twice the stage's "
+                                                      "ETA plus 10 minutes, at least 15 minutes)")
+    cluster.add_argument("--max-retries", type=int, default=2,
+                         help="--submit: times a failed job or array task is resubmitted before the run stops")
+    cluster.add_argument("--poll", type=float, default=10.0, help="--submit: seconds between looks at the queue")
+    cluster.add_argument("--stage", default=None, help="run this one stage (what each cluster job runs); its earlier "
+                                                       "stages must be done")
+    cluster.add_argument("--shard-index", type=int, default=None,
+                         help="--stage render: render only this array task's shards (index of --num-shards)")
     parser.add_argument("--plan-only", action="store_true", help="print the plan and its ETA, run nothing")
     parser.add_argument("--quiet", action="store_true", help="no progress bars from the stages")
     return parser
+
+
+def check_cluster_options(args: argparse.Namespace) -> None:
+    """The cluster options agree with each other, and ``--submit``/``--status`` find SLURM's commands."""
+    if (args.submit or args.status or args.no_wait) and args.cluster != "slurm":
+        raise PipelineError("--submit, --no-wait and --status go with --cluster slurm")
+    if args.no_wait and not args.submit:
+        raise PipelineError("--no-wait goes with --submit (submit, print the job IDs and exit)")
+    if args.num_shards < 1:
+        raise PipelineError(f"--num-shards {args.num_shards}: give 1 or more render tasks")
+    if args.stage and (args.cluster or args.plan_only):
+        raise PipelineError("--stage runs one stage here (as a cluster job does): leave out --cluster and --plan-only")
+    if args.shard_index is not None and not (args.stage == "render" and 0 <= args.shard_index < args.num_shards):
+        if args.stage != "render":
+            raise PipelineError("--shard-index goes with --stage render (an array task of the render)")
+        raise PipelineError(f"--shard-index {args.shard_index}: give 0 to --num-shards - 1 ({args.num_shards - 1})")
+    if args.submit or args.status:
+        slurm.require_sbatch()
 
 
 def render_supports_family() -> bool:
@@ -107,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.init.lower() not in ("none", "shipped") and not Path(args.init).is_file():
             raise PipelineError(f"--init {args.init} does not exist: give a bundle or checkpoint, or 'none' to "
                                 "train from scratch")
+        check_cluster_options(args)
         pipeline = Pipeline(args, target)
         try:
             return plan_and_run(args, target, pipeline)
@@ -127,17 +171,25 @@ def plan_and_run(args: argparse.Namespace, target: Target, pipeline: Pipeline) -
     if target.family and not render_supports_family():
         raise PipelineError("this checkout's datagen.render has no --family option yet (python -m datagen.render "
                             "--help): render one board with --board B.yaml, or update the checkout")
+    if (args.stage or args.status) and not (pipeline.run / "plan.json").is_file():
+        raise PipelineError(f"{pipeline.run} holds no planned run (no plan.json): run the command without "
+                            f"{'--stage' if args.stage else '--status'} first (--cluster slurm --submit plans it)")
     pipeline.plan()
     stages = pipeline.stages()
-    if not args.plan_only and not args.cluster:
+    if args.stage:
+        return run_stage(pipeline, stages, args.stage, args.shard_index, args.num_shards)
+    if not args.plan_only and (not args.cluster or args.submit):
         repair(pipeline.run, stages, pipeline.sizes.frames)
-    pipeline.print_plan(stages)
-    if args.cluster:
-        for path in write_cluster_scripts(pipeline, args.cluster, args.num_shards):
-            print(f"wrote {path}")
-        return 0
+    if not args.status:
+        pipeline.print_plan(stages)
     if args.plan_only:
         return 0
+    if args.cluster == "k8s":
+        for path in write_manifests(pipeline, args.num_shards):
+            print(f"wrote {path}")
+        return 0
+    if args.cluster == "slurm":
+        return on_slurm(pipeline, stages, args)
     pipeline.save_plan()
     # Outside a stage's subprocess (which gets the signal passed on), a SIGTERM ends the run as Ctrl-C does:
     # nothing half-made is recorded as done, and the exit code says which signal stopped it.

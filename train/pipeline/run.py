@@ -5,14 +5,17 @@ kept for later plans. ``pipeline`` is a planned `train.pipeline.stages.Pipeline`
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
+from datagen.shards import update_index
 from train.pipeline.card import write_card
-from train.pipeline.checks import checkpoint_step, is_done, marker
+from train.pipeline.checks import checkpoint_step, damaged_files, finished, is_done, marker, missing_output
 from train.pipeline.evaluation import bundle_summary, evaluate_model
 from train.pipeline.plan import ROOT, PipelineError, human
 from train.pipeline.rates import record_rate
@@ -36,28 +39,85 @@ def execute(pipeline: Pipeline, stages: list[Stage]) -> int:
     for number, stage in enumerate(stages, 1):
         if is_done(pipeline.run, stage, pipeline.sizes.frames):
             continue
-        print(f"\n== stage {number}/{len(stages)}: {stage.name}: {stage.what} ({stage.size}, ~{human(stage.eta)})",
-              flush=True)
-        started = time.perf_counter()
-        if stage.command is None:
-            result = run_in_process(pipeline, stage)
-        else:
-            code, result = run_subprocess(pipeline, stage)
-            if code in (130, 143, -signal.SIGINT, -signal.SIGTERM):
-                print(f"stopped during stage {stage.name}: rerun the same command to continue", file=sys.stderr)
-                return 130 if code in (130, -signal.SIGINT) else 143
-            if code != 0:
-                raise PipelineError(f"stage {stage.name} failed (exit code {code}; its message is above): fix what "
-                                    f"it says and rerun the same command, finished stages are kept. The command "
-                                    f"was: {shlex.join(stage.command)}")
-        seconds = time.perf_counter() - started
-        record(pipeline, stage, seconds, result)
-        write_json(marker(pipeline.run, stage), {"stage": stage.name,
-                                                 "command": shlex.join(stage.command) if stage.command else None,
-                                                 "seconds": round(seconds, 1), "finished": now(), "result": result})
+        code = run_one(pipeline, stage, f"{number}/{len(stages)}")
+        if code:
+            return code
     print(f"\ndone: {pipeline.run / 'detector.pt'} (Detector(weights=...), detect --weights); card "
           f"{pipeline.run / 'MODEL_CARD.md'}")
     return 0
+
+
+def run_one(pipeline: Pipeline, stage: Stage, number: str, extra: list[str] = ()) -> int:
+    """Run ``stage`` (its command with ``extra`` arguments) and record it finished: 0, or 130/143 when a
+    signal stopped it. ``extra`` (a render's shard of an array job) leaves the record to `settle_render`."""
+    print(f"\n== stage {number}: {stage.name}: {stage.what} ({stage.size}, ~{human(stage.eta)})", flush=True)
+    started = time.perf_counter()
+    start_stamp = now()
+    if stage.command is None:
+        result = run_in_process(pipeline, stage)
+    else:
+        command = list(stage.command) + list(extra)
+        code, result = run_subprocess(pipeline, replace(stage, command=command))
+        if code in (130, 143, -signal.SIGINT, -signal.SIGTERM):
+            print(f"stopped during stage {stage.name}: rerun the same command to continue", file=sys.stderr)
+            return 130 if code in (130, -signal.SIGINT) else 143
+        if code != 0:
+            raise PipelineError(f"stage {stage.name} failed (exit code {code}; its message is above): fix what "
+                                f"it says and rerun the same command, finished stages are kept. The command "
+                                f"was: {shlex.join(command)}")
+    seconds = time.perf_counter() - started
+    if extra:
+        return 0
+    record(pipeline, stage, seconds, result)
+    write_json(marker(pipeline.run, stage), {"stage": stage.name,
+                                             "command": shlex.join(stage.command) if stage.command else None,
+                                             "seconds": round(seconds, 1), "started": start_stamp,
+                                             "finished": now(), "result": result})
+    return 0
+
+
+def run_stage(pipeline: Pipeline, stages: list[Stage], name: str, shard_index: int | None, num_shards: int) -> int:
+    """``--stage NAME``: run one stage, as a cluster job does, after checking that the stages before it are
+    done. The render stage with a ``shard_index`` renders task ``shard_index``'s shards (as many Cycles threads
+    as the job's CPUs), and the task that finds every shard there records the stage finished."""
+    names = [stage.name for stage in stages]
+    if name not in names:
+        raise PipelineError(f"--stage {name!r}: this plan's stages are {', '.join(names)}")
+    position = names.index(name)
+    stage = stages[position]
+    for earlier in stages[:position]:
+        if not (settle_render(pipeline, earlier) or is_done(pipeline.run, earlier, pipeline.sizes.frames)):
+            raise PipelineError(f"--stage {name}: stage {earlier.name} is not done yet: run it first (python -m "
+                                f"train.pipeline ... --cluster slurm --submit runs them in order)")
+    if is_done(pipeline.run, stage, pipeline.sizes.frames):
+        print(f"stage {name} is done already: nothing to run")
+        return 0
+    extra: list[str] = []
+    if name == "render" and shard_index is not None:
+        extra = ["--shard-index", str(shard_index), "--num-shards", str(num_shards)]
+        cpus = os.environ.get("SLURM_CPUS_PER_TASK", "")
+        if cpus.isdigit():  # the job's CPUs, not the node's (task/none does not bind a job to its cores)
+            extra += ["--threads", cpus]
+    code = run_one(pipeline, stage, f"{position + 1}/{len(stages)}", extra)
+    if code == 0 and extra:
+        settle_render(pipeline, stage)
+    return code
+
+
+def settle_render(pipeline: Pipeline, stage: Stage) -> bool:
+    """The render stage split over array tasks is finished when all its shards are there and read back: then
+    rebuild ``index.json`` (the tasks rewrote it concurrently, each from what it saw) and record the stage.
+    True when this recorded it; False for any other stage or while shards are missing."""
+    if stage.name != "render" or finished(pipeline.run, stage):
+        return False
+    renders = pipeline.run / "data" / "renders"
+    if missing_output(pipeline.run, stage, pipeline.sizes.frames) or damaged_files(pipeline.run, stage):
+        return False
+    update_index(renders)
+    write_json(marker(pipeline.run, stage), {"stage": stage.name, "command": shlex.join(stage.command),
+                                             "seconds": None, "finished": now(),
+                                             "result": {"split": "array tasks of a cluster job"}})
+    return True
 
 
 def run_subprocess(pipeline: Pipeline, stage: Stage) -> tuple[int, dict]:

@@ -196,7 +196,7 @@ class Pipeline:
         s, run, quiet = self.sizes, self.run, ["--quiet"] if self.args.quiet else []
         eta = eta_of(s, self.rates, len(self.eval_boards), self.target.heads, self.from_scratch)
         renders, patches = run / "data" / "renders", run / "data" / "patches"
-        shard_size = max(1, min(100, s.frames // 10))
+        shard_size = self.render_shard_size
         stages = [
             Stage("render", f"render {s.frames} frames of " + (f"random {self.target.family} boards" if self.target.family
                                                               else "the board"),
@@ -249,6 +249,12 @@ class Pipeline:
                             eta["evaluate"]))
         stages.append(Stage("card", "write MODEL_CARD.md from the measured numbers", "1 file", 1.0))
         return stages
+
+    @property
+    def render_shard_size(self) -> int:
+        """Frames per render shard: a tenth of the frames, 1 to 100 (a shard is the unit a resumed or split
+        render redoes)."""
+        return max(1, min(100, self.sizes.frames // 10))
 
     def charuconet_stages(self, eta: float, renders: Path) -> list[Stage]:
         """One ChArUcoNet stage from the initial weights; from scratch with both heads, the shipped recipe's two:
