@@ -29,6 +29,8 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            within_border)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
+from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_recorded, describe, disagree, frame_intervals,
+                                      renumbered, worst_spread)
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
@@ -70,19 +72,26 @@ def refuse_one_source_twice(paths: list[str]) -> None:
                                        f"a rig needs one source per camera; give each once")
 
 
+def different_lengths(sources: list[Source]) -> str | None:
+    """"name N, name M" of recorded sources (videos, folders) when their lengths differ, else None."""
+    totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
+    if len({total for _, total in totals}) > 1:
+        return ", ".join(f"{name} {total}" for name, total in totals)
+    return None
+
+
 def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
-    """Videos (or folders of frames) of one rig recorded together have one length; without --sync-offsets other
-    lengths are refused."""
+    """Videos (or folders of frames) of one rig recorded together have one length; with --sync frames (no
+    --sync-offsets) other lengths are refused."""
     for source, offset in zip(sources, offsets or []):
         if source.total and offset >= source.total:
             raise RigError(f"--sync-offsets {offset} for {source.stem} skips every one of its {source.total} frames: "
                            f"give the frames to skip at its start, fewer than it has")
-    totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
-    if offsets is None and len({total for _, total in totals}) > 1:
-        listed = ", ".join(f"{name} {total}" for name, total in totals)
+    listed = different_lengths(sources)
+    if offsets is None and listed:
         raise RigError(f"the sources have different lengths ({listed} frames), so frame n of each need not show one "
-                       f"instant: give --sync-offsets (the frames to skip at each one's start so that they line up), "
-                       f"or trim them to start and end together")
+                       f"instant: give --sync auto (line them up by the board's motion) or --sync-offsets (the frames "
+                       f"to skip at each one's start so that they line up), or trim them to start and end together")
 
 
 def detect_synchronised(sources: list[Source], detectors: list, offsets: list[int], *, step: int = 1,
@@ -276,13 +285,15 @@ def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[t
 
 def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
               boards: list[BoardSpec], options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
-              given: list[str | None] | None = None, weigh_rig_corners: bool = True) -> RigResult:
+              given: list[str | None] | None = None, weigh_rig_corners: bool = True, starts: tuple | None = None
+              ) -> RigResult:
     """The rig from every camera's detections of every board (``detections[c][b]``: one `FrameDetection` per
     instant, its index the instant): starting intrinsics (`starting_cameras`), corners within
     ``options.border_px`` of the border left out, then `calibrate_rig`, which weighs corners by their covariances
-    where ``options`` weighs one camera's and ``weigh_rig_corners``."""
-    cameras, terms, notes, priors, noise = starting_cameras(detections, sizes, names, given or [None] * len(names), boards,
-                                                     model, options, fix_k3)
+    where ``options`` weighs one camera's and ``weigh_rig_corners``. ``starts``: `starting_cameras`' result where
+    already computed (``--sync auto`` needs the intrinsics before the instants are known)."""
+    cameras, terms, notes, priors, noise = starts or starting_cameras(
+        detections, sizes, names, given or [None] * len(names), boards, model, options, fix_k3)
     views = []
     for c, per_board in enumerate(detections):
         for b, frames in enumerate(per_board):
@@ -333,22 +344,30 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
     if not args.no_report:
         refuse_foreign(out / REPORT_NAME, starts_with(REPORT_START), "rig report", args.force)
     mapping = None  # with --timestamps: per source, {frame: instant}
-    if args.timestamps is None:
-        check_lengths(sources, args.sync_offsets)
-    else:
+    auto = None  # why the sources are aligned automatically (rig_sync), or None
+    listed = different_lengths(sources)
+    if args.timestamps is not None:
         times = read_timestamps(args.timestamps, names, [s.total if s.kind in ("video", "images") else None
                                                          for s in sources])
         mapping = instants_by_time(times)
         check_overlap(times, mapping, names)
+    elif args.sync == "auto" or (args.sync is None and args.sync_offsets is None and listed):
+        check_recorded(sources)
+        auto = "--sync auto" if args.sync == "auto" else f"the sources have different lengths: {listed} frames"
+    else:
+        check_lengths(sources, args.sync_offsets)
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / TOML_NAME, "another calibrate"):
-        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping)
+        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping, auto)
 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
-              targets: list[Path], mapping: list[dict[int, int]] | None) -> RigResult:
+              targets: list[Path], mapping: list[dict[int, int]] | None, auto: str | None) -> RigResult:
     pool = calibration_pool(args.detector, boards, args.refine, args.weights, args.jobs)
-    if mapping is None:
+    if auto is not None:  # every frame of every source, by its own number; instants once the delays are known
+        every = [{k: k for k in range(source.total)} for source in sources]
+        detections, sizes = detect_by_time(sources, detectors, every, quiet=args.quiet, pool=pool)
+    elif mapping is None:
         offsets = args.sync_offsets or [0] * len(sources)
         detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet, pool=pool)
     else:
@@ -366,6 +385,27 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
         raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0][0])} instants: check "
                        f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
                        f"in focus")
+    margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
+    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
+                               border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
+    starts, alignment = None, None
+    if auto is None and mapping is None and args.sync is None and args.sync_offsets is None and args.step == 1:
+        starts = starting_cameras(detections, sizes, names, args.camera or [None] * len(names), boards, args.model,
+                                  options, args.fix_k3)
+        spread, pair = worst_spread(detections, boards, starts[0], options.min_corners)
+        if disagree(spread) and pair is not None:
+            check_recorded(sources)
+            auto = (f"cameras {names[pair[0]]} and {names[pair[1]]} disagree on where they stand from one frame to "
+                    f"the next by {spread:.1f} degrees")
+    if auto is not None:
+        starts = starts or starting_cameras(detections, sizes, names, args.camera or [None] * len(names), boards,
+                                            args.model, options, args.fix_k3)
+        alignment = align_sources(detections, boards, starts[0], frame_intervals(sources), names, options.min_corners)
+        times = aligned_times(detections, alignment)
+        mapping = instants_by_time(times)
+        check_overlap(times, mapping, names)
+        detections = renumbered(detections, mapping, args.step)
+        print(describe(alignment, auto, all(s.kind == "images" for s in sources)))
     if args.origin == "board" and args.origin_instant is not None:
         seen = sorted({f.index for per_board in detections for frames in per_board for f in frames if len(f.ids)})
         if args.origin_instant not in seen:
@@ -373,11 +413,8 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
             raise RigError(f"--origin-instant {args.origin_instant}: no camera found the board at that instant (of "
                            f"{len(detections[0][0])} read); instants near it where one did: "
                            f"{', '.join(map(str, nearest))}")
-    margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
-    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
-                               border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
     result = solve_rig(detections, sizes, names, boards, options, model=args.model, fix_k3=args.fix_k3,
-                       given=args.camera)
+                       given=args.camera, starts=starts)
     frame = f"camera {names[0]}'s"
     if args.origin == "board":
         (instant, board_index), result = board_origin(result, args.origin_instant)
@@ -396,7 +433,7 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
 
             files[out / REPORT_NAME] = report_html(
                 result, boards, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
-                command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+                command="python -m deepcharuco.calibrate " + " ".join(args.argv), alignment=alignment)
     write_together(files)
     print(f"{len(names)} cameras, {len({i for i, _ in result.board_poses})} instants, {len(result.views)} views: RMS {result.rms:.3f} px"
           f" -> {out}/")
