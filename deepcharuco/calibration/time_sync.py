@@ -64,7 +64,7 @@ class MotionSignal:
     turn_deg: float  # the largest angle between the board's orientation in a frame and in its first posed frame
     poses: int  # frames with a pose
 
-    def smoothed(self, sigma: float = 1.0) -> "MotionSignal":
+    def smoothed(self, sigma: float = 1.0) -> MotionSignal:
         """The signal smoothed by a Gaussian of ``sigma`` samples over the samples it has (gaps stay NaN):
         interpolating noisy samples averages their noise, least half-way between them, which pulls a
         correlation's peak toward half frames; noise already averaged over neighbours is hardly changed."""

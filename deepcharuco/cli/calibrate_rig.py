@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import filecmp
-import math
 import sys
 from pathlib import Path
 
@@ -29,8 +28,8 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            within_border)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
-from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_recorded, describe, disagree, frame_intervals,
-                                      renumbered, worst_spread)
+from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_overlap, check_recorded, describe, disagree,
+                                      frame_intervals, instants_by_time, read_timestamps, renumbered, worst_spread)
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
@@ -144,88 +143,6 @@ def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
         raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
                                f"{sizes[camera][0]}x{sizes[camera][1]}: one camera, one resolution")
     return gray
-
-
-def read_timestamps(path: str | Path, names: list[str], totals: list[int | None] | None = None
-                    ) -> list[dict[int, float]]:
-    """Each source's {frame: time (s)} from a CSV with the columns ``source,frame,time_s`` (``source``: the source's
-    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). Refused, naming the line: a time that is not
-    finite, a negative frame or one past its source's ``totals`` (frames, where known), one frame given twice at
-    different times; and a source without any row, or whose times do not increase with its frame numbers."""
-    import csv
-
-    try:
-        with open(path, newline="", encoding="utf-8") as handle:
-            rows = list(csv.DictReader(handle))
-    except OSError as error:
-        raise DeepCharucoError(f"--timestamps {path}: cannot read it ({error.strerror or error})") from None
-    except (UnicodeDecodeError, csv.Error) as error:
-        raise DeepCharucoError(f"--timestamps {path} is not a text CSV ({type(error).__name__} at byte "
-                               f"{getattr(error, 'start', '?')}): give a UTF-8 CSV with the header source,frame,time_s"
-                               ) from None
-    if not rows or not {"source", "frame", "time_s"} <= set(rows[0]):
-        raise DeepCharucoError(f"--timestamps {path} needs a header source,frame,time_s and one row per frame")
-    times: list[dict[int, float]] = [{} for _ in names]
-    for line, row in enumerate(rows, start=2):
-        key = row["source"].strip()
-        camera = names.index(key) if key in names else int(key) if key.isdigit() and int(key) < len(names) else None
-        if camera is None:
-            raise DeepCharucoError(f"--timestamps {path} line {line}: source {key!r} is none of {', '.join(names)} "
-                                   f"(or 0..{len(names) - 1})")
-        try:
-            frame, time = int(row["frame"]), float(row["time_s"])
-        except (ValueError, TypeError):
-            raise DeepCharucoError(f"--timestamps {path} line {line}: frame and time_s must be numbers") from None
-        where = f"--timestamps {path} line {line}"
-        if not math.isfinite(time):
-            raise DeepCharucoError(f"{where}: time_s {row['time_s'].strip()} is not a time: give seconds")
-        if frame < 0 or (totals and totals[camera] and frame >= totals[camera]):
-            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]}, whose frames are numbered 0.."
-                                   f"{(totals[camera] - 1) if totals and totals[camera] else 'N'}: give frame numbers "
-                                   f"from 0 (a folder's: its images' places in name order)")
-        if frame in times[camera] and times[camera][frame] != time:
-            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]} again, at {time:g} s (before: "
-                                   f"{times[camera][frame]:g} s): give each frame once")
-        times[camera][frame] = time
-    for name, table in zip(names, times):
-        if not table:
-            raise DeepCharucoError(f"--timestamps {path} has no row for {name}: give every source's frame times")
-        ordered = [table[frame] for frame in sorted(table)]
-        if len(ordered) > 1 and not all(b > a for a, b in zip(ordered, ordered[1:])):
-            raise DeepCharucoError(f"--timestamps {path}: {name}'s times do not increase with its frame numbers "
-                                   f"(two frames at one time, or out of order): give each frame the time it was taken")
-    return times
-
-
-def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
-    """Per source, {frame: instant}: the instants are the first source's frames, and another source's frame belongs
-    to the instant nearest in time when within half of the first source's median frame interval (the nearer of two
-    frames that would share one)."""
-    reference = sorted(times[0].items(), key=lambda item: item[1])
-    frames0 = np.array([frame for frame, _ in reference])
-    times0 = np.array([t for _, t in reference])
-    tolerance = 0.5 * float(np.median(np.diff(times0))) if len(times0) > 1 else math.inf
-    mapping: list[dict[int, int]] = [{int(f): int(f) for f in frames0}]
-    for table in times[1:]:
-        best: dict[int, tuple[float, int]] = {}
-        for frame, t in table.items():
-            k = int(np.clip(np.searchsorted(times0, t), 1, len(times0) - 1)) if len(times0) > 1 else 0
-            k = k - 1 if k > 0 and abs(times0[k - 1] - t) <= abs(times0[k] - t) else k
-            gap = abs(times0[k] - t)
-            if gap <= tolerance and (frames0[k] not in best or gap < best[frames0[k]][0]):
-                best[int(frames0[k])] = (gap, frame)
-        mapping.append({frame: instant for instant, (_, frame) in best.items()})
-    return mapping
-
-
-def check_overlap(times: list[dict[int, float]], mapping: list[dict[int, int]], names: list[str]) -> None:
-    """`RigError` naming a source none of whose frames joins an instant of the first (`instants_by_time`): its clock
-    never overlaps the first's."""
-    for c in range(1, len(names)):
-        if not mapping[c]:
-            spans = [f"{names[k]} {min(times[k].values()):g}..{max(times[k].values()):g} s" for k in (0, c)]
-            raise RigError(f"--timestamps: no frame of {names[c]} was taken within half a frame interval of one of "
-                           f"{names[0]}'s ({', '.join(spans)}): give both sources' times on one clock")
 
 
 def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,

@@ -26,7 +26,11 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.rig_model import rotation_angle_deg
 from deepcharuco.calibration.time_sync import align
-from deepcharuco.calibration.views import FrameDetection, SelectionOptions, border_margin
+from deepcharuco.calibration.views import (
+    FrameDetection,
+    SelectionOptions,
+    border_margin,
+)
 from deepcharuco.cli.calibrate_rig import instants_by_time, solve_rig
 from deepcharuco.cli.rig_sync import aligned_times, renumbered
 from deepcharuco.geometry.camera import Camera, read_camera
@@ -135,9 +139,9 @@ def real_experiment(folder: Path, detector: str, cache: Path) -> dict:
         found = align(frames, board, cameras, [1 / 6] * 4, names)
         true = [cuts[c] - cuts[0] for c in range(4)]  # frames to skip at c's start relative to the first
         whole = [int(d.lags[int(np.nanargmax(d.scores))]) if len(d.lags) else 0 for d in found.delays]
-        row = {"cuts": cuts, "true_whole_frames": [-t for t in true], "found_whole_frames": whole,
+        row = {"cuts": cuts, "true_whole_frames": [-t for t in true], "correlation_peak_frames": whole,
                "found_frames": [d.frames for d in found.delays],
-               "sub_frame_vs_uncut": [d.frames + t - u for d, t, u in zip(found.delays, true, row_uncut(uncut))]}
+               "found_minus_cut_minus_uncut": [d.frames + t - u.frames for d, t, u in zip(found.delays, true, uncut.delays)]}
         # The rig from the frames aligned automatically (nearest instants) and by hand (the cuts undone).
         times = aligned_times([[f] for f in frames], found)
         auto = renumbered([[f] for f in frames], instants_by_time(times))
@@ -149,7 +153,9 @@ def real_experiment(folder: Path, detector: str, cache: Path) -> dict:
         row["rig_rotation_deg"] = [rotation_angle_deg(rigs[0].rotations[c] @ rigs[1].rotations[c].T) for c in range(4)]
         row["rig_centre_mm_per_m"] = [1000 * float(np.linalg.norm(rigs[0].centre(c) - rigs[1].centre(c))) / baseline
                                       for c in range(4)]
-        row["paired_like_hand"] = [sorted(f.index for f in a[0]) == sorted(f.index for f in h[0])
+        # The same pairs as by hand (the hand instants count from the earliest start: camera 0's frame k is
+        # instant k - low there, k here).
+        row["paired_like_hand"] = [sorted(f.index for f in a[0]) == sorted(f.index + low for f in h[0])
                                    for a, h in zip(auto, hand)]
         rows["cuts"].append(row)
     frames = [cut(f, 0, 2 if c in (1, 3) else 1) for c, f in enumerate(detections)]
@@ -158,10 +164,6 @@ def real_experiment(folder: Path, detector: str, cache: Path) -> dict:
     rows["half_rate_std_ms"] = [1000 * d.std_s for d in half.delays]
     rows["uncut_ms"] = [1000 * d.delay_s for d in uncut.delays]
     return rows
-
-
-def row_uncut(uncut) -> list[float]:
-    return [d.frames for d in uncut.delays]
 
 
 def main(argv: list[str] | None = None) -> int:

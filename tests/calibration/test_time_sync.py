@@ -7,14 +7,14 @@ import math
 import cv2
 import numpy as np
 import pytest
-
 from conftest import ROOT
+
 from deepcharuco import BoardSpec, read_camera
-from deepcharuco.geometry.camera import write_camera
 from deepcharuco.calibration.rig_model import rotation_angle_deg
 from deepcharuco.calibration.time_sync import MotionSignal, SyncError, align, delay_of
 from deepcharuco.calibration.views import FrameDetection
 from deepcharuco.cli.calibrate import main
+from deepcharuco.geometry.camera import write_camera
 from evaluate.calibration.rig_views import RIG_BOARD, drawn_rig
 from evaluate.calibration.sync_eval import cut, drawn_detections
 
@@ -180,7 +180,7 @@ def test_sources_too_short_to_align_are_one_line(tmp_path, videos, capsys):
         folder = tmp_path / f"{path.rsplit('/', 1)[1][:-4]}"
         folder.mkdir()
         for k in range(12):
-            ok, frame = capture.read()
+            _, frame = capture.read()
             cv2.imwrite(str(folder / f"{k:03d}.png"), frame)
         short.append(str(folder))
     out = tmp_path / "rig"
