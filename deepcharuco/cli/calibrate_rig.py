@@ -1,8 +1,10 @@
 """``python -m deepcharuco.calibrate cam0.mp4 cam1.mp4 ... --out rig/``: a rig of cameras from synchronised sources.
 
 Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant; with
-``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them) and
-the board detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
+``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them; with
+``--sync auto``, and without ``--sync`` where the sources differ in length or their views at frame n disagree, every
+frame of each is read and the sources are lined up by the board's motion, `deepcharuco.cli.rig_sync`) and the board
+detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
 own single-camera calibration (`deepcharuco.calibration.intrinsics.calibrate`, as ``calibrate`` does for one camera) or
 are held at a given ``--camera`` file's; then `deepcharuco.calibration.rig.calibrate_rig` places the cameras and
 bundle-adjusts everything together. Writes into ``--out``: ``<source name>.yaml`` per camera, ``rig.toml`` and
@@ -310,8 +312,7 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
         starts = starting_cameras(detections, sizes, names, args.camera or [None] * len(names), boards, args.model,
                                   options, args.fix_k3)
         spread, pair = worst_spread(detections, boards, starts[0], options.min_corners)
-        if disagree(spread) and pair is not None:
-            check_recorded(sources)
+        if disagree(spread) and pair is not None and all(s.kind in ("video", "images") and s.total for s in sources):
             auto = (f"cameras {names[pair[0]]} and {names[pair[1]]} disagree on where they stand from one frame to "
                     f"the next by {spread:.1f} degrees")
     if auto is not None:
