@@ -159,5 +159,6 @@ def check_synchronised(pairs: dict[tuple[int, int], PairEstimate], names: list[s
             raise RigError(
                 f"cameras {names[i]} and {names[j]} disagree on where they stand relative to each other from one "
                 f"instant to the next (median {pair.spread_deg:.1f} degrees over {pair.count} shared instants; a still "
-                f"rig gives < 1): the videos are not synchronised frame by frame: give --sync-offsets (the frames to "
-                f"skip at each video's start so that they line up) or record them together")
+                f"rig gives < 1): the videos are not synchronised frame by frame: give --sync auto (lined up by the "
+                f"board's motion), --sync-offsets (the frames to skip at each video's start so that they line up) or "
+                f"record them together")

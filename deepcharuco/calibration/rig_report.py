@@ -14,6 +14,7 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.html_page import html_page, png, pyplot
 from deepcharuco.calibration.rig_model import INTRINSICS, RigResult, rotations_from_vectors
+from deepcharuco.calibration.time_sync import Alignment
 
 MAX_LISTED = 200
 
@@ -69,6 +70,29 @@ def residual_figure(result: RigResult) -> bytes:
     return png(figure)
 
 
+def alignment_figure(alignment: Alignment) -> bytes:
+    """The evidence of ``--sync auto``: every source's board rotation speed on the first source's clock after its
+    delay is taken off (the curves should lie on each other), and each source's correlation over whole-frame
+    delays (one clear peak)."""
+    plt = pyplot()
+    figure, (signals, scores) = plt.subplots(2, 1, figsize=(7.5, 5.6))
+    for c, (name, signal, delay) in enumerate(zip(alignment.names, alignment.signals, alignment.delays)):
+        times = (np.arange(len(signal.values)) + 0.5) * signal.interval - delay.delay_s
+        signals.plot(times, signal.values[:, 0], ".-", color=f"C{c}", lw=0.8, ms=2.5,
+                     label=name if c == 0 else f"{name} (delay {delay.frames:+.2f} frames)")
+        if c and len(delay.lags):
+            scores.plot(delay.lags, delay.scores, ".-", color=f"C{c}", lw=0.8, ms=3, label=name)
+            scores.axvline(delay.frames, color=f"C{c}", lw=0.6, ls=":")
+    signals.set_xlabel(f"time on {alignment.names[0]}'s clock (s)")
+    signals.set_ylabel("board rotation speed (deg/s)")
+    signals.legend(fontsize=7)
+    scores.set_xlabel("delay (frames of each source)")
+    scores.set_ylabel("correlation")
+    scores.legend(fontsize=7)
+    figure.tight_layout()
+    return png(figure)
+
+
 def parameter_rows(result: RigResult) -> list[list[str]]:
     """One row per camera: intrinsics, distortion and pose, each with its standard deviation where solved."""
     rows = [["camera", "fx", "fy", "cx", "cy", "distortion (k1 k2 p1 p2 k3 ...)", "centre (m)", "rotation sd (deg)",
@@ -85,6 +109,18 @@ def parameter_rows(result: RigResult) -> list[list[str]]:
                      " ".join(f"{v:.4g}" for v in camera.dist), " ".join(f"{v:+.3f}" for v in result.centre(c)),
                      f"{std['rotation_deg']:.3f}" if "rotation_deg" in std else "origin", translation])
     return rows
+
+
+def alignment_section(alignment: Alignment) -> tuple:
+    """The time alignment's section: each source's delay with its deviation and the peaks behind it."""
+    rows = [["source", "delay (frames)", "delay (ms)", "correlation", "next peak", "frame pairs shared"]] + [
+        [name, f"{d.frames:+.3f} +- {d.std_frames:.3f}", f"{1000 * d.delay_s:+.1f} +- {1000 * d.std_s:.1f}",
+         f"{d.peak:.3f}", f"{d.second:.3f}", str(d.overlap)]
+        for name, d in zip(alignment.names[1:], alignment.delays[1:])]
+    return ("Time alignment", f"The sources were lined up in time from the board's motion (rotation and centre speed "
+            f"from its poses, which every camera sees alike), each against {alignment.names[0]}: delay = frames to "
+            f"skip at the source's start, refined to a fraction of a frame; each frame was then paired with the "
+            f"nearest instant of {alignment.names[0]}.", rows, ["alignment"])
 
 
 def report_sections(result: RigResult, boards: list[BoardSpec], frame: str) -> list:
@@ -123,7 +159,12 @@ def report_sections(result: RigResult, boards: list[BoardSpec], frame: str) -> l
 
 
 def report_html(result: RigResult, boards: list[BoardSpec], frame: str, *, title: str = "Rig calibration",
-                command: str = "") -> str:
-    """The page (figures inlined) of ``result``, calibrated with ``boards``."""
+                command: str = "", alignment: Alignment | None = None) -> str:
+    """The page (figures inlined) of ``result``, calibrated with ``boards``; ``alignment``: the sources' time
+    alignment (``--sync auto``) and its evidence."""
     figures = {"layout": layout_figure(result, boards), "residuals": residual_figure(result)}
-    return html_page(title, command, report_sections(result, boards, frame), figures)
+    sections = report_sections(result, boards, frame)
+    if alignment is not None:
+        figures["alignment"] = alignment_figure(alignment)
+        sections.insert(1, alignment_section(alignment))
+    return html_page(title, command, sections, figures)

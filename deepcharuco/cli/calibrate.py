@@ -207,6 +207,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a rig: one per source, the frames to skip at its start so that the sources line up "
                              "(a video started 3 frames before the others: 3; frame n + N_i of source i shows the "
                              "same instant as frame n + N_j of source j); default: all 0")
+    parser.add_argument("--sync", choices=["auto", "frames"], default=None,
+                        help="a rig: how its sources line up in time. auto: each source's delay to the first from the "
+                             "board's motion (how fast it turns and moves, which every camera sees alike), to a "
+                             "fraction of a frame, reported with its uncertainty, each frame then paired with the "
+                             "nearest instant (docs/calibration.md); frames: frame n of each source is one instant. "
+                             "Default: frames, or auto where the sources differ in length or their views at frame n "
+                             "disagree on where the cameras stand (the output says so and by how much)")
     parser.add_argument("--timestamps", default=None, metavar="CSV",
                         help="a rig whose cameras ran at their own times: a CSV with source,frame,time_s per frame "
                              "(source: a source's name, e.g. cam_0, or its position 0, 1, ...); the instants are the "
@@ -275,14 +282,18 @@ def main(argv: list[str] | None = None) -> int:
     if any(s.isdigit() and not Path(s).exists() for s in args.source) and args.max_frames is None:
         problems.append("a live camera needs --max-frames (how many frames to capture)")
     rig = len(args.source) > 1
-    if not rig and (args.camera or args.sync_offsets or args.timestamps):
-        option = "--camera" if args.camera else "--sync-offsets" if args.sync_offsets else "--timestamps"
+    if not rig and (args.camera or args.sync_offsets or args.timestamps or args.sync):
+        option = ("--camera" if args.camera else "--sync-offsets" if args.sync_offsets else "--timestamps"
+                  if args.timestamps else "--sync")
         problems.append(f"{option} is for a rig (two sources or more); one camera's intrinsics are what calibrate "
                         f"solves")
     if args.origin_instant is not None and args.origin != "board":
         problems.append("--origin-instant is for --origin board")
     if args.sync_offsets and args.timestamps:
         problems.append("give --sync-offsets or --timestamps, not both (timestamps line the sources up themselves)")
+    if args.sync and (args.sync_offsets or args.timestamps):
+        given = "--sync-offsets" if args.sync_offsets else "--timestamps"
+        problems.append(f"give --sync {args.sync} or {given}, not both ({given} lines the sources up by hand)")
     if rig and args.camera and len(args.camera) != len(args.source):
         problems.append(f"--camera given {len(args.camera)} times for {len(args.source)} sources: give one per source "
                         f"(- for a camera to solve)")

@@ -1,8 +1,10 @@
 """``python -m deepcharuco.calibrate cam0.mp4 cam1.mp4 ... --out rig/``: a rig of cameras from synchronised sources.
 
 Every source is read frame by frame in step (frame n of each, after its ``--sync-offsets``, is one instant; with
-``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them) and
-the board detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
+``--timestamps``, the instants are the first source's frames and the others' frames nearest in time join them; with
+``--sync auto``, and without ``--sync`` where the sources differ in length or their views at frame n disagree, every
+frame of each is read and the sources are lined up by the board's motion, `deepcharuco.cli.rig_sync`) and the board
+detected in each frame (one progress bar over the instants). Each camera's intrinsics start from its
 own single-camera calibration (`deepcharuco.calibration.intrinsics.calibrate`, as ``calibrate`` does for one camera) or
 are held at a given ``--camera`` file's; then `deepcharuco.calibration.rig.calibrate_rig` places the cameras and
 bundle-adjusts everything together. Writes into ``--out``: ``<source name>.yaml`` per camera, ``rig.toml`` and
@@ -14,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import filecmp
-import math
 import sys
 from pathlib import Path
 
@@ -30,6 +31,8 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
 from deepcharuco.cli.calibration_exports import export_outputs, refuse_foreign_exports
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder
+from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_overlap, check_recorded, describe, disagree,
+                                      frame_intervals, instants_by_time, read_timestamps, renumbered, worst_spread)
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
@@ -71,19 +74,26 @@ def refuse_one_source_twice(paths: list[str]) -> None:
                                        f"a rig needs one source per camera; give each once")
 
 
+def different_lengths(sources: list[Source]) -> str | None:
+    """"name N, name M" of recorded sources (videos, folders) when their lengths differ, else None."""
+    totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
+    if len({total for _, total in totals}) > 1:
+        return ", ".join(f"{name} {total}" for name, total in totals)
+    return None
+
+
 def check_lengths(sources: list[Source], offsets: list[int] | None) -> None:
-    """Videos (or folders of frames) of one rig recorded together have one length; without --sync-offsets other
-    lengths are refused."""
+    """Videos (or folders of frames) of one rig recorded together have one length; with --sync frames (no
+    --sync-offsets) other lengths are refused."""
     for source, offset in zip(sources, offsets or []):
         if source.total and offset >= source.total:
             raise RigError(f"--sync-offsets {offset} for {source.stem} skips every one of its {source.total} frames: "
                            f"give the frames to skip at its start, fewer than it has")
-    totals = [(s.stem, s.total) for s in sources if s.kind in ("video", "images") and s.total]
-    if offsets is None and len({total for _, total in totals}) > 1:
-        listed = ", ".join(f"{name} {total}" for name, total in totals)
+    listed = different_lengths(sources)
+    if offsets is None and listed:
         raise RigError(f"the sources have different lengths ({listed} frames), so frame n of each need not show one "
-                       f"instant: give --sync-offsets (the frames to skip at each one's start so that they line up), "
-                       f"or trim them to start and end together")
+                       f"instant: give --sync auto (line them up by the board's motion) or --sync-offsets (the frames "
+                       f"to skip at each one's start so that they line up), or trim them to start and end together")
 
 
 def detect_synchronised(sources: list[Source], detectors: list, offsets: list[int], *, step: int = 1,
@@ -136,88 +146,6 @@ def _checked_gray(camera: int, name: str, frame: np.ndarray, source: Source,
         raise CalibrationError(f"{source.stem}: frame {name} is {size[0]}x{size[1]} but the first was "
                                f"{sizes[camera][0]}x{sizes[camera][1]}: one camera, one resolution")
     return gray
-
-
-def read_timestamps(path: str | Path, names: list[str], totals: list[int | None] | None = None
-                    ) -> list[dict[int, float]]:
-    """Each source's {frame: time (s)} from a CSV with the columns ``source,frame,time_s`` (``source``: the source's
-    name, e.g. ``cam_0`` for cam_0.mp4, or its position 0, 1, ...). Refused, naming the line: a time that is not
-    finite, a negative frame or one past its source's ``totals`` (frames, where known), one frame given twice at
-    different times; and a source without any row, or whose times do not increase with its frame numbers."""
-    import csv
-
-    try:
-        with open(path, newline="", encoding="utf-8") as handle:
-            rows = list(csv.DictReader(handle))
-    except OSError as error:
-        raise DeepCharucoError(f"--timestamps {path}: cannot read it ({error.strerror or error})") from None
-    except (UnicodeDecodeError, csv.Error) as error:
-        raise DeepCharucoError(f"--timestamps {path} is not a text CSV ({type(error).__name__} at byte "
-                               f"{getattr(error, 'start', '?')}): give a UTF-8 CSV with the header source,frame,time_s"
-                               ) from None
-    if not rows or not {"source", "frame", "time_s"} <= set(rows[0]):
-        raise DeepCharucoError(f"--timestamps {path} needs a header source,frame,time_s and one row per frame")
-    times: list[dict[int, float]] = [{} for _ in names]
-    for line, row in enumerate(rows, start=2):
-        key = row["source"].strip()
-        camera = names.index(key) if key in names else int(key) if key.isdigit() and int(key) < len(names) else None
-        if camera is None:
-            raise DeepCharucoError(f"--timestamps {path} line {line}: source {key!r} is none of {', '.join(names)} "
-                                   f"(or 0..{len(names) - 1})")
-        try:
-            frame, time = int(row["frame"]), float(row["time_s"])
-        except (ValueError, TypeError):
-            raise DeepCharucoError(f"--timestamps {path} line {line}: frame and time_s must be numbers") from None
-        where = f"--timestamps {path} line {line}"
-        if not math.isfinite(time):
-            raise DeepCharucoError(f"{where}: time_s {row['time_s'].strip()} is not a time: give seconds")
-        if frame < 0 or (totals and totals[camera] and frame >= totals[camera]):
-            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]}, whose frames are numbered 0.."
-                                   f"{(totals[camera] - 1) if totals and totals[camera] else 'N'}: give frame numbers "
-                                   f"from 0 (a folder's: its images' places in name order)")
-        if frame in times[camera] and times[camera][frame] != time:
-            raise DeepCharucoError(f"{where}: frame {frame} of {names[camera]} again, at {time:g} s (before: "
-                                   f"{times[camera][frame]:g} s): give each frame once")
-        times[camera][frame] = time
-    for name, table in zip(names, times):
-        if not table:
-            raise DeepCharucoError(f"--timestamps {path} has no row for {name}: give every source's frame times")
-        ordered = [table[frame] for frame in sorted(table)]
-        if len(ordered) > 1 and not all(b > a for a, b in zip(ordered, ordered[1:])):
-            raise DeepCharucoError(f"--timestamps {path}: {name}'s times do not increase with its frame numbers "
-                                   f"(two frames at one time, or out of order): give each frame the time it was taken")
-    return times
-
-
-def instants_by_time(times: list[dict[int, float]]) -> list[dict[int, int]]:
-    """Per source, {frame: instant}: the instants are the first source's frames, and another source's frame belongs
-    to the instant nearest in time when within half of the first source's median frame interval (the nearer of two
-    frames that would share one)."""
-    reference = sorted(times[0].items(), key=lambda item: item[1])
-    frames0 = np.array([frame for frame, _ in reference])
-    times0 = np.array([t for _, t in reference])
-    tolerance = 0.5 * float(np.median(np.diff(times0))) if len(times0) > 1 else math.inf
-    mapping: list[dict[int, int]] = [{int(f): int(f) for f in frames0}]
-    for table in times[1:]:
-        best: dict[int, tuple[float, int]] = {}
-        for frame, t in table.items():
-            k = int(np.clip(np.searchsorted(times0, t), 1, len(times0) - 1)) if len(times0) > 1 else 0
-            k = k - 1 if k > 0 and abs(times0[k - 1] - t) <= abs(times0[k] - t) else k
-            gap = abs(times0[k] - t)
-            if gap <= tolerance and (frames0[k] not in best or gap < best[frames0[k]][0]):
-                best[int(frames0[k])] = (gap, frame)
-        mapping.append({frame: instant for instant, (_, frame) in best.items()})
-    return mapping
-
-
-def check_overlap(times: list[dict[int, float]], mapping: list[dict[int, int]], names: list[str]) -> None:
-    """`RigError` naming a source none of whose frames joins an instant of the first (`instants_by_time`): its clock
-    never overlaps the first's."""
-    for c in range(1, len(names)):
-        if not mapping[c]:
-            spans = [f"{names[k]} {min(times[k].values()):g}..{max(times[k].values()):g} s" for k in (0, c)]
-            raise RigError(f"--timestamps: no frame of {names[c]} was taken within half a frame interval of one of "
-                           f"{names[0]}'s ({', '.join(spans)}): give both sources' times on one clock")
 
 
 def detect_by_time(sources: list[Source], detectors: list, mapping: list[dict[int, int]], *, step: int = 1,
@@ -277,13 +205,15 @@ def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[t
 
 def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
               boards: list[BoardSpec], options: SelectionOptions, *, model: str = "pinhole", fix_k3: bool = False,
-              given: list[str | None] | None = None, weigh_rig_corners: bool = True) -> RigResult:
+              given: list[str | None] | None = None, weigh_rig_corners: bool = True, starts: tuple | None = None
+              ) -> RigResult:
     """The rig from every camera's detections of every board (``detections[c][b]``: one `FrameDetection` per
     instant, its index the instant): starting intrinsics (`starting_cameras`), corners within
     ``options.border_px`` of the border left out, then `calibrate_rig`, which weighs corners by their covariances
-    where ``options`` weighs one camera's and ``weigh_rig_corners``."""
-    cameras, terms, notes, priors, noise = starting_cameras(detections, sizes, names, given or [None] * len(names), boards,
-                                                     model, options, fix_k3)
+    where ``options`` weighs one camera's and ``weigh_rig_corners``. ``starts``: `starting_cameras`' result where
+    already computed (``--sync auto`` needs the intrinsics before the instants are known)."""
+    cameras, terms, notes, priors, noise = starts or starting_cameras(
+        detections, sizes, names, given or [None] * len(names), boards, model, options, fix_k3)
     views = []
     for c, per_board in enumerate(detections):
         for b, frames in enumerate(per_board):
@@ -335,22 +265,30 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
         refuse_foreign(out / REPORT_NAME, starts_with(REPORT_START), "rig report", args.force)
     refuse_foreign_exports(args, out, names)
     mapping = None  # with --timestamps: per source, {frame: instant}
-    if args.timestamps is None:
-        check_lengths(sources, args.sync_offsets)
-    else:
+    auto = None  # why the sources are aligned automatically (rig_sync), or None
+    listed = different_lengths(sources)
+    if args.timestamps is not None:
         times = read_timestamps(args.timestamps, names, [s.total if s.kind in ("video", "images") else None
                                                          for s in sources])
         mapping = instants_by_time(times)
         check_overlap(times, mapping, names)
+    elif args.sync == "auto" or (args.sync is None and args.sync_offsets is None and listed):
+        check_recorded(sources)
+        auto = "--sync auto" if args.sync == "auto" else f"the sources have different lengths: {listed} frames"
+    else:
+        check_lengths(sources, args.sync_offsets)
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / TOML_NAME, "another calibrate"):
-        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping)
+        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping, auto)
 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
-              targets: list[Path], mapping: list[dict[int, int]] | None) -> RigResult:
+              targets: list[Path], mapping: list[dict[int, int]] | None, auto: str | None) -> RigResult:
     pool = calibration_pool(args.detector, boards, args.refine, args.weights, args.jobs)
-    if mapping is None:
+    if auto is not None:  # every frame of every source, by its own number; instants once the delays are known
+        every = [{k: k for k in range(source.total)} for source in sources]
+        detections, sizes = detect_by_time(sources, detectors, every, quiet=args.quiet, pool=pool)
+    elif mapping is None:
         offsets = args.sync_offsets or [0] * len(sources)
         detections, sizes = detect_synchronised(sources, detectors, offsets, step=args.step, quiet=args.quiet, pool=pool)
     else:
@@ -368,6 +306,26 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
         raise RigError(f"the board was never found by {', '.join(unseen)} in {len(detections[0][0])} instants: check "
                        f"--board (squares, dictionary, an inverted print) and that the board is in that view, lit and "
                        f"in focus")
+    margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
+    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
+                               border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
+    starts, alignment = None, None
+    if auto is None and mapping is None and args.sync is None and args.sync_offsets is None and args.step == 1:
+        starts = starting_cameras(detections, sizes, names, args.camera or [None] * len(names), boards, args.model,
+                                  options, args.fix_k3)
+        spread, pair = worst_spread(detections, boards, starts[0], options.min_corners)
+        if disagree(spread) and pair is not None and all(s.kind in ("video", "images") and s.total for s in sources):
+            auto = (f"cameras {names[pair[0]]} and {names[pair[1]]} disagree on where they stand from one frame to "
+                    f"the next by {spread:.1f} degrees")
+    if auto is not None:
+        starts = starts or starting_cameras(detections, sizes, names, args.camera or [None] * len(names), boards,
+                                            args.model, options, args.fix_k3)
+        alignment = align_sources(detections, boards, starts[0], frame_intervals(sources), names, options.min_corners)
+        times = aligned_times(detections, alignment)
+        mapping = instants_by_time(times)
+        check_overlap(times, mapping, names)
+        detections = renumbered(detections, mapping, args.step)
+        print(describe(alignment, auto, all(s.kind == "images" for s in sources)))
     if args.origin == "board" and args.origin_instant is not None:
         seen = sorted({f.index for per_board in detections for frames in per_board for f in frames if len(f.ids)})
         if args.origin_instant not in seen:
@@ -375,11 +333,8 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
             raise RigError(f"--origin-instant {args.origin_instant}: no camera found the board at that instant (of "
                            f"{len(detections[0][0])} read); instants near it where one did: "
                            f"{', '.join(map(str, nearest))}")
-    margin = border_margin(args.refine) if args.border_margin is None else args.border_margin
-    options = SelectionOptions(min_corners=args.min_corners, min_views=args.min_views, max_views=args.max_views,
-                               border_px=margin, select_terms=not args.all_terms, weight_views=not args.equal_weights)
     result = solve_rig(detections, sizes, names, boards, options, model=args.model, fix_k3=args.fix_k3,
-                       given=args.camera)
+                       given=args.camera, starts=starts)
     frame = f"camera {names[0]}'s"
     if args.origin == "board":
         (instant, board_index), result = board_origin(result, args.origin_instant)
@@ -398,7 +353,7 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
 
             files[out / REPORT_NAME] = report_html(
                 result, boards, frame, title=f"Rig calibration of {', '.join(names)} ({args.detector} detector)",
-                command="python -m deepcharuco.calibrate " + " ".join(args.argv))
+                command="python -m deepcharuco.calibrate " + " ".join(args.argv), alignment=alignment)
     files.update(export_outputs(args, out, result))
     write_together(files)
     print(f"{len(names)} cameras, {len({i for i, _ in result.board_poses})} instants, {len(result.views)} views: RMS {result.rms:.3f} px"

@@ -3,7 +3,10 @@ REALDATA``, where REALDATA holds the folders described in each set's SOURCE.txt;
 
 caliscope_cam1: frames of caliscope's cam_1.mp4 decoded by OpenCV, converted to grey and saved as JPEG
 (quality 90), with camera_cam_1.yaml as camera.yaml and the by-eye verdicts of those frames; opencv_tutorial:
-the photos as published (choriginal.jpg is left out: it is calib_img_01.jpg byte for byte).
+the photos as published (choriginal.jpg is left out: it is calib_img_01.jpg byte for byte); caliscope_rig: the
+deep detector's corners (shipped weights, refinenet) in every frame of caliscope's four synchronised videos
+(``detections.npz``: per camera c, ``counts_c`` corners per frame, ``ids_c`` and ``corners_c`` concatenated) with
+their camera files, for the time alignment's tests (the videos themselves are 11 MB).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from evaluate.captures.reader import video_frames
 
@@ -43,6 +47,26 @@ def main(realdata: Path) -> None:
     out.mkdir(exist_ok=True)
     for name in TUTORIAL_PHOTOS + ("board.yaml", "camera.yaml"):
         shutil.copyfile(source / name, out / name)
+
+    rig_detections(realdata / "caliscope_calibration", HERE / "caliscope_rig")
+
+
+def rig_detections(source: Path, out: Path) -> None:
+    """caliscope_rig (module docstring): every frame of cam_0..cam_3.mp4 through the deep detector."""
+    from deepcharuco.boards.board import BoardSpec
+    from deepcharuco.detection.deep_detector import Detector
+
+    out.mkdir(exist_ok=True)
+    detector = Detector(board=BoardSpec.load(source / "board.yaml"), refine="refinenet")
+    arrays = {}
+    for c in range(4):
+        found = [detector.detect(image) for _, image in video_frames(source / f"cam_{c}.mp4", 1, None)]
+        arrays[f"counts_{c}"] = np.array([len(d.ids) for d in found], np.int32)
+        arrays[f"ids_{c}"] = np.concatenate([np.asarray(d.ids, np.int16) for d in found])
+        arrays[f"corners_{c}"] = np.concatenate([np.asarray(d.corners, np.float32).reshape(-1, 2) for d in found])
+        shutil.copyfile(source / f"camera_cam_{c}.yaml", out / f"camera_cam_{c}.yaml")
+    shutil.copyfile(source / "board.yaml", out / "board.yaml")
+    np.savez_compressed(out / "detections.npz", **arrays)
 
 
 if __name__ == "__main__":

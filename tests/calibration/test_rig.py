@@ -252,7 +252,8 @@ def test_different_lengths_are_refused_and_nothing_is_written(tmp_path, drawn, c
         writer.release()
         videos.append(str(path))
     out = tmp_path / "rig"
-    assert main([*videos, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+    assert main([*videos, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet",
+                 "--sync", "frames"]) == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "different lengths (cam0 16, short 10 frames)" in error[0] and "--sync-offsets" in error[0]
     assert not any(out.glob("*.yaml")) and not (out / "rig.toml").exists()
@@ -393,7 +394,8 @@ def test_sync_offsets_line_up_sources_that_started_apart(tmp_path, drawn, capsys
         (late / image.name).write_bytes(image.read_bytes())
     sources = [str(folders[0]), str(late), str(folders[2])]
     out = tmp_path / "rig"
-    assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+    assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet",
+                 "--sync", "frames"]) == 2
     assert "different lengths (cam0 16, late1 13, cam2 16 frames)" in capsys.readouterr().err
     assert main([*sources, "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet",
                  "--no-report", "--sync-offsets", "3", "0", "3"]) == 0
