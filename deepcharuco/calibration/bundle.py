@@ -45,6 +45,7 @@ class _Problem:
     # (M, 2, 2) each corner's weight's root L (its residual counts as L r; L^T L its information, `corner_weights`),
     # None: every corner alike
     roots: np.ndarray | None = None
+    fisheye: np.ndarray | None = None  # (C,) bool: the cameras of OpenCV's fisheye model (None: none)
 
     @property
     def prior_sigma(self) -> np.ndarray:
@@ -75,7 +76,8 @@ class _Problem:
         R_b, R_c = rotations_from_vectors(boards[:, :3]), rotations_from_vectors(cameras[:, :3])
         in_rig = np.einsum("mij,mj->mi", R_b[self.pose], self.points) + boards[self.pose, 3:]
         in_camera = np.einsum("mij,mj->mi", R_c[self.camera], in_rig) + cameras[self.camera, 3:]
-        pixels = project(in_camera, intrinsics[self.camera]) - self.observed
+        fisheye = None if self.fisheye is None else self.fisheye[self.camera]
+        pixels = project(in_camera, intrinsics[self.camera], fisheye) - self.observed
         if self.roots is not None:
             pixels = np.einsum("mij,mj->mi", self.roots, pixels)
         pixels = pixels.ravel()
@@ -110,8 +112,10 @@ def _vectors(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.ndarray, free: np.ndarray,
                   rotations: np.ndarray, translations: np.ndarray,
                   board_poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], prior: np.ndarray | None = None,
-                  prior_start: np.ndarray | None = None, weights: list[np.ndarray] | None = None):
-    """One robust solve from the given start (board poses {(instant, board): (R (3, 3), t)}); ``prior`` (C, 12): the
+                  prior_start: np.ndarray | None = None, weights: list[np.ndarray] | None = None,
+                  fisheye: np.ndarray | None = None):
+    """One robust solve from the given start (board poses {(instant, board): (R (3, 3), t)}); ``fisheye`` (C,) bool:
+    the cameras of OpenCV's fisheye model (`rig_model.project_fisheye`; None: none); ``prior`` (C, 12): the
     intrinsics' prior deviations per px of noise about ``prior_start`` (default: ``intrinsics``); ``weights``: per
     view, (N, 2, 2) each corner's information (`corner_weights`; None: all alike). Returns (intrinsics (C, 12),
     rotations (C, 3, 3), translations (C, 3), board poses {(instant, board): (rvec, tvec)}, per-view residuals (px,
@@ -125,7 +129,8 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
         pose=np.concatenate([np.full(len(v.ids), index[v.key]) for v in views]),
         points=np.concatenate([objects[v.board][v.ids] for v in views]),
         observed=np.concatenate([v.corners for v in views]), prior=prior,
-        roots=None if weights is None else np.swapaxes(np.linalg.cholesky(np.concatenate(weights)), -1, -2))
+        roots=None if weights is None else np.swapaxes(np.linalg.cholesky(np.concatenate(weights)), -1, -2),
+        fisheye=None if fisheye is None else np.asarray(fisheye, bool))
     x0 = np.concatenate([intrinsics[free],
                          np.concatenate([_vectors(rotations[c], translations[c]) for c in range(1, len(intrinsics))])
                          if len(intrinsics) > 1 else np.zeros(0),
@@ -231,10 +236,11 @@ def corner_weights(views: list[RigView], residuals: list[np.ndarray] | None = No
 
 
 # ----------------------------------------------------------------------------------------- the whole solve
-def free_mask(terms: str | None, n_dist: int) -> np.ndarray:
-    """(12,) which `INTRINSICS` are solved: fx fy cx cy and the named distortion ``terms`` (e.g. "k1 k2 k3");
-    None: nothing (intrinsics held as given)."""
+def free_mask(terms: str | None, slots: tuple[str, ...]) -> np.ndarray:
+    """(12,) which `INTRINSICS` are solved: fx fy cx cy and the named distortion ``terms`` (e.g. "k1 k2 k3") among
+    the camera's own coefficients ``slots`` (`rig_model.distortion_names`); None: nothing (intrinsics held as
+    given)."""
     if terms is None:
         return np.zeros(12, bool)
-    names = set(terms.split()) | {"fx", "fy", "cx", "cy"}
-    return np.array([name in names and (i < 4 or i - 4 < n_dist) for i, name in enumerate(INTRINSICS)])
+    names = (set(terms.split()) & set(slots)) | {"fx", "fy", "cx", "cy"}
+    return np.array([name in names for name in INTRINSICS])
