@@ -71,13 +71,16 @@ def _fisheye_view_pose(objects: np.ndarray, corners: np.ndarray, camera: Camera)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
     normalised = cv2.fisheye.undistortPoints(corners.reshape(-1, 1, 2), camera.K, camera.dist,
                                              criteria=criteria).reshape(-1, 2)
-    near = np.hypot(normalised[:, 0], normalised[:, 1]) < math.tan(math.radians(FISHEYE_START_DEG))
-    start = near if near.sum() >= 4 else np.ones(len(corners), bool)
+    finite = np.all(np.isfinite(normalised), axis=1)
+    near = finite & (np.hypot(normalised[:, 0], normalised[:, 1]) < math.tan(math.radians(FISHEYE_START_DEG)))
+    start = near if near.sum() >= 4 else finite
+    if start.sum() < 4:
+        return np.eye(3), np.zeros(3), math.inf
     try:
         ok, rvec, tvec = cv2.solvePnP(objects[start], normalised[start], np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
     except cv2.error:
         ok = False
-    if not ok or not np.all(np.isfinite(normalised[start])):
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return np.eye(3), np.zeros(3), math.inf
     intrinsics = np.tile(intrinsic_vector(camera), (len(objects), 1))
 
