@@ -25,6 +25,11 @@ HUBER_PX = 1.0  # residuals beyond this count linearly in the bundle adjustment
 # least_squares' sparse trust-region steps come from LSMR; at its default tolerances (1e-6) a 3-camera problem took
 # 200+ steps and stopped short (fx 2 % off its start moved back only half way); at 1e-12 it converges in ~50.
 MAX_STEPS = 300
+# FISHEYE_STEPS: with a fisheye camera in the rig the sparse (LSMR) steps stalled at the minimum without meeting the
+# tolerances: a drawn 3-camera fisheye rig (14 instants, OpenCV's corners) ran all 300 steps twice (~200 s on 2 busy
+# cores) where exact (dense) steps stopped after 10 at the same cost (42.2487). Its Jacobian is dense below this many
+# entries (~100 MB); above, the sparse steps as for pinhole rigs.
+MAX_DENSE_ENTRIES = 12_000_000
 MIN_VARIANCE_PX2 = 1e-8  # added to every corner's covariance: a degenerate one must not weigh infinitely
 
 
@@ -135,9 +140,13 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
                          np.concatenate([_vectors(rotations[c], translations[c]) for c in range(1, len(intrinsics))])
                          if len(intrinsics) > 1 else np.zeros(0),
                          np.concatenate([_vectors(*board_poses[i]) for i in instants])])
-    solution = least_squares(problem.residuals, x0, jac_sparsity=problem.sparsity(), method="trf", loss="huber",
-                             f_scale=HUBER_PX, x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS,
-                             tr_options={"atol": 1e-12, "btol": 1e-12})
+    rows = 2 * len(problem.camera) + int(np.isfinite(problem.prior_sigma).sum())
+    if problem.fisheye is not None and problem.fisheye.any() and rows * len(x0) <= MAX_DENSE_ENTRIES:
+        solver = {"tr_solver": "exact"}  # FISHEYE_STEPS
+    else:
+        solver = {"jac_sparsity": problem.sparsity(), "tr_options": {"atol": 1e-12, "btol": 1e-12}}
+    solution = least_squares(problem.residuals, x0, method="trf", loss="huber", f_scale=HUBER_PX, x_scale="jac",
+                             xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS, **solver)
     solved, cameras, boards = problem.unpack(solution.x)
     flat = solution.fun[:2 * len(problem.camera)].reshape(-1, 2)  # least_squares' fun: not weighed by the loss
     if problem.roots is not None:  # back to pixels: L r = f
