@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
+from threadpoolctl import threadpool_limits
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.rig_model import INTRINSICS, RigView, project, rotations_from_vectors
@@ -142,11 +143,14 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
                          np.concatenate([_vectors(*board_poses[i]) for i in instants])])
     rows = 2 * len(problem.camera) + int(np.isfinite(problem.prior_sigma).sum())
     if problem.fisheye is not None and problem.fisheye.any() and rows * len(x0) <= MAX_DENSE_ENTRIES:
-        solver = {"tr_solver": "exact"}  # FISHEYE_STEPS
+        solver = {"tr_solver": "exact", "jac": _dense_jacobian(problem)}  # FISHEYE_STEPS
     else:
         solver = {"jac_sparsity": problem.sparsity(), "tr_options": {"atol": 1e-12, "btol": 1e-12}}
-    solution = least_squares(problem.residuals, x0, method="trf", loss="huber", f_scale=HUBER_PX, x_scale="jac",
-                             xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS, **solver)
+    # The dense steps' SVDs on one BLAS thread: on 2 busy cores OpenBLAS's two spinning threads took 4 s for one SVD of
+    # a 2300 x 184 Jacobian that one thread does in 0.26 s.
+    with threadpool_limits(limits=1, user_api="blas"):
+        solution = least_squares(problem.residuals, x0, method="trf", loss="huber", f_scale=HUBER_PX, x_scale="jac",
+                                 xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS, **solver)
     solved, cameras, boards = problem.unpack(solution.x)
     flat = solution.fun[:2 * len(problem.camera)].reshape(-1, 2)  # least_squares' fun: not weighed by the loss
     if problem.roots is not None:  # back to pixels: L r = f
@@ -159,6 +163,23 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
     covariance = _global_covariance(problem, solution, flat)
     poses = {key: (boards[k, :3].copy(), boards[k, 3:].copy()) for k, key in enumerate(instants)}
     return solved, R_c, cameras[:, 3:].copy(), poses, residuals, covariance, problem
+
+
+def _dense_jacobian(problem: _Problem):
+    """The residuals' Jacobian as a dense array, by the finite differences ``least_squares`` takes with
+    ``jac_sparsity`` (columns that share no residual perturbed together: a few dozen evaluations, not one per
+    parameter); scipy's dense "2-point" differences where its grouping is not importable."""
+    try:
+        from scipy.optimize._numdiff import approx_derivative, group_columns
+    except ImportError:  # a scipy that moved them: every column on its own (slower, the same steps)
+        return "2-point"
+    structure = problem.sparsity().tocsc()
+    groups = group_columns(structure)
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        return approx_derivative(problem.residuals, x, method="2-point", sparsity=(structure, groups)).toarray()
+
+    return jacobian
 
 
 def _global_covariance(problem: _Problem, solution, flat: np.ndarray) -> np.ndarray:

@@ -162,6 +162,48 @@ def _solve_fisheye(object_points: list[np.ndarray], image_points: list[np.ndarra
                      std={})
 
 
+# cv2.fisheye.calibrate starts every view's pose afresh at each step from its corners undistorted onto the plane
+# z = 1 (InitExtrinsics: a homography), which fails ("norm_u1 > 0") or settles off on corners near 90 degrees off the
+# axis, where that plane lies at infinity: with the deep detector's corners of drawn 180 degree lenses (it finds more
+# of them near the rim than OpenCV's) one camera's solve failed and another's put the rig's pairs 5 degrees apart.
+# One camera's fisheye calibration leaves out the corners beyond this angle under a first solve (`fisheye_start`);
+# a rig's bundle adjustment uses them all (`calibration.rig`).
+FISHEYE_MAX_DEG = 80.0
+
+
+def fisheye_start(object_points: list[np.ndarray], image_points: list[np.ndarray], image_size: tuple[int, int]
+                  ) -> Solution:
+    """A first fisheye solve (`_solve_fisheye`) from all views, or where OpenCV fails, from the innermost half,
+    quarter, ... of them by the reach of their farthest corner from the image's centre (at least 3 views)."""
+    centre = (np.asarray(image_size, np.float64) - 1) / 2
+    order = np.argsort([np.linalg.norm(p - centre, axis=1).max() for p in image_points], kind="stable")
+    count, failure = len(order), "no views"
+    while count >= 3:
+        chosen = sorted(order[:count])
+        try:
+            return _solve_fisheye([object_points[i] for i in chosen], [image_points[i] for i in chosen], image_size)
+        except cv2.error as exc:
+            failure = str(exc).strip().splitlines()[-1]
+        count //= 2
+    raise CalibrationError(f"OpenCV's fisheye calibration failed ({failure}), even from the views nearest the image's "
+                           f"centre: capture more views of the board, at varied tilts, in the middle of the image too")
+
+
+def beyond_fisheye_reach(image_points: list[np.ndarray], solution: Solution) -> list[np.ndarray]:
+    """Per view, (N_v,) bool: the corners more than `FISHEYE_MAX_DEG` off the axis of the fisheye ``solution`` (the
+    distorted angle theta_d against theta_d(`FISHEYE_MAX_DEG`); theta_d grows with the angle there)."""
+    theta = math.radians(FISHEYE_MAX_DEG)
+    k1, k2, k3, k4 = solution.dist
+    limit = theta * (1 + k1 * theta ** 2 + k2 * theta ** 4 + k3 * theta ** 6 + k4 * theta ** 8)
+    K = solution.K
+    out = []
+    for pixels in image_points:
+        y = (pixels[:, 1] - K[1, 2]) / K[1, 1]
+        x = (pixels[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        out.append(np.hypot(x, y) > limit)
+    return out
+
+
 def reproject(object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray,
               model: str) -> np.ndarray:
     """(N, 2) pixels of the (N, 3) board points under a pose and intrinsics of ``model``."""
