@@ -6,6 +6,7 @@ Gauss-Newton covariance or the instants' cluster-robust estimate (`parameter_dev
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -142,13 +143,14 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
                          if len(intrinsics) > 1 else np.zeros(0),
                          np.concatenate([_vectors(*board_poses[i]) for i in instants])])
     rows = 2 * len(problem.camera) + int(np.isfinite(problem.prior_sigma).sum())
-    if problem.fisheye is not None and problem.fisheye.any() and rows * len(x0) <= MAX_DENSE_ENTRIES:
+    dense = problem.fisheye is not None and problem.fisheye.any() and rows * len(x0) <= MAX_DENSE_ENTRIES
+    if dense:
         solver = {"tr_solver": "exact", "jac": _dense_jacobian(problem)}  # FISHEYE_STEPS
     else:
         solver = {"jac_sparsity": problem.sparsity(), "tr_options": {"atol": 1e-12, "btol": 1e-12}}
     # The dense steps' SVDs on one BLAS thread: on 2 busy cores OpenBLAS's two spinning threads took 4 s for one SVD of
     # a 2300 x 184 Jacobian that one thread does in 0.26 s.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas") if dense else contextlib.nullcontext():
         solution = least_squares(problem.residuals, x0, method="trf", loss="huber", f_scale=HUBER_PX, x_scale="jac",
                                  xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS, **solver)
     solved, cameras, boards = problem.unpack(solution.x)
