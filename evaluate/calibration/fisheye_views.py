@@ -24,6 +24,7 @@ import math
 import cv2
 import numpy as np
 
+from datagen.lens import pixel_grid
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.geometry.camera import Camera
 from evaluate.calibration.rig_views import DrawnRig, degrade, look_at
@@ -91,12 +92,8 @@ def render_fisheye_view(board: BoardSpec, camera: Camera, rvec: np.ndarray, tvec
 
 
 def supersampled_rays(camera: Camera, supersample: int) -> tuple[np.ndarray, np.ndarray]:
-    """`pixel_rays` of the centres of an s x s subsampling of each pixel (OpenCV's pixel convention)."""
-    width, height = camera.image_size
-    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    xs = (np.arange(width)[:, None] + offsets[None, :]).ravel()
-    ys = (np.arange(height)[:, None] + offsets[None, :]).ravel()
-    return pixel_rays(camera, np.stack(np.meshgrid(xs, ys), axis=-1))
+    """`pixel_rays` of the centres of an s x s subsampling of each pixel (`datagen.lens.pixel_grid`)."""
+    return pixel_rays(camera, pixel_grid(*camera.image_size, supersample))
 
 
 def visible_corners(board: BoardSpec, camera: Camera, R: np.ndarray, t: np.ndarray, border: float = 2.0) -> np.ndarray:
