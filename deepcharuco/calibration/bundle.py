@@ -6,6 +6,7 @@ Gauss-Newton covariance or the instants' cluster-robust estimate (`parameter_dev
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -13,6 +14,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
+from threadpoolctl import threadpool_limits
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.rig_model import INTRINSICS, RigView, project, rotations_from_vectors
@@ -25,6 +27,11 @@ HUBER_PX = 1.0  # residuals beyond this count linearly in the bundle adjustment
 # least_squares' sparse trust-region steps come from LSMR; at its default tolerances (1e-6) a 3-camera problem took
 # 200+ steps and stopped short (fx 2 % off its start moved back only half way); at 1e-12 it converges in ~50.
 MAX_STEPS = 300
+# FISHEYE_STEPS: with a fisheye camera in the rig the sparse (LSMR) steps stalled at the minimum without meeting the
+# tolerances: a drawn 3-camera fisheye rig (14 instants, OpenCV's corners) ran all 300 steps twice (~200 s on 2 busy
+# cores) where exact (dense) steps stopped after 10 at the same cost (42.2487). Its Jacobian is dense below this many
+# entries (~100 MB); above, the sparse steps as for pinhole rigs.
+MAX_DENSE_ENTRIES = 12_000_000
 MIN_VARIANCE_PX2 = 1e-8  # added to every corner's covariance: a degenerate one must not weigh infinitely
 
 
@@ -45,6 +52,7 @@ class _Problem:
     # (M, 2, 2) each corner's weight's root L (its residual counts as L r; L^T L its information, `corner_weights`),
     # None: every corner alike
     roots: np.ndarray | None = None
+    fisheye: np.ndarray | None = None  # (C,) bool: the cameras of OpenCV's fisheye model (None: none)
 
     @property
     def prior_sigma(self) -> np.ndarray:
@@ -75,7 +83,8 @@ class _Problem:
         R_b, R_c = rotations_from_vectors(boards[:, :3]), rotations_from_vectors(cameras[:, :3])
         in_rig = np.einsum("mij,mj->mi", R_b[self.pose], self.points) + boards[self.pose, 3:]
         in_camera = np.einsum("mij,mj->mi", R_c[self.camera], in_rig) + cameras[self.camera, 3:]
-        pixels = project(in_camera, intrinsics[self.camera]) - self.observed
+        fisheye = None if self.fisheye is None else self.fisheye[self.camera]
+        pixels = project(in_camera, intrinsics[self.camera], fisheye) - self.observed
         if self.roots is not None:
             pixels = np.einsum("mij,mj->mi", self.roots, pixels)
         pixels = pixels.ravel()
@@ -110,8 +119,10 @@ def _vectors(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.ndarray, free: np.ndarray,
                   rotations: np.ndarray, translations: np.ndarray,
                   board_poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], prior: np.ndarray | None = None,
-                  prior_start: np.ndarray | None = None, weights: list[np.ndarray] | None = None):
-    """One robust solve from the given start (board poses {(instant, board): (R (3, 3), t)}); ``prior`` (C, 12): the
+                  prior_start: np.ndarray | None = None, weights: list[np.ndarray] | None = None,
+                  fisheye: np.ndarray | None = None):
+    """One robust solve from the given start (board poses {(instant, board): (R (3, 3), t)}); ``fisheye`` (C,) bool:
+    the cameras of OpenCV's fisheye model (`rig_model.project_fisheye`; None: none); ``prior`` (C, 12): the
     intrinsics' prior deviations per px of noise about ``prior_start`` (default: ``intrinsics``); ``weights``: per
     view, (N, 2, 2) each corner's information (`corner_weights`; None: all alike). Returns (intrinsics (C, 12),
     rotations (C, 3, 3), translations (C, 3), board poses {(instant, board): (rvec, tvec)}, per-view residuals (px,
@@ -125,14 +136,23 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
         pose=np.concatenate([np.full(len(v.ids), index[v.key]) for v in views]),
         points=np.concatenate([objects[v.board][v.ids] for v in views]),
         observed=np.concatenate([v.corners for v in views]), prior=prior,
-        roots=None if weights is None else np.swapaxes(np.linalg.cholesky(np.concatenate(weights)), -1, -2))
+        roots=None if weights is None else np.swapaxes(np.linalg.cholesky(np.concatenate(weights)), -1, -2),
+        fisheye=None if fisheye is None else np.asarray(fisheye, bool))
     x0 = np.concatenate([intrinsics[free],
                          np.concatenate([_vectors(rotations[c], translations[c]) for c in range(1, len(intrinsics))])
                          if len(intrinsics) > 1 else np.zeros(0),
                          np.concatenate([_vectors(*board_poses[i]) for i in instants])])
-    solution = least_squares(problem.residuals, x0, jac_sparsity=problem.sparsity(), method="trf", loss="huber",
-                             f_scale=HUBER_PX, x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS,
-                             tr_options={"atol": 1e-12, "btol": 1e-12})
+    rows = 2 * len(problem.camera) + int(np.isfinite(problem.prior_sigma).sum())
+    dense = problem.fisheye is not None and problem.fisheye.any() and rows * len(x0) <= MAX_DENSE_ENTRIES
+    if dense:
+        solver = {"tr_solver": "exact", "jac": _dense_jacobian(problem)}  # FISHEYE_STEPS
+    else:
+        solver = {"jac_sparsity": problem.sparsity(), "tr_options": {"atol": 1e-12, "btol": 1e-12}}
+    # The dense steps' SVDs on one BLAS thread: on 2 busy cores OpenBLAS's two spinning threads took 4 s for one SVD of
+    # a 2300 x 184 Jacobian that one thread does in 0.26 s.
+    with threadpool_limits(limits=1, user_api="blas") if dense else contextlib.nullcontext():
+        solution = least_squares(problem.residuals, x0, method="trf", loss="huber", f_scale=HUBER_PX, x_scale="jac",
+                                 xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=MAX_STEPS, **solver)
     solved, cameras, boards = problem.unpack(solution.x)
     flat = solution.fun[:2 * len(problem.camera)].reshape(-1, 2)  # least_squares' fun: not weighed by the loss
     if problem.roots is not None:  # back to pixels: L r = f
@@ -145,6 +165,23 @@ def bundle_adjust(views: list[RigView], boards: list[BoardSpec], intrinsics: np.
     covariance = _global_covariance(problem, solution, flat)
     poses = {key: (boards[k, :3].copy(), boards[k, 3:].copy()) for k, key in enumerate(instants)}
     return solved, R_c, cameras[:, 3:].copy(), poses, residuals, covariance, problem
+
+
+def _dense_jacobian(problem: _Problem):
+    """The residuals' Jacobian as a dense array, by the finite differences ``least_squares`` takes with
+    ``jac_sparsity`` (columns that share no residual perturbed together: a few dozen evaluations, not one per
+    parameter); scipy's dense "2-point" differences where its grouping is not importable."""
+    try:
+        from scipy.optimize._numdiff import approx_derivative, group_columns
+    except ImportError:  # a scipy that moved them: every column on its own (slower, the same steps)
+        return "2-point"
+    structure = problem.sparsity().tocsc()
+    groups = group_columns(structure)
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        return approx_derivative(problem.residuals, x, method="2-point", sparsity=(structure, groups)).toarray()
+
+    return jacobian
 
 
 def _global_covariance(problem: _Problem, solution, flat: np.ndarray) -> np.ndarray:
@@ -231,10 +268,11 @@ def corner_weights(views: list[RigView], residuals: list[np.ndarray] | None = No
 
 
 # ----------------------------------------------------------------------------------------- the whole solve
-def free_mask(terms: str | None, n_dist: int) -> np.ndarray:
-    """(12,) which `INTRINSICS` are solved: fx fy cx cy and the named distortion ``terms`` (e.g. "k1 k2 k3");
-    None: nothing (intrinsics held as given)."""
+def free_mask(terms: str | None, slots: tuple[str, ...]) -> np.ndarray:
+    """(12,) which `INTRINSICS` are solved: fx fy cx cy and the named distortion ``terms`` (e.g. "k1 k2 k3") among
+    the camera's own coefficients ``slots`` (`rig_model.distortion_names`); None: nothing (intrinsics held as
+    given)."""
     if terms is None:
         return np.zeros(12, bool)
-    names = set(terms.split()) | {"fx", "fy", "cx", "cy"}
-    return np.array([name in names and (i < 4 or i - 4 < n_dist) for i, name in enumerate(INTRINSICS)])
+    names = (set(terms.split()) & set(slots)) | {"fx", "fy", "cx", "cy"}
+    return np.array([name in names for name in INTRINSICS])

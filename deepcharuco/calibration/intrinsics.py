@@ -15,7 +15,9 @@ The steps:
    its share of the board's corners: coverage of the image and of tilt, not 40 copies of one pose;
 3. `solve`: ``cv2.calibrateCameraExtended`` on the corners (ID i at ``board.object_points()[i]``)
    for the ``pinhole`` (k1 k2 p1 p2 k3) and ``rational`` (+ k4 k5 k6) models, with the parameters'
-   standard deviations; ``cv2.fisheye.calibrate`` for ``fisheye`` (k1..k4, no deviations);
+   standard deviations; ``cv2.fisheye.calibrate`` for ``fisheye`` (k1..k4, no deviations), started from a first
+   solve (`solve.fisheye_start`) and without the corners beyond `solve.FISHEYE_MAX_DEG` off the lens's axis under it,
+   which OpenCV's fisheye solve cannot start a pose from;
 4. outliers: the worst corner of each view, when its residual exceeds ``corner_outlier`` x the
    RMS (and 1 px), is dropped, then views whose RMS exceeds ``view_outlier`` x the median view RMS (and `MIN_OUTLIER_PX`), and
    it is solved again, until nothing changes (at most `MAX_ROUNDS`). The pinhole and rational
@@ -47,7 +49,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.solve import MODELS, STIFF, Solution, residuals_of, solve
+from deepcharuco.calibration.solve import (FISHEYE_MAX_DEG, MODELS, STIFF, Solution, beyond_fisheye_reach,
+                                           fisheye_start, residuals_of, solve)
 from deepcharuco.calibration.terms import (MIN_BOOTSTRAP_VIEWS, MIN_SELECTION_VIEWS, bootstrap_std, select_terms,
                                            terms_name)
 from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, ViewDecision, coverage,
@@ -154,6 +157,17 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     dropped_corners: dict[int, int] = {}
     stages = [(model, fix_k3)] if model == "fisheye" or (model, fix_k3) == STIFF else [STIFF, (model, fix_k3)]
     solution, rounds = None, 0
+    rim: dict[int, int] = {}  # fisheye: per view, its corners beyond FISHEYE_MAX_DEG (left out)
+    if model == "fisheye" and views:
+        solution = fisheye_start([board.object_points()[v.ids] for v in views], [v.corners for v in views], image_size)
+        for v, beyond in zip(views, beyond_fisheye_reach([v.corners for v in views], solution)):
+            if beyond.any():
+                masks[v.index] &= ~beyond
+                rim[v.index] = int(beyond.sum())
+                if masks[v.index].sum() < options.min_corners:
+                    outliers[v.index] = (f"{masks[v.index].sum()} corners within {FISHEYE_MAX_DEG:g} degrees of the "
+                                         f"lens's axis (fewer than {options.min_corners}); the rest are near the image "
+                                         f"circle's rim")
     for stage_model, stage_fix_k3 in stages:
         for stage_round in range(1, MAX_ROUNDS + 1):
             rounds += 1
@@ -190,6 +204,8 @@ def calibrate(frames: list[FrameDetection], board: BoardSpec, image_size: tuple[
     for frame in frames:
         if frame.index in kept_rms:
             extra = f"; {dropped_corners[frame.index]} outlier corner(s) dropped" if frame.index in dropped_corners else ""
+            if frame.index in rim:
+                extra += f"; {rim[frame.index]} corner(s) beyond {FISHEYE_MAX_DEG:g} degrees off the lens's axis unused"
             if frame.index in at_border:
                 extra += f"; {at_border[frame.index]} corner(s) within {options.border_px:g} px of the border unused"
             decisions.append(ViewDecision(frame.index, frame.name, len(frame.ids), "kept", "solution",

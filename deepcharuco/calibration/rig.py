@@ -5,7 +5,8 @@ steps 5-6 in `bundle`):
 
 1. `view_poses`: every view (a camera's frame of one board at one instant) with at least ``min_corners`` corners
    not along one line gets the board's pose in that camera (``cv2.solvePnP`` IPPE, then Levenberg-Marquardt, under
-   the camera's starting intrinsics); a view whose corners that pose does not fit (RMS above `MAX_VIEW_POSE_PX`)
+   the camera's starting intrinsics; a fisheye camera's corners undistorted first, `rig_init._fisheye_view_pose`); a
+   view whose corners that pose does not fit (RMS above `MAX_VIEW_POSE_PX`)
    is dropped;
 2. `relative_poses`: for each pair of cameras, each instant both see one board at gives one estimate of where one
    camera is relative to the other; the estimate nearest all the others (the medoid) is kept, and the spread of
@@ -27,8 +28,10 @@ steps 5-6 in `bundle`):
 6. the parameters' standard deviations (`_global_covariance`): the Gauss-Newton covariance scaled by the
    residuals, or the instants' cluster-robust estimate where larger, the board poses eliminated (Schur complement).
 
-Conventions: OpenCV's pixels (centre of the top-left pixel at (0, 0)) and distortion model (k1 k2 p1 p2 k3
-[k4 k5 k6]); a camera's pose (R, t) maps the rig's frame to the camera's: x_cam = R X + t, in metres (the
+Conventions: OpenCV's pixels (centre of the top-left pixel at (0, 0)) and distortion models: k1 k2 p1 p2 k3
+[k4 k5 k6] (``cv2.projectPoints``), or a camera of the fisheye model (`Camera.model`) cv2.fisheye's k1..k4
+(``cv2.fisheye.projectPoints``), one model per camera, so a rig may mix them; a camera's pose (R, t) maps the
+rig's frame to the camera's: x_cam = R X + t, in metres (the
 board's units). The boards' points are `BoardSpec.object_points` (z = 0 on the board).
 """
 
@@ -43,8 +46,8 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.bundle import bundle_adjust, corner_weights, free_mask, parameter_deviations
 from deepcharuco.calibration.intrinsics import MAX_RELATIVE_STD, MIN_FOLD_SHARE, fold_share
 from deepcharuco.calibration.rig_init import chain_cameras, check_synchronised, relative_poses, view_poses
-from deepcharuco.calibration.rig_model import (INTRINSICS, Dropped, RigError, RigResult, RigView, camera_from_vector, compose,
-                                               intrinsic_vector, invert)
+from deepcharuco.calibration.rig_model import (FISHEYE_TERMS, INTRINSICS, Dropped, RigError, RigResult, RigView,
+                                               camera_from_vector, compose, intrinsic_vector, invert)
 from deepcharuco.core.errors import OptionError
 from deepcharuco.geometry.camera import Camera
 
@@ -77,6 +80,7 @@ MAX_DISAGREEMENT = 2.5
 # WEIGHT_NOTE: solves per round when the corners weigh by their covariances (`corner_weights`): the first with the
 # excess measured by the round before (or none), the next with the excess its own residuals show.
 WEIGHT_PASSES = 2
+PINHOLE_TERMS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # a pinhole camera's slots: its first 5 or 8
 
 
 def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], cameras: list[Camera], names: list[str],
@@ -116,7 +120,9 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
         board_poses[key] = compose(*invert(rotations[best.camera], translations[best.camera]), R, t)
     sizes = [camera.image_size for camera in cameras]
     n_dist = [8 if camera.dist.size >= 8 else 5 for camera in cameras]
-    free = np.stack([free_mask(t, d) for t, d in zip(terms, n_dist)])
+    fisheye = np.array([camera.model == "fisheye" for camera in cameras])
+    slots = [FISHEYE_TERMS if fish else PINHOLE_TERMS[:d] for fish, d in zip(fisheye, n_dist)]
+    free = np.stack([free_mask(t, s) for t, s in zip(terms, slots)])
     intrinsics = np.stack([intrinsic_vector(camera) for camera in cameras])
     start = intrinsics.copy()
     prior = np.full(intrinsics.shape, np.inf)
@@ -147,7 +153,7 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
         # cameras' own noise is compared with.
         _, rotations, translations, held, residuals, _, _ = bundle_adjust(
             kept, boards, intrinsics, np.zeros_like(free), rotations, translations, board_poses,
-            weights=weights_for(kept))
+            weights=weights_for(kept), fisheye=fisheye)
         remember(kept, residuals)
         board_poses.update({key: (cv2.Rodrigues(r)[0], t) for key, (r, t) in held.items()})
         stacked = np.concatenate(residuals)
@@ -173,14 +179,15 @@ def calibrate_rig(views: list[RigView], board: BoardSpec | list[BoardSpec], came
         # measured by the first (WEIGHT_NOTE).
         for _ in range(WEIGHT_PASSES if weighing else 1):
             solved, rotations, translations, board_poses_new, residuals, covariance, problem = bundle_adjust(
-                used, boards, intrinsics, free, rotations, translations, poses_used, prior, start, weights_for(used))
+                used, boards, intrinsics, free, rotations, translations, poses_used, prior, start, weights_for(used),
+                fisheye)
             remember(used, residuals)
             board_poses.update({i: (cv2.Rodrigues(r)[0], t) for i, (r, t) in board_poses_new.items()})
             poses_used = {key: board_poses[key] for key in poses_used}
             intrinsics = solved
         if rounds >= MAX_ROUNDS or not _reject(active, masks, outliers, used, residuals, dropped, min_corners):
             break
-    result_cameras = [camera_from_vector(intrinsics[c], sizes[c], n_dist[c]) for c in range(n)]
+    result_cameras = [camera_from_vector(intrinsics[c], sizes[c], n_dist[c], cameras[c].model) for c in range(n)]
     for c, camera in enumerate(result_cameras):
         if not free[c].any():
             continue  # held at its own calibration, which checked it, or at a given file

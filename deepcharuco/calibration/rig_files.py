@@ -5,7 +5,8 @@ Each camera file holds `write_camera`'s nodes (``camera_matrix``, ``distortion_c
 (``rotation_matrix`` R and ``translation_vector`` t in metres, x_cam = R X + t), its RMS, the parameters'
 standard deviations and the views used. The TOML (`rig_toml`) has anipose's and caliscope's layout: one
 ``[cam_N]`` table per camera with ``name``, ``size``, ``matrix``, ``distortions``, ``rotation`` (a rotation
-vector, ``cv2.Rodrigues``) and ``translation`` (metres), the same x_cam = R X + t convention.
+vector, ``cv2.Rodrigues``) and ``translation`` (metres), the same x_cam = R X + t convention; a camera of OpenCV's
+fisheye model has ``fisheye = true`` (anipose's key) and its k1..k4 as ``distortions``.
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ def rig_camera_text(result: RigResult, camera: int, boards: list[BoardSpec], det
     std = result.std[camera]
 
     def nodes(storage: cv2.FileStorage) -> None:
-        storage.write("distortion_model", "pinhole" if result.cameras[camera].dist.size <= 5 else "rational")
+        if result.cameras[camera].model == "pinhole":  # camera_file_text names the fisheye model itself
+            storage.write("distortion_model", "pinhole" if result.cameras[camera].dist.size <= 5 else "rational")
         storage.write("rotation_matrix", result.rotations[camera])
         storage.write("translation_vector", result.translations[camera].reshape(3, 1))
         storage.write("rig_frame", frame)
@@ -55,13 +57,15 @@ def _numbers(values) -> str:
 def rig_toml(result: RigResult, frame: str) -> str:
     """The whole rig as TOML (module docstring): readable by anipose/caliscope-style tools and ``tomllib``."""
     lines = [f"{TOML_START}: x_cam = R X + t, rotation = cv2.Rodrigues(R), translation in metres,",
-             f"# X in the rig's frame ({frame}); OpenCV pixels and distortion (k1 k2 p1 p2 k3 [k4 k5 k6]).", ""]
+             f"# X in the rig's frame ({frame}); OpenCV pixels and distortion (k1 k2 p1 p2 k3 [k4 k5 k6]; a camera",
+             "# with fisheye = true: cv2.fisheye's k1 k2 k3 k4, as anipose writes it).", ""]
     for c, camera in enumerate(result.cameras):
         rotation = cv2.Rodrigues(result.rotations[c])[0].ravel()
         lines += [f"[cam_{c}]", f'name = "{result.names[c]}"', f"size = [{camera.image_size[0]}, {camera.image_size[1]}]",
                   "matrix = [" + ", ".join(_numbers(row) for row in camera.K) + "]",
                   f"distortions = {_numbers(camera.dist)}", f"rotation = {_numbers(rotation)}",
                   f"translation = {_numbers(result.translations[c])}",
+                  *(["fisheye = true"] if camera.model == "fisheye" else []),
                   f"error = {float(result.camera_rms(c))!r}", f"views = {result.camera_views(c)}", ""]
     lines += ["[metadata]", f'frame = "{frame}"', f"rms_px = {result.rms!r}", f"instants = {len(result.board_poses)}", ""]
     return "\n".join(lines)

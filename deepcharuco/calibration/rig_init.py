@@ -11,9 +11,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.calibration.rig_model import Dropped, RigError, RigView, compose, invert
+from deepcharuco.calibration.rig_model import (Dropped, RigError, RigView, compose, intrinsic_vector, invert,
+                                               project_fisheye, rotations_from_vectors)
 from deepcharuco.geometry.camera import Camera
 from deepcharuco.geometry.pose import MIN_SPREAD_RATIO
 
@@ -42,6 +44,8 @@ def usable(view: RigView, board: BoardSpec, min_corners: int) -> str | None:
 def view_pose(view: RigView, board: BoardSpec, camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     """The board's pose in ``view``'s camera, (R (3, 3), t (3,), RMS px of the fit)."""
     objects = board.object_points()[view.ids]
+    if camera.model == "fisheye":
+        return _fisheye_view_pose(objects, view.corners, camera)
     ok, rvec, tvec = cv2.solvePnP(objects, view.corners, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
         return np.eye(3), np.zeros(3), math.inf
@@ -49,6 +53,45 @@ def view_pose(view: RigView, board: BoardSpec, camera: Camera) -> tuple[np.ndarr
     reprojected = cv2.projectPoints(objects, rvec, tvec, camera.K, camera.dist)[0].reshape(-1, 2)
     rms = float(np.sqrt(np.mean(np.sum((reprojected - view.corners) ** 2, axis=1))))
     return cv2.Rodrigues(rvec)[0], tvec.ravel(), rms
+
+
+# A fisheye view's first pose comes from its corners undistorted onto the plane z = 1, where a ray 75 degrees off
+# the axis lands at 3.7 and its pixel noise is magnified 15x (1 / cos^2 of the angle, against the axis's), nearer 90
+# degrees without bound: the corners within this angle start it, all of them refine it in pixels.
+FISHEYE_START_DEG = 75.0
+# A 180 degree lens sees corners at 90 degrees off its axis, and a pose from the starting intrinsics may put one a
+# little past that (the rig's fisheye projection takes the ray's angle as it is, to 180 degrees)
+FISHEYE_BEHIND_DEG = 20.0
+
+
+def _fisheye_view_pose(objects: np.ndarray, corners: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
+    """`view_pose` through OpenCV's fisheye model: ``cv2.fisheye.undistortPoints`` to normalised coordinates, PnP
+    (IPPE) on those within `FISHEYE_START_DEG` of the axis (all, where fewer than 4 are), then Levenberg-Marquardt
+    on every corner's pixel error (``scipy.optimize.least_squares``, the rig's `project_fisheye`)."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    normalised = cv2.fisheye.undistortPoints(corners.reshape(-1, 1, 2), camera.K, camera.dist,
+                                             criteria=criteria).reshape(-1, 2)
+    finite = np.all(np.isfinite(normalised), axis=1)
+    near = finite & (np.hypot(normalised[:, 0], normalised[:, 1]) < math.tan(math.radians(FISHEYE_START_DEG)))
+    start = near if near.sum() >= 4 else finite
+    if start.sum() < 4:
+        return np.eye(3), np.zeros(3), math.inf
+    try:
+        ok, rvec, tvec = cv2.solvePnP(objects[start], normalised[start], np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        ok = False
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return np.eye(3), np.zeros(3), math.inf
+    intrinsics = np.tile(intrinsic_vector(camera), (len(objects), 1))
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        in_camera = objects @ rotations_from_vectors(x[:3])[0].T + x[3:]
+        return (project_fisheye(in_camera, intrinsics) - corners).ravel()
+
+    solution = least_squares(residuals, np.concatenate([rvec.ravel(), tvec.ravel()]), method="lm", xtol=1e-12,
+                             ftol=1e-12)
+    rms = float(np.sqrt(np.mean(solution.fun.reshape(-1, 2) ** 2) * 2))
+    return rotations_from_vectors(solution.x[:3])[0], solution.x[3:].copy(), rms
 
 
 def view_poses(views: list[RigView], boards: list[BoardSpec], cameras: list[Camera], min_corners: int
@@ -60,7 +103,12 @@ def view_poses(views: list[RigView], boards: list[BoardSpec], cameras: list[Came
         reason = usable(view, boards[view.board], min_corners)
         if reason is None:
             R, t, rms = view_pose(view, boards[view.board], cameras[view.camera])
-            if rms > MAX_VIEW_POSE_PX or t[2] <= 0:
+            # The corners seen lie ahead of the camera; a fisheye lens's up to `FISHEYE_BEHIND_DEG` past its side
+            # (its board's origin may lie behind it)
+            points = boards[view.board].object_points()[view.ids] @ R.T + t
+            floor = -math.sin(math.radians(FISHEYE_BEHIND_DEG)) if cameras[view.camera].model == "fisheye" else 0.0
+            ahead = points[:, 2] > floor * np.linalg.norm(points, axis=1)
+            if rms > MAX_VIEW_POSE_PX or not ahead.all():
                 dropped.append(Dropped(view.camera, view.instant, view.name, len(view.ids), "pose",
                                        f"no pose of the board fits its corners (RMS {rms:.1f} px > {MAX_VIEW_POSE_PX:g})",
                                        view.board))

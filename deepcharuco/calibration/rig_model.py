@@ -1,6 +1,6 @@
 """A rig's data: `RigView` (one camera's corners of one board at one instant), `RigResult` (the solved rig, its
 deviations and what was dropped, `Dropped`), `RigError`, and the small rigid-motion helpers every step of the rig's
-solve shares (poses as (R, t) with x_cam = R X + t, metres; OpenCV's pinhole and rational projection).
+solve shares (poses as (R, t) with x_cam = R X + t, metres; OpenCV's pinhole, rational and fisheye projection).
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ from deepcharuco.geometry.camera import Camera
 
 
 # Intrinsic parameters of a camera in the bundle adjustment, in this order (OpenCV's pinhole and rational models).
+# A fisheye camera (cv2.fisheye's k1..k4) keeps its terms in the slots of their names, p1 p2 k5 k6 unused.
 INTRINSICS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+FISHEYE_TERMS = ("k1", "k2", "k3", "k4")
 
 
 class RigError(CalibrationError):
@@ -173,9 +175,10 @@ def rotations_from_vectors(rvecs: np.ndarray) -> np.ndarray:
     return rotation
 
 
-def project(points_cam: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+def project(points_cam: np.ndarray, intrinsics: np.ndarray, fisheye: np.ndarray | None = None) -> np.ndarray:
     """(M, 2) pixels of the (M, 3) camera-frame points, each through its own (M, 12) intrinsics (`INTRINSICS`
-    order): OpenCV's pinhole model, ``cv2.projectPoints``' formula."""
+    order): OpenCV's pinhole model, ``cv2.projectPoints``' formula; where ``fisheye`` (M,) bool is set, OpenCV's
+    fisheye model instead (`project_fisheye`)."""
     fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = intrinsics.T
     z = points_cam[:, 2]
     x, y = points_cam[:, 0] / z, points_cam[:, 1] / z
@@ -183,21 +186,56 @@ def project(points_cam: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.column_stack([fx * xd + cx, fy * yd + cy])
+    pixels = np.column_stack([fx * xd + cx, fy * yd + cy])
+    if fisheye is not None and fisheye.any():
+        pixels[fisheye] = project_fisheye(points_cam[fisheye], intrinsics[fisheye])
+    return pixels
+
+
+def project_fisheye(points_cam: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """(M, 2) pixels of the (M, 3) camera-frame points through OpenCV's fisheye (equidistant) model, k1..k4 in the
+    (M, 12) intrinsics' `FISHEYE_TERMS` slots: ``cv2.fisheye.projectPoints``' formula (no skew), theta_d = theta (1 +
+    k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8) with theta the ray's angle off the axis. theta is taken as
+    atan2(rho, z): the same as OpenCV's atan(rho / z) in front of the camera, and steady where z nears 0 (a ray 90
+    degrees off the axis, which a 180 degree lens sees)."""
+    fx, fy, cx, cy, k1, k2, _, _, k3, k4, _, _ = intrinsics.T
+    rho = np.hypot(points_cam[:, 0], points_cam[:, 1])
+    theta = np.arctan2(rho, points_cam[:, 2])
+    t2 = theta * theta
+    theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    # OpenCV's x * theta_d / r with x = X / z, r = rho / z: X theta_d / rho, and 1 on the axis
+    on_axis = rho < 1e-8 * np.abs(points_cam[:, 2])
+    scale = np.where(on_axis, 1.0 / np.where(points_cam[:, 2] == 0, 1.0, points_cam[:, 2]),
+                     theta_d / np.where(on_axis, 1.0, rho))
+    return np.column_stack([fx * points_cam[:, 0] * scale + cx, fy * points_cam[:, 1] * scale + cy])
+
+
+def distortion_names(camera: Camera) -> tuple[str, ...]:
+    """The names of ``camera.dist``'s coefficients, in its order (`INTRINSICS`' names)."""
+    if camera.model == "fisheye":
+        return FISHEYE_TERMS
+    return ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")[:camera.dist.size]
 
 
 def intrinsic_vector(camera: Camera) -> np.ndarray:
     """(12,) the camera's parameters in `INTRINSICS` order (absent distortion terms are 0)."""
     K = camera.K
-    dist = np.pad(camera.dist, (0, max(0, 8 - camera.dist.size)))[:8]
-    return np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dist])
+    vector = np.zeros(12)
+    vector[:4] = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for name, value in zip(distortion_names(camera), camera.dist[:8]):
+        vector[INTRINSICS.index(name)] = value
+    return vector
 
 
-def camera_from_vector(vector: np.ndarray, image_size: tuple[int, int], terms: int) -> Camera:
-    """The `Camera` of a (12,) `INTRINSICS` vector with ``terms`` distortion coefficients (5 or 8)."""
+def camera_from_vector(vector: np.ndarray, image_size: tuple[int, int], terms: int, model: str = "pinhole") -> Camera:
+    """The `Camera` of a (12,) `INTRINSICS` vector with ``terms`` distortion coefficients (5 or 8; a fisheye
+    ``model``'s: its 4)."""
     fx, fy, cx, cy = vector[:4]
-    return Camera(K=np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist=vector[4:4 + terms].copy(),
-                  image_size=image_size)
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if model == "fisheye":
+        return Camera(K=K, dist=vector[[INTRINSICS.index(name) for name in FISHEYE_TERMS]].copy(),
+                      image_size=image_size, model="fisheye")
+    return Camera(K=K, dist=vector[4:4 + terms].copy(), image_size=image_size)
 
 
 def compose(R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

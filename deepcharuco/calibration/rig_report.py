@@ -13,7 +13,7 @@ import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.html_page import html_page, png, pyplot
-from deepcharuco.calibration.rig_model import INTRINSICS, RigResult, rotations_from_vectors
+from deepcharuco.calibration.rig_model import RigResult, distortion_names, rotations_from_vectors
 from deepcharuco.calibration.time_sync import Alignment
 
 MAX_LISTED = 200
@@ -95,18 +95,19 @@ def alignment_figure(alignment: Alignment) -> bytes:
 
 def parameter_rows(result: RigResult) -> list[list[str]]:
     """One row per camera: intrinsics, distortion and pose, each with its standard deviation where solved."""
-    rows = [["camera", "fx", "fy", "cx", "cy", "distortion (k1 k2 p1 p2 k3 ...)", "centre (m)", "rotation sd (deg)",
+    rows = [["camera", "fx", "fy", "cx", "cy", "distortion (k1 k2 p1 p2 k3 ...; fisheye: k1..k4)", "centre (m)", "rotation sd (deg)",
              "translation sd (mm)"]]
     for c, camera in enumerate(result.cameras):
         std = result.std[c]
-        values = dict(zip(INTRINSICS, [camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2], *camera.dist]))
+        values = dict(zip(("fx", "fy", "cx", "cy", *distortion_names(camera)),
+                          [camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2], *camera.dist]))
 
         def cell(name: str) -> str:
             return f"{values[name]:.2f}" + (f" +- {std[name]:.2f}" if name in std else " (given)")
 
         translation = (f"{1000 * max(std['tx'], std['ty'], std['tz']):.2f}" if "tx" in std else "origin")
         rows.append([result.names[c], cell("fx"), cell("fy"), cell("cx"), cell("cy"),
-                     " ".join(f"{v:.4g}" for v in camera.dist), " ".join(f"{v:+.3f}" for v in result.centre(c)),
+                     ("fisheye: " if camera.model == "fisheye" else "") + " ".join(f"{v:.4g}" for v in camera.dist), " ".join(f"{v:+.3f}" for v in result.centre(c)),
                      f"{std['rotation_deg']:.3f}" if "rotation_deg" in std else "origin", translation])
     return rows
 

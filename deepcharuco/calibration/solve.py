@@ -15,7 +15,7 @@ import numpy as np
 
 from deepcharuco.calibration.views import CalibrationError
 from deepcharuco.core.errors import OptionError
-from deepcharuco.core.opencv_api import fisheye_calibration_flags
+from deepcharuco.core.opencv_api import fisheye_calibration_flags, fisheye_flag
 
 
 MODELS = ("pinhole", "rational", "fisheye")
@@ -62,7 +62,7 @@ def solve(object_points: list[np.ndarray], image_points: list[np.ndarray], image
     Levenberg-Marquardt can settle where k2 and k3 cancel each other."""
     try:
         if model == "fisheye":
-            return _solve_fisheye(object_points, image_points, image_size)
+            return _solve_fisheye(object_points, image_points, image_size, guess)
         objects = [p.astype(np.float32) for p in object_points]
         images = [p.astype(np.float32) for p in image_points]
         if guess is None:
@@ -129,18 +129,79 @@ def _named(raw: tuple, model: str, fix_k3: bool, zero_tangent: bool = False) -> 
 
 
 def _solve_fisheye(object_points: list[np.ndarray], image_points: list[np.ndarray],
-                   image_size: tuple[int, int]) -> Solution:
-    flags = fisheye_calibration_flags()
-    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+                   image_size: tuple[int, int], guess: Solution | None = None) -> Solution:
+    """``cv2.fisheye.calibrate`` from ``guess``, or without one in two stages, as the pinhole model's `STIFF`: k1..k4
+    held at 0 (the equidistant lens), then free from there (the better of the two by RMS). Started with k1..k4
+    free from OpenCV's own guess (f = max(width, height) / pi), a drawn 180 degree lens (f 223 px at 1024 x 768)
+    settled at RMS 40-800 px or failed ("norm_u1 > 0") on 10-30 views; in two stages it came within 0.1 px of fx."""
     # (1, N, 3) and (1, N, 2): OpenCV 5's fisheye calibration fails on OpenCV 4's (N, 1, 3) with "Sizes of input
     # arguments do not match"; both take these
-    _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
-        [p.reshape(1, -1, 3).astype(np.float64) for p in object_points],
-        [p.reshape(1, -1, 2).astype(np.float64) for p in image_points], image_size, None, None,
-        flags=flags, criteria=criteria)
+    objects = [p.reshape(1, -1, 3).astype(np.float64) for p in object_points]
+    images = [p.reshape(1, -1, 2).astype(np.float64) for p in image_points]
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+    flags = fisheye_calibration_flags()
+    first = None
+    if guess is None:
+        stiff = flags | fisheye_flag("FIX_K1") | fisheye_flag("FIX_K2") | fisheye_flag("FIX_K3") | fisheye_flag("FIX_K4")
+        first = cv2.fisheye.calibrate(objects, images, image_size, None, np.zeros(4), flags=stiff, criteria=criteria)
+        K, dist = first[1], first[2]
+    else:
+        K, dist = guess.K.copy(), guess.dist.copy()
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(objects, images, image_size, K.copy(), dist.copy(),
+                                                           flags=flags | fisheye_flag("USE_INTRINSIC_GUESS"),
+                                                           criteria=criteria)
+    except cv2.error:
+        if first is None:
+            raise
+        rms = math.inf
+    if first is not None and not rms <= first[0] + 1e-9:
+        rms, K, dist, rvecs, tvecs = first
     return Solution(K=np.asarray(K, np.float64), dist=np.asarray(dist, np.float64).ravel(),
                      rvecs=np.asarray(rvecs, np.float64).reshape(-1, 3), tvecs=np.asarray(tvecs, np.float64).reshape(-1, 3),
                      std={})
+
+
+# cv2.fisheye.calibrate starts every view's pose afresh at each step from its corners undistorted onto the plane
+# z = 1 (InitExtrinsics: a homography), which fails ("norm_u1 > 0") or settles off on corners near 90 degrees off the
+# axis, where that plane lies at infinity: with the deep detector's corners of drawn 180 degree lenses (it finds more
+# of them near the rim than OpenCV's) one camera's solve failed and another's put the rig's pairs 5 degrees apart.
+# One camera's fisheye calibration leaves out the corners beyond this angle under a first solve (`fisheye_start`);
+# a rig's bundle adjustment uses them all (`calibration.rig`).
+FISHEYE_MAX_DEG = 80.0
+
+
+def fisheye_start(object_points: list[np.ndarray], image_points: list[np.ndarray], image_size: tuple[int, int]
+                  ) -> Solution:
+    """A first fisheye solve (`_solve_fisheye`) from all views, or where OpenCV fails, from the innermost half,
+    quarter, ... of them by the reach of their farthest corner from the image's centre (at least 3 views)."""
+    centre = (np.asarray(image_size, np.float64) - 1) / 2
+    order = np.argsort([np.linalg.norm(p - centre, axis=1).max() for p in image_points], kind="stable")
+    count, failure = len(order), "no views"
+    while count >= 3:
+        chosen = sorted(order[:count])
+        try:
+            return _solve_fisheye([object_points[i] for i in chosen], [image_points[i] for i in chosen], image_size)
+        except cv2.error as exc:
+            failure = str(exc).strip().splitlines()[-1]
+        count //= 2
+    raise CalibrationError(f"OpenCV's fisheye calibration failed ({failure}), even from the views nearest the image's "
+                           f"centre: capture more views of the board, at varied tilts, in the middle of the image too")
+
+
+def beyond_fisheye_reach(image_points: list[np.ndarray], solution: Solution) -> list[np.ndarray]:
+    """Per view, (N_v,) bool: the corners more than `FISHEYE_MAX_DEG` off the axis of the fisheye ``solution`` (the
+    distorted angle theta_d against theta_d(`FISHEYE_MAX_DEG`); theta_d grows with the angle there)."""
+    theta = math.radians(FISHEYE_MAX_DEG)
+    k1, k2, k3, k4 = solution.dist
+    limit = theta * (1 + k1 * theta ** 2 + k2 * theta ** 4 + k3 * theta ** 6 + k4 * theta ** 8)
+    K = solution.K
+    out = []
+    for pixels in image_points:
+        y = (pixels[:, 1] - K[1, 2]) / K[1, 1]
+        x = (pixels[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        out.append(np.hypot(x, y) > limit)
+    return out
 
 
 def reproject(object_points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray,

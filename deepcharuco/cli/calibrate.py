@@ -231,7 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "and a calibration at 1 lux and under shake where OpenCV's corners give none. hybrid: "
                              "OpenCV's corners where they fit the board, the deep ones elsewhere; opencv: OpenCV alone")
     parser.add_argument("--model", choices=MODELS, default="pinhole",
-                        help="pinhole: k1 k2 p1 p2 k3; rational: + k4 k5 k6; fisheye: OpenCV's fisheye k1..k4")
+                        help="pinhole: k1 k2 p1 p2 k3; rational: + k4 k5 k6; fisheye: OpenCV's fisheye k1..k4 (wide "
+                             "lenses up to ~180 degrees). A rig: the model of every camera it solves; a --camera "
+                             "file's model is its camera's, so a rig may mix fisheye and pinhole cameras")
     parser.add_argument("--fix-k3", action="store_true",
                         help="keep k3 at 0 (pinhole/rational): for few views or a small board, where a free k3 bends "
                              "the model beyond the corners seen")
@@ -305,11 +307,12 @@ def main(argv: list[str] | None = None) -> int:
     if not rig and args.board and len(args.board) > 1:
         problems.append("several --board files are for a rig (two sources or more); one camera calibrates from one "
                         "board")
-    if rig and args.model == "fisheye":
-        problems.append("a rig is calibrated with the pinhole or rational model; --model fisheye is single-camera only")
     args.out = args.out or ("rig" if rig else "camera.yaml")
     if args.fix_k3 and args.model == "fisheye":
         problems.append("--fix-k3 is for the pinhole and rational models (fisheye has k1..k4)")
+    if args.all_terms and args.model == "fisheye":
+        problems.append("--all-terms is for the pinhole and rational models (fisheye has no p1 p2 to hold; it solves "
+                        "k1..k4 always)")
     if args.max_views < args.min_views:
         problems.append(f"--max-views ({args.max_views}) must be >= --min-views ({args.min_views})")
     problems += export_problems(args, rig)

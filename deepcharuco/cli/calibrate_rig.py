@@ -181,9 +181,6 @@ def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[t
                 camera = read_camera(given[c]).for_image_size(*sizes[c])
             except CameraFileError as error:
                 raise CameraFileError(f"--camera {given[c]} ({name}): {error}") from None
-            if camera.model != "pinhole":
-                raise CameraFileError(f"--camera {given[c]} ({name}) is a {camera.model} camera: a rig uses the pinhole "
-                                      f"or rational model")
             cameras.append(camera)
             terms.append(None)
             priors.append(None)
@@ -201,6 +198,24 @@ def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[t
         priors.append(dict(single.std))
         noise.append(single.corner_sigma)
     return cameras, terms, notes, priors, noise
+
+
+def check_given_models(given: list[str | None] | None, model: str) -> None:
+    """A given camera file's model is its camera's (held as given; the rig may mix models), ``--model`` the model of
+    the cameras solved here: where every camera is given, a ``--model`` other than the default that some file
+    disagrees with would change nothing, and is refused (`CameraFileError`) before any frame is read."""
+    if not given or any(path in (None, "-") for path in given) or model == "pinhole":
+        return
+    for path in given:
+        try:
+            camera = read_camera(path)
+        except CameraFileError as error:
+            raise CameraFileError(f"--camera {path}: {error}") from None
+        kind = "fisheye" if camera.model == "fisheye" else "rational" if camera.dist.size >= 8 else "pinhole"
+        if kind != model:
+            raise CameraFileError(f"--model {model} is the model of the cameras the rig solves, but every camera is "
+                                  f"held at its --camera file and {path} is a {kind} camera: give - for a camera to "
+                                  f"solve with --model {model}, or leave --model out")
 
 
 def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],
@@ -255,6 +270,7 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
                                f"e.g. --out {out.with_suffix('')}/")
     check_output_folder(out)
     refuse_one_source_twice(args.source)
+    check_given_models(args.camera, args.model)
     sources = [open_source(source, args.max_frames) for source in args.source]
     names = source_names(sources)
     targets = [out / f"{name}.yaml" for name in names] + [out / TOML_NAME] + ([] if args.no_report else [out / REPORT_NAME])

@@ -28,6 +28,12 @@ def fisheye_calibration_flags() -> int:
     return cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
 
 
+def fisheye_flag(name: str) -> int:
+    """One of ``cv2.fisheye.calibrate``'s flags by its name without ``CALIB_`` (e.g. "FIX_K1"): OpenCV 4's
+    ``cv2.fisheye.CALIB_FIX_K1``, OpenCV 5's ``cv2.CALIB_FIX_K1``."""
+    return int(getattr(cv2.fisheye, f"CALIB_{name}", None) or getattr(cv2, f"CALIB_{name}"))
+
+
 def log_errors_only() -> None:
     """OpenCV's own log messages: errors only (OpenCV 4: ``cv2.setLogLevel``; 5: ``cv2.utils.logging``)."""
     logging = getattr(getattr(cv2, "utils", None), "logging", None)

@@ -277,7 +277,7 @@ def test_a_camera_that_never_sees_the_board_is_refused(tmp_path, drawn, capsys):
     (["--out", "rig.yaml"], "names a file, but 2 sources make a rig"),
     (["--camera", "a.yaml"], "--camera given 1 times for 2 sources"),
     (["--sync-offsets", "0"], "--sync-offsets has 1 values for 2 sources"),
-    (["--model", "fisheye"], "--model fisheye is single-camera only"),
+    (["--model", "fisheye", "--fix-k3"], "--fix-k3 is for the pinhole and rational models"),
 ])
 def test_rig_options_are_checked_before_any_work(tmp_path, drawn, capsys, extra, message, monkeypatch):
     _, folders, board = drawn
