@@ -122,3 +122,14 @@ def test_a_frame_whose_markers_are_swapped_is_not_reported(name):
     detector = make_detector(name, board, "subpix" if name == "opencv" else "refinenet")
     assert [len(detector.detect(frame)) for frame in frames] == [24, 24, 24]
     assert [len(detector.detect(_markers_swapped(frame, board, 7, 8))) for frame in frames] == [0, 0, 0]
+
+
+def test_the_layout_sweep_names_the_print_and_its_look_alikes():
+    """`python -m evaluate.captures.layouts` (the note's table of shifted layouts) searches each set with these."""
+    from evaluate.captures.layouts import layouts
+
+    board = BoardSpec(4, 5, 0.05, 0.04, "DICT_4X4_1000", first_marker_id=3)
+    found = layouts(board)
+    assert list(found) == ["right", "transposed", "+1", "+2", "+3"] and found["right"] == board
+    assert (found["transposed"].squares_x, found["transposed"].squares_y) == (5, 4)
+    assert [found[f"+{k}"].first_marker_id for k in (1, 2, 3)] == [4, 5, 6]
