@@ -3,7 +3,8 @@ REALDATA``, where REALDATA holds the folders described in each set's SOURCE.txt;
 
 caliscope_cam1: frames of caliscope's cam_1.mp4 decoded by OpenCV, converted to grey and saved as JPEG
 (quality 90), with camera_cam_1.yaml as camera.yaml and the by-eye verdicts of those frames; opencv_tutorial:
-the photos as published (choriginal.jpg is left out: it is calib_img_01.jpg byte for byte); caliscope_rig: the
+the photos as published (choriginal.jpg is left out: it is calib_img_01.jpg byte for byte);
+``evaluate/calibration/caliscope_rig`` (beside the rig's evaluations, not a capture set: it holds no frames): the
 deep detector's corners (shipped weights, refinenet) in every frame of caliscope's four synchronised videos
 (``detections.npz``: per camera c, ``counts_c`` corners per frame, ``ids_c`` and ``corners_c`` concatenated) with
 their camera files, for the time alignment's tests (the videos themselves are 11 MB).
@@ -48,7 +49,7 @@ def main(realdata: Path) -> None:
     for name in TUTORIAL_PHOTOS + ("board.yaml", "camera.yaml"):
         shutil.copyfile(source / name, out / name)
 
-    rig_detections(realdata / "caliscope_calibration", HERE / "caliscope_rig")
+    rig_detections(realdata / "caliscope_calibration", HERE.parent / "calibration" / "caliscope_rig")
 
 
 def rig_detections(source: Path, out: Path) -> None:

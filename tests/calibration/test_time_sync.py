@@ -18,7 +18,7 @@ from deepcharuco.geometry.camera import write_camera
 from evaluate.calibration.rig_views import RIG_BOARD, drawn_rig
 from evaluate.calibration.sync_eval import cut, drawn_detections
 
-REAL = ROOT / "evaluate" / "captures_sample" / "caliscope_rig"
+REAL = ROOT / "evaluate" / "calibration" / "caliscope_rig"
 
 
 @pytest.mark.parametrize("fps", [[30.0, 30.0, 30.0], [30.0, 25.0, 30.0]])
