@@ -125,11 +125,23 @@ def rank_z(ranks: np.ndarray) -> float:
     return float((np.mean(ranks) - 0.5) * np.sqrt(12 * len(ranks))) if len(ranks) else 0.0
 
 
+def binomial_tail(n: int, k: int, p: float) -> float:
+    """P(X >= k) for X ~ Binomial(n, p): the chance rules' common tail."""
+    return float(sum(math.comb(n, i) * p ** i * (1 - p) ** (n - i) for i in range(k, n + 1)))
+
+
+def code_match_chance(codes: int, board: BoardSpec) -> float:
+    """Chance that a square showing none of ``codes`` codes of ``board``'s dictionary reads within `code_error_limit`
+    bits of one of them: codes x sum_{j <= limit} C(n, j) / 2^n (n inner bits), at most 1."""
+    size = board.cv_dictionary().markerSize ** 2
+    return min(1.0, codes * sum(math.comb(size, j) for j in range(code_error_limit(board) + 1)) / 2.0 ** size)
+
+
 def chance_of_agreement(agreeing: int, readable: int, markers: int) -> float:
     """Probability that ``agreeing`` or more of ``readable`` squares that show no marker of the board would
     each read best as the marker the view expects there, by chance: 1 in 4 x ``markers`` each (binomial tail)."""
     p = 1.0 / (4 * markers)
-    return float(sum(math.comb(readable, k) * p ** k * (1 - p) ** (readable - k) for k in range(agreeing, readable + 1)))
+    return binomial_tail(readable, agreeing, p)
 
 
 def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None,
@@ -185,11 +197,9 @@ def layout_contradicted(agreeing: int, readable: int, contradicting: int, board:
         return False
     if contradicting >= agreeing / 3:
         return True
-    p = min(1.0, len(dictionary_codes(board.dictionary)) * sum(
-        math.comb(board.cv_dictionary().markerSize ** 2, j) for j in range(code_error_limit(board) + 1))
-        / 2.0 ** board.cv_dictionary().markerSize ** 2)
+    p = code_match_chance(len(dictionary_codes(board.dictionary)), board)
     n = readable - agreeing
-    tail = sum(math.comb(n, k) * p ** k * (1 - p) ** (n - k) for k in range(contradicting, n + 1))
+    tail = binomial_tail(n, contradicting, p)
     return tail <= MAX_CHANCE
 
 
@@ -236,9 +246,7 @@ def markers_beyond_contradict(readable: int, found: int, board: BoardSpec) -> bo
     M x sum_{j <= limit} C(n, j) / 2^n (n inner bits)."""
     if found == 0:
         return False
-    size = board.cv_dictionary().markerSize ** 2
-    p = min(1.0, board.num_markers * sum(math.comb(size, j) for j in range(code_error_limit(board) + 1)) / 2.0 ** size)
-    tail = sum(math.comb(readable, k) * p ** k * (1 - p) ** (readable - k) for k in range(found, readable + 1))
+    tail = binomial_tail(readable, found, code_match_chance(board.num_markers, board))
     return tail <= MAX_CHANCE
 
 
