@@ -13,7 +13,8 @@ validation shards (never on test data): the one that maximises right corners min
 (a wrong ID, > 3 px off, or any corner on a frame without the board), the detections PnP gets,
 decoded as ``Detector()`` decodes them (board-geometry check included: ``--geometry``); for a
 points-only ChArUcoNet (``--heads points``, a family model) each frame of its own board, read by
-its markers as ``Detector`` then does.
+its markers as ``Detector`` then does. A network distilled by ``train.distill`` has no shards:
+``--threshold-data drawn`` chooses on frames drawn for it (`train.drawn_threshold`).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
 from deepcharuco.detection.metrics import match_corners
 from deepcharuco.networks.checkpoint import id_head_trained, read_checkpoint, save_bundle
 from train.dataset import FrameDataset, split_shards
+from train.drawn_threshold import choose_threshold_drawn
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
 PACKAGE_DIR = Path(deepcharuco.__file__).resolve().parent
@@ -143,7 +145,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="the Detector's default score threshold: a number, or 'auto' to choose it on the run's "
                              "validation shards (default: none stored, the Detector uses 0.3)")
     parser.add_argument("--threshold-data", default=None,
-                        help="--threshold auto: frame shards to split for validation (default: the run's --data)")
+                        help="--threshold auto: frame shards to split for validation (default: the run's --data); "
+                             "'drawn': frames drawn for a network distilled by python -m train.distill, from a seed "
+                             "its run never drew (train.drawn_threshold)")
+    parser.add_argument("--threshold-frames", type=int, default=None,
+                        help="--threshold auto: at most this many validation frames (default: 300 shard frames, "
+                             "192 drawn ones)")
     parser.add_argument("--geometry", choices=(*GEOMETRY_MODES, "markers"), default="repair",
                         help="--threshold auto: the Detector's board-geometry mode to choose it for ('markers' "
                              "whatever is given for a points-only ChArUcoNet, python -m train.charuconet --heads points)")
@@ -165,8 +172,14 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> None:
         nonlocal threshold
         out = check_out(args.out, args.force)
-        if threshold == "auto":
-            threshold, balance = choose_threshold(args.charuconet, args.threshold_data, geometry=args.geometry)
+        if threshold == "auto" and args.threshold_data == "drawn":
+            geometry = args.geometry if id_head_trained(read_checkpoint(args.charuconet, "charuconet")) else "markers"
+            threshold, balance = choose_threshold_drawn(args.charuconet, args.threshold_frames or 192, geometry=geometry)
+            print("right - wrong corners on drawn validation frames by threshold: "
+                  + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
+        elif threshold == "auto":
+            threshold, balance = choose_threshold(args.charuconet, args.threshold_data, args.threshold_frames or 300,
+                                                  geometry=args.geometry)
             print("right - wrong corners on validation frames by threshold: "
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
         path = save_bundle(out, args.charuconet, args.refinenet, note, threshold)
