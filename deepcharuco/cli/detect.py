@@ -330,8 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "calibrate and the Detector API)")
     parser.add_argument("--no-corner-fit", action="store_true",
                         help="deep and hybrid: leave out the printed-pattern fit that places each corner last and gives "
-                             "its uncertainty (~5 ms a frame faster on a 2-core CPU; corners ~5x less exact)")
-    parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle "
+                             "its uncertainty (~2 ms a frame faster on a 2-core CPU; corners ~5x less exact)")
+    parser.add_argument("--weights", default=None, help="--detector deep: ChArUcoNet checkpoint or bundle, or a "
+                                                         "folder of them laid out as deepcharuco/weights "
                                                          "(default: the shipped weights for the board: the paper's "
                                                          "board's own, else its marker family's model where one "
                                                          "is shipped)")

@@ -118,17 +118,39 @@ MODES = ("deep", "hybrid")
 DECODINGS = (*GEOMETRY_MODES, "markers")
 
 
-def shipped_weights(board: BoardSpec | None) -> Path:
+def shipped_weights(board: BoardSpec | None, folder: str | Path | None = None) -> Path:
     """The shipped weights `Detector` loads for ``board`` when none are given: the paper's board-specific model
     (`DEFAULT_WEIGHTS`, ID head and all) for no board or a board of its layout; else the family model of the
     board's marker family (`FAMILY_WEIGHTS_DIR`/<family>.pt) when this version ships one; else the paper's
-    model, whose point head finds the corners of other boards too (their IDs then come from the markers)."""
+    model, whose point head finds the corners of other boards too (their IDs then come from the markers).
+
+    ``folder``: a weights folder laid out as the shipped one (`is_weights_folder`: ``detector.pt`` and
+    ``families/<FAMILY>.pt``, or their ONNX bundles alone): its models instead, chosen the same way."""
+    if folder is None:
+        default, families = DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR
+    else:
+        default, families = _model_file(Path(folder) / "detector"), Path(folder) / "families"
     if board is None or board.same_layout(BoardSpec()):
-        return DEFAULT_WEIGHTS
+        return default
     family = marker_family(board.dictionary)
-    if family is not None and (FAMILY_WEIGHTS_DIR / f"{family}.pt").is_file():
-        return FAMILY_WEIGHTS_DIR / f"{family}.pt"
-    return DEFAULT_WEIGHTS
+    if family is not None:
+        model = _model_file(families / family)
+        if model.exists():
+            return model
+    return default
+
+
+def _model_file(stem: Path) -> Path:
+    """``stem``.pt, or its ONNX bundle ``stem``.onnx where only that is there."""
+    checkpoint = stem.with_suffix(".pt")
+    return stem.with_suffix(".onnx") if not checkpoint.is_file() and is_bundle(stem.with_suffix(".onnx")) else checkpoint
+
+
+def is_weights_folder(path: str | Path) -> bool:
+    """Whether ``path`` is a folder of weights laid out as the shipped ones (``detector.pt`` or its bundle
+    ``detector.onnx/``, and optionally ``families/<FAMILY>.pt`` or ``.onnx/``): `shipped_weights` picks from it."""
+    path = Path(path)
+    return path.is_dir() and not is_bundle(path) and _model_file(path / "detector").exists()
 
 
 def _torch_installed() -> bool:
@@ -143,8 +165,9 @@ def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle
     """The ONNX bundle the detector runs (`deepcharuco.networks.onnx_bundle`): ``weights`` itself when it is one, else
     the one beside the weights where PyTorch is not installed; None where PyTorch reads the weights."""
     if Path(weights).is_dir() and not is_bundle(weights):
-        raise BundleError(f"{weights} is a folder without bundle.json, so not an ONNX bundle: give the weights file "
-                          f"(.pt), or a bundle folder (deepcharuco export --bundle --weights NAME.pt)")
+        raise BundleError(f"{weights} is a folder without bundle.json or detector.pt, so neither an ONNX bundle nor a "
+                          f"weights folder: give the weights file (.pt), a bundle folder (deepcharuco export --bundle "
+                          f"--weights NAME.pt), or a folder laid out as deepcharuco/weights")
     if is_bundle(weights):
         if refine_weights is not None:
             raise DeepCharucoError(f"{weights} is an ONNX bundle and holds its own RefineNet: leave refine_weights out")
@@ -199,7 +222,8 @@ class Detector:
             mirrored keeps the weights' ID head.
         weights: a ChArUcoNet checkpoint or a bundle with both networks (default: the shipped weights for the
             board, `shipped_weights`: the paper's board-specific model for its board, the family model of the
-            board's marker family where one is shipped, else the paper's). ``self.weights`` says which. An ONNX
+            board's marker family where one is shipped, else the paper's), or a folder of them laid out as the
+            shipped ones (`is_weights_folder`), chosen from the same way. ``self.weights`` says which. An ONNX
             bundle (``NAME.onnx/``, `deepcharuco.networks.onnx_bundle`) runs without PyTorch; where PyTorch is not
             installed, the bundle beside ``NAME.pt`` is run (the shipped weights all have one).
         refine: "refinenet" (the paper's best), "subpix" (OpenCV cornerSubPix) or "none" (cell pixels).
@@ -297,6 +321,8 @@ class Detector:
             check_choice("reader", reader, READERS)
         if geometry is not None:
             check_choice("geometry", geometry, DECODINGS)
+        if weights is not None and is_weights_folder(weights):
+            weights = shipped_weights(board, weights)
         if weights is None:
             weights = shipped_weights(board)
             if not weights.is_file():

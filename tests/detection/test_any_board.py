@@ -415,3 +415,33 @@ def test_a_degenerate_cell_maps_to_non_finite_values_without_a_warning():
         warnings.simplefilter("error")  # numpy's RuntimeWarning reached the user's terminal from a dark video
         maps = cell_homographies(pixels, np.array([[0, 1, 2, 3]]))
     assert not np.isfinite(maps).all()
+
+
+def test_a_weights_folder_is_chosen_from_as_the_shipped_one_is(tmp_path, camera):
+    """`Detector(weights=FOLDER)`: a folder laid out as deepcharuco/weights (a candidate set of networks for every
+    family, e.g. distilled ones) gives each board its model as the shipped folder would."""
+    import shutil
+
+    from deepcharuco.core.errors import DeepCharucoError
+    from deepcharuco.detection import deep_detector
+
+    shutil.copytree(deep_detector.DEFAULT_WEIGHTS.with_suffix(".onnx"), tmp_path / "detector.onnx")
+    shutil.copytree(deep_detector.FAMILY_WEIGHTS_DIR / "DICT_4X4.onnx", tmp_path / "families" / "DICT_4X4.onnx")
+    four = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375, dictionary="DICT_4X4_1000",
+                     inverted=True)
+    six = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    assert deep_detector.is_weights_folder(tmp_path) and not deep_detector.is_weights_folder(tmp_path / "families")
+    assert Detector(weights=tmp_path).weights == tmp_path / "detector.onnx"
+    assert Detector(board=four, weights=tmp_path).weights == tmp_path / "families" / "DICT_4X4.onnx"
+    assert Detector(board=six, weights=tmp_path).weights == tmp_path / "detector.onnx"  # no DICT_6X6 model there
+    # the same detections as the files named directly
+    image, _ = view_of(four, camera, 0.7, tilt_x_deg=20, tilt_y_deg=-10, roll_deg=5)
+    from_folder = Detector(board=four, weights=tmp_path).detect(image)
+    direct = Detector(board=four, weights=deep_detector.FAMILY_WEIGHTS_DIR / "DICT_4X4.onnx").detect(image)
+    assert len(from_folder) >= 10 and np.array_equal(from_folder.ids, direct.ids)
+    assert np.array_equal(from_folder.corners, direct.corners)
+    # a checkpoint beside a bundle is preferred, as in the shipped folder
+    shutil.copy(deep_detector.DEFAULT_WEIGHTS, tmp_path / "detector.pt")
+    assert deep_detector.shipped_weights(None, tmp_path) == tmp_path / "detector.pt"
+    with pytest.raises(DeepCharucoError, match="weights folder"):
+        Detector(weights=tmp_path / "families")
