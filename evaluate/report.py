@@ -270,7 +270,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m evaluate.report", description=__doc__.split("\n\n")[0],
                                      epilog="\n\n".join(__doc__.split("\n\n")[1:]),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--weights", default=None, help="ChArUcoNet checkpoint or bundle (default: the shipped weights)")
+    parser.add_argument("--weights", default=None, help="ChArUcoNet checkpoint or bundle, or a folder of them laid out as "
+                                                         "deepcharuco/weights (default: the shipped weights)")
     parser.add_argument("--refine-weights", default=None, help="RefineNet checkpoint when --weights is not a bundle")
     parser.add_argument("--sequences", default=str(DEFAULT_SEQUENCES), help="rendered sequences (default: %(default)s)")
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="held-out renders (default: %(default)s)")
