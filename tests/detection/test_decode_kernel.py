@@ -140,6 +140,25 @@ def test_squarest_cells_kernel_keeps_the_same_cells():
     assert np.array_equal(quads[plain], kept)
 
 
+
+@pytest.mark.parametrize("integer", [False, True], ids=["subpixel", "integer pixels (ties)"])
+def test_find_cells_kernel_finds_the_same_cells(integer):
+    """`decode_kernel.cell_quads` makes `lattice._cell_quads`' quads, in their order, on a jittered lattice among
+    clutter; integer pixels (a search level's cell pixels) tie many distances."""
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    rng = np.random.default_rng(11)
+    x, y = np.meshgrid(np.arange(10), np.arange(8))
+    lattice_points = np.stack([x.ravel() * 18 + y.ravel() * 5, y.ravel() * 15], axis=1) + rng.normal(0, 1.0, (80, 2))
+    pixels = np.concatenate([lattice_points + 30, rng.uniform(0, 260, (60, 2))])
+    points = np.rint(pixels) if integer else pixels
+    near = lattice._nearest(points, lattice.NEIGHBOURS)
+    compiled = kernel.cell_quads(points, near, lattice.MIN_SIDE_PX, lattice.MAX_SIDE_RATIO, lattice.MIN_SINE,
+                                 lattice.CLOSURE_TOLERANCE)
+    plain = lattice._cell_quads(points, near)
+    assert len(plain) > 100 and np.array_equal(compiled, plain)
+    cells = lattice.find_cells(points)
+    assert 50 <= len(cells) < len(plain)  # de-duplicated: each cell found from several of its corners once
+
 def test_cell_reads_reuse_reads_and_read_only_new_cells():
     rng = np.random.default_rng(11)
     image, board = drawn("sharp")

@@ -132,3 +132,42 @@ def squarest_keep(sides, cosine, area, order, squarer_by, same_area, contained_a
                     keep[q] = False
                 e = entry_next[e]
     return keep
+
+
+@njit(cache=True)
+def cell_quads(points, near, min_side, max_side_ratio, min_sine, closure_tolerance):
+    """`lattice.find_cells`' quads before their de-duplication, compiled: (N, 2) float64 ``points``, (N, k) int64
+    each one's nearest others -> (P, 4) int64 quads (a, b, d, c) in the order its numpy path makes them (``a``, then
+    its neighbour pairs (i < j) row by row), each right-handed, plausible (sides, their ratio, the sine of their
+    angle) and closed by a neighbour ``d`` of ``a`` near b + c - a (the nearest, the first of equals)."""
+    count, k = near.shape
+    out = np.empty((count * k * max(k - 1, 0) // 2, 4), np.int64)
+    found = 0
+    for a in range(count):
+        ax, ay = points[a, 0], points[a, 1]
+        for i in range(k):
+            for j in range(i + 1, k):
+                b, c = near[a, i], near[a, j]
+                abx, aby = points[b, 0] - ax, points[b, 1] - ay
+                acx, acy = points[c, 0] - ax, points[c, 1] - ay
+                if not abx * acy - aby * acx > 0:  # right-handed: (b - a) x (c - a) > 0
+                    b, c = c, b
+                    abx, aby, acx, acy = acx, acy, abx, aby
+                side_ab, side_ac = np.sqrt(abx * abx + aby * aby), np.sqrt(acx * acx + acy * acy)
+                shorter, longer = min(side_ab, side_ac), max(side_ab, side_ac)
+                sine = abs(abx * acy - aby * acx) / max(side_ab * side_ac, 1e-9)
+                if not (shorter >= min_side and longer <= max_side_ratio * shorter and sine > min_sine):
+                    continue
+                ex, ey = points[b, 0] + points[c, 0] - ax, points[b, 1] + points[c, 1] - ay
+                d, gap = -1, np.inf
+                for o in range(k):
+                    q = near[a, o]
+                    dx, dy = ex - points[q, 0], ey - points[q, 1]
+                    distance = np.sqrt(dx * dx + dy * dy)
+                    if distance < gap:
+                        d, gap = q, distance
+                if not gap <= closure_tolerance * shorter or d == a or d == b or d == c:
+                    continue
+                out[found, 0], out[found, 1], out[found, 2], out[found, 3] = a, b, d, c
+                found += 1
+    return out[:found]

@@ -21,7 +21,7 @@ import numpy as np
 
 from deepcharuco.core.vectors import lengths, pairwise_distances
 
-try:  # `squarest_cells`' loop compiled (pip install deepcharuco[fast]); else Python's, the same choice
+try:  # `find_cells`' and `squarest_cells`' loops compiled (pip install deepcharuco[fast]); else numpy's, the same cells
     import deepcharuco.detection.markers.decode_kernel as compiled_kernel
 except ImportError:
     compiled_kernel = None
@@ -31,6 +31,7 @@ NEIGHBOURS = 8  # nearest candidates a corner pairs up: its 4 lattice neighbours
 CLOSURE_TOLERANCE = 0.25
 MAX_SIDE_RATIO = 2.5  # sides of one cell: foreshortening stretches them, not beyond this
 MIN_SIDE_PX = 4.0  # smaller squares hold markers too small to read
+MIN_SINE = 0.3  # a cell's corner angle is at least asin(0.3), ~17 degrees, from a straight line
 # A quad gives way to a rival on one of its sides that is squarer by this much (`squarest_cells`): a square's sheared
 # rival is 0.71 less square, a real cell's under a view steep enough to shear it to 69 degrees only 0.2.
 SQUARER_BY = 0.2
@@ -50,6 +51,25 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
         return np.zeros((0, 4), np.int64)
     k = min(NEIGHBOURS, count - 1)
     near = _nearest(points, k)  # (N, k)
+    if compiled_kernel is not None:
+        quads = compiled_kernel.cell_quads(points, near, MIN_SIDE_PX, MAX_SIDE_RATIO, MIN_SINE, CLOSURE_TOLERANCE)
+    else:
+        quads = _cell_quads(points, near)
+    if len(quads) == 0:
+        return np.zeros((0, 4), np.int64)
+    # Each cell once, whichever corner it was found from: its sorted corners as one integer key (rows beyond int64).
+    corners = np.sort(quads, axis=1).astype(np.int64)
+    if count < 2 ** 15:
+        _, unique = np.unique(corners @ (count ** np.arange(3, -1, -1, dtype=np.int64)), return_index=True)
+    else:
+        _, unique = np.unique(corners, axis=0, return_index=True)
+    return quads[np.sort(unique)].astype(np.int64)
+
+
+def _cell_quads(points: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """`find_cells`' quads before their de-duplication, by numpy: (N, 2) points, (N, k) each one's nearest others ->
+    (P, 4) quads (a, b, d, c) (`decode_kernel.cell_quads` makes the same, compiled)."""
+    count, k = near.shape
     first, second = np.triu_indices(k, 1)
     a = np.repeat(np.arange(count), len(first))
     b, c = near[:, first].ravel(), near[:, second].ravel()
@@ -60,7 +80,7 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     side_ab, side_ac = lengths(ab), lengths(ac)
     shorter = np.minimum(side_ab, side_ac)
     sine = np.abs(ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]) / np.maximum(side_ab * side_ac, 1e-9)
-    plausible = (shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter) & (sine > 0.3)
+    plausible = (shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter) & (sine > MIN_SINE)
     a, b, c, shorter = a[plausible], b[plausible], c[plausible], shorter[plausible]
     expected = points[b] + points[c] - points[a]
     # d is a's diagonal neighbour: look for it among a's nearest candidates only, O(P k) not O(P N).
@@ -70,16 +90,7 @@ def find_cells(pixels: np.ndarray) -> np.ndarray:
     d = options[np.arange(len(options)), nearest]
     closes = gap[np.arange(len(d)), nearest] <= CLOSURE_TOLERANCE * shorter
     quads = np.stack([a, b, d, c], axis=1)[closes]
-    quads = quads[(quads[:, 2] != quads[:, 0]) & (quads[:, 2] != quads[:, 1]) & (quads[:, 2] != quads[:, 3])]
-    if len(quads) == 0:
-        return np.zeros((0, 4), np.int64)
-    # Each cell once, whichever corner it was found from: its sorted corners as one integer key (rows beyond int64).
-    corners = np.sort(quads, axis=1).astype(np.int64)
-    if count < 2 ** 15:
-        _, unique = np.unique(corners @ (count ** np.arange(3, -1, -1, dtype=np.int64)), return_index=True)
-    else:
-        _, unique = np.unique(corners, axis=0, return_index=True)
-    return quads[np.sort(unique)].astype(np.int64)
+    return quads[(quads[:, 2] != quads[:, 0]) & (quads[:, 2] != quads[:, 1]) & (quads[:, 2] != quads[:, 3])]
 
 
 def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
