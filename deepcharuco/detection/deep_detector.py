@@ -175,8 +175,8 @@ def _onnx_bundle(weights: Path, refine_weights: str | Path | None) -> OnnxBundle
         if _torch_installed():  # the network's own fingerprint; without PyTorch, the file's sha256 stands in
             from deepcharuco.networks.runtime import check_fingerprint
             check_fingerprint(bundle)
-        else:
-            check_exported_from(bundle, bundle.path.parent / str(bundle.meta.get("weights")))
+        elif bundle.meta.get("weights"):  # a bundle that names no weights file has none to be checked against
+            check_exported_from(bundle, bundle.path.parent / str(bundle.meta["weights"]))
         return bundle
     if _torch_installed():
         return None
