@@ -29,7 +29,7 @@ import numpy as np
 
 from deepcharuco import BoardSpec, OpenCVDetector
 import deepcharuco.detection.deep_detector as deep_detector
-from deepcharuco.detection.markers import lattice, marker_reader
+from deepcharuco.detection.markers import lattice, marker_reader, placement
 from deepcharuco.detection.markers.placement import corners_from_markers
 from deepcharuco.networks.onnx_runner import single_threaded_blas
 from evaluate.captures.reader import video_frames
@@ -86,7 +86,7 @@ def main() -> None:
         parser.error("--step and --rounds must be >= 1")
     compiled = getattr(marker_reader, "compiled_kernel", None) is not None
     if args.plain:
-        marker_reader.compiled_kernel = lattice.compiled_kernel = None
+        marker_reader.compiled_kernel = lattice.compiled_kernel = placement.compiled_kernel = None
         compiled = False
     board = BoardSpec.load(folder / "board.yaml")
     frames = load_frames(folder, args.step)

@@ -47,6 +47,7 @@ def detect_both(monkeypatch, image: np.ndarray, board: BoardSpec):
     with monkeypatch.context() as patch:
         patch.setattr(marker_reader, "compiled_kernel", None)
         patch.setattr(lattice, "compiled_kernel", None)
+        patch.setattr(placement, "compiled_kernel", None)
         plain = detector.detect(image)
     return compiled, plain
 
@@ -158,6 +159,27 @@ def test_find_cells_kernel_finds_the_same_cells(integer):
     assert len(plain) > 100 and np.array_equal(compiled, plain)
     cells = lattice.find_cells(points)
     assert 50 <= len(cells) < len(plain)  # de-duplicated: each cell found from several of its corners once
+
+
+def test_agreement_kernel_decides_as_numpy():
+    """`decode_kernel.agreement` gives `placement._agreement`'s (H, K) decisions: proposals of one view (which agree)
+    among random ones, a proposal sending points to infinity, and one that is not finite."""
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    rng = np.random.default_rng(5)
+    view = np.array([[30.0, 4.0, 100.0], [-3.0, 28.0, 80.0], [1e-3, 2e-3, 1.0]])
+    square_xy = rng.integers(0, 8, (400, 2)).astype(np.float64)
+    proposals = np.repeat(view[None], 400, axis=0) + rng.normal(0, 0.05, (400, 3, 3)) * [[1, 1, 10], [1, 1, 10],
+                                                                                         [0, 0, 0]]
+    proposals[::3] = rng.normal(0, 20, (134, 3, 3))  # a third of them random
+    proposals[7, 2] = [0.0, 0.0, 0.0]  # w = 0 everywhere: at infinity
+    proposals[11, 0, 0] = np.nan
+    hypotheses = np.argsort(rng.random(400), kind="stable")[:128].astype(np.int64)
+    reach = rng.uniform(3, 12, 400)
+    compiled = kernel.agreement(proposals, square_xy, hypotheses, reach)
+    plain = placement._agreement(proposals, square_xy, hypotheses, reach)
+    assert np.array_equal(compiled, plain)
+    assert 0.1 < plain.mean() < 0.9  # both outcomes are decided, not all alike
+    assert not plain[:, [7, 11]].any() and not plain[np.isin(hypotheses, [7, 11])].any()
 
 def test_cell_reads_reuse_reads_and_read_only_new_cells():
     rng = np.random.default_rng(11)

@@ -1,5 +1,6 @@
-"""The marker reads' and the cells' per-element loops compiled by numba: the same arithmetic as their numpy paths
-(`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._squarest_keep`), in one pass over the data
+"""The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
+decisions as their numpy paths (`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._cell_quads`,
+`lattice._squarest_keep`, `placement._agreement`), in one pass over the data
 instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's few thousand square
 reads (`docs/detector.md`, "A compiled decoder").
 
@@ -171,3 +172,37 @@ def cell_quads(points, near, min_side, max_side_ratio, min_sine, closure_toleran
                 out[found, 0], out[found, 1], out[found, 2], out[found, 3] = a, b, d, c
                 found += 1
     return out[:found]
+
+
+@njit(cache=True, error_model="numpy")
+def agreement(proposals, square_xy, hypotheses, reach):
+    """`placement._agreement` compiled: (K, 3, 3) float64 ``proposals`` (board square units -> image), (K, 2) float64
+    each one's square on the board, (H,) int64 the ``hypotheses`` among them, (K,) float64 ``reach`` (px) -> (H, K)
+    bool: hypothesis h puts proposal k's square's centre, then its first corner, within k's reach of where k read them.
+    Compared without a division (``|p - o w| < r |w|``): a point at infinity never lands."""
+    count, tried = len(square_xy), len(hypotheses)
+    observed = np.empty((count, 2, 2))  # each proposal's own centre and first corner, in pixels
+    for k in range(count):
+        p = proposals[k]
+        for corner in range(2):
+            u = square_xy[k, 0] + (0.5 if corner == 0 else 0.0)
+            v = square_xy[k, 1] + (0.5 if corner == 0 else 0.0)
+            w = p[2, 0] * u + p[2, 1] * v + p[2, 2]
+            observed[k, corner, 0] = (p[0, 0] * u + p[0, 1] * v + p[0, 2]) / w
+            observed[k, corner, 1] = (p[1, 0] * u + p[1, 1] * v + p[1, 2]) / w
+    agrees = np.zeros((tried, count), np.bool_)
+    for h in range(tried):
+        p = proposals[hypotheses[h]]
+        for k in range(count):
+            lands = True
+            for corner in range(2):
+                u = square_xy[k, 0] + (0.5 if corner == 0 else 0.0)
+                v = square_xy[k, 1] + (0.5 if corner == 0 else 0.0)
+                w = p[2, 0] * u + p[2, 1] * v + p[2, 2]
+                dx = (p[0, 0] * u + p[0, 1] * v + p[0, 2]) - observed[k, corner, 0] * w
+                dy = (p[1, 0] * u + p[1, 1] * v + p[1, 2]) - observed[k, corner, 1] * w
+                if not dx * dx + dy * dy < (reach[k] * w) ** 2:
+                    lands = False
+                    break
+            agrees[h, k] = lands
+    return agrees

@@ -33,6 +33,11 @@ from deepcharuco.detection.markers.verification import (MIN_MARKERS, marker_view
                                                         square_translations)
 from deepcharuco.networks.cells import CellCandidates
 
+try:  # the hypotheses' agreement compiled (pip install deepcharuco[fast]); else numpy's, the same decisions
+    import deepcharuco.detection.markers.decode_kernel as compiled_kernel
+except ImportError:
+    compiled_kernel = None
+
 
 # A video's board where the frame before put it (`view_near`): the view is moved by the median offset of the corners
 # that have a candidate within NEAR_FRACTION of the corner spacing, at least MIN_NEAR of them (a board that moved
@@ -174,18 +179,8 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     # as the view (the right view has many proposals, so some among the best): O(HYPOTHESES x K).
     hypotheses = np.argsort(-matches.ncc, kind="stable")[:HYPOTHESES]
     reach = AGREEMENT * _square_sides(squares[matches.read])  # (K,)
-    # A far-off proposal may send a point to infinity. The centres first, for every (hypothesis, proposal) pair:
-    # (H, K); the first corners then only for the pairs whose centres agree (0.3-5 % of them on the report's boards).
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        centres = np.c_[square_xy + 0.5, np.ones(len(square_xy))]
-        # (H, 3, K): one matrix product for all hypotheses (a stacked matmul of H 3x3s is 2x slower, same numbers).
-        mapped = (proposals[hypotheses].reshape(-1, 3) @ centres.T).reshape(len(hypotheses), 3, -1)
-        agrees = _lands_within(mapped, _apply_each(proposals, centres[:, :2]), reach)
-        pair_h, pair_k = np.nonzero(agrees)
-        firsts = np.c_[square_xy, np.ones(len(square_xy))]
-        mapped = np.einsum("nij,nj->ni", proposals[hypotheses[pair_h]], firsts[pair_k])[:, :, None]  # (n, 3, 1)
-        observed = _apply_each(proposals, square_xy)[pair_k][:, None]  # (n, 1, 2)
-        agrees[pair_h, pair_k] = _lands_within(mapped, observed, reach[pair_k][:, None])[:, 0]
+    agrees = (compiled_kernel.agreement(proposals, square_xy, hypotheses.astype(np.int64), reach)
+              if compiled_kernel is not None else _agreement(proposals, square_xy, hypotheses, reach))
     support = _support(matches.marker, matches.ncc, agrees)
     best = int(np.argmax(support))
     if len(np.unique(matches.marker[agrees[best]])) < MIN_MARKERS:
@@ -201,6 +196,25 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     to_metres = np.diag([1.0 / board.square_length, 1.0 / board.square_length, 1.0])
     view = BoardView(homography=homography @ to_metres, inliers=np.ones(len(board_points), bool))
     return MarkerView(view=view, marker_ids=np.unique(markers.ids[matches.marker[backing]]), reads=len(backing))
+
+
+def _agreement(proposals: np.ndarray, square_xy: np.ndarray, hypotheses: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) proposals (board square units -> image), (K, 2) each one's square, (H,) the hypotheses among them,
+    (K,) reach (px) -> (H, K) bool: hypothesis h puts proposal k's square's centre, then its first corner, within k's
+    reach of where k read them (`decode_kernel.agreement` decides the same, compiled)."""
+    # A far-off proposal may send a point to infinity. The centres first, for every (hypothesis, proposal) pair:
+    # (H, K); the first corners then only for the pairs whose centres agree (0.3-5 % of them on the report's boards).
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        centres = np.c_[square_xy + 0.5, np.ones(len(square_xy))]
+        # (H, 3, K): one matrix product for all hypotheses (a stacked matmul of H 3x3s is 2x slower, same numbers).
+        mapped = (proposals[hypotheses].reshape(-1, 3) @ centres.T).reshape(len(hypotheses), 3, -1)
+        agrees = _lands_within(mapped, _apply_each(proposals, centres[:, :2]), reach)
+        pair_h, pair_k = np.nonzero(agrees)
+        firsts = np.c_[square_xy, np.ones(len(square_xy))]
+        mapped = np.einsum("nij,nj->ni", proposals[hypotheses[pair_h]], firsts[pair_k])[:, :, None]  # (n, 3, 1)
+        observed = _apply_each(proposals, square_xy)[pair_k][:, None]  # (n, 1, 2)
+        agrees[pair_h, pair_k] = _lands_within(mapped, observed, reach[pair_k][:, None])[:, 0]
+    return agrees
 
 
 def _support(marker: np.ndarray, ncc: np.ndarray, agrees: np.ndarray) -> np.ndarray:
