@@ -1,7 +1,7 @@
 """Detection speed on the frames users point a camera at, every detector next to OpenCV in one interleaved run.
 
     python benchmarks/detect.py [--count 8] [--sizes 320x240,640x480,1280x720,1920x1080]
-                                [--realdata realdata] [--seconds 3] [--skip-videos]
+                                [--realdata realdata] [--seconds 3] [--skip-videos] [--candidate runs/fast]
 
 ``--realdata``: a folder of capture folders as docs/evaluation.md's "Real captures" lists them (caliscope's
 calibration session with its frames_review.csv, ...; each with its board.yaml). Without it, the backgrounds
@@ -114,6 +114,17 @@ def print_row(label: str, cells: list[str], width: int) -> None:
     print(f"{label:34s} " + " ".join(f"{c:>{width}s}" for c in cells), flush=True)
 
 
+def detector_set(board: BoardSpec, device: str, candidate: Path | None) -> dict:
+    """OpenCV (+ cornerSubPix), the deep and the hybrid detector with the shipped weights, and with ``candidate``
+    (weights, a bundle or a weights folder: `Detector(weights=...)`) the deep and hybrid detectors with those too."""
+    detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": Detector(board, device=device),
+                 "hybrid": Detector(board, mode="hybrid", device=device)}
+    if candidate is not None:
+        detectors["deep, candidate"] = Detector(board, weights=candidate, device=device)
+        detectors["hybrid, candidate"] = Detector(board, weights=candidate, mode="hybrid", device=device)
+    return detectors
+
+
 def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds: float) -> None:
     names = list(detectors)
     print_row("frames", names, 27)
@@ -126,14 +137,17 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
             right, wrong = scores(detectors[name], frames)
             cells.append(f"{fps[name]:6.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:4.2f} {wrong:4d}")
         print_row(label, cells, 27)
-        breakdowns.append((label, *stage_breakdown(detectors["deep"], frames)))
-    print("\nwhere the deep detector's time goes, ms a frame (one pass; levels: search levels run a frame)")
-    print_row("frames", [*STAGE_GROUPS, "levels"], 11)
-    for label, groups, levels in breakdowns:
-        print_row(label, [f"{groups[g]:.1f}" for g in STAGE_GROUPS] + [f"{levels:.1f}"], 11)
+        for name in ("deep", "deep, candidate"):
+            if name in detectors:
+                breakdowns.append((name, label, *stage_breakdown(detectors[name], frames)))
+    for name in dict.fromkeys(b[0] for b in breakdowns):
+        print(f"\nwhere the {name} detector's time goes, ms a frame (one pass; levels: search levels run a frame)")
+        print_row("frames", [*STAGE_GROUPS, "levels"], 11)
+        for _, label, groups, levels in (b for b in breakdowns if b[0] == name):
+            print_row(label, [f"{groups[g]:.1f}" for g in STAGE_GROUPS] + [f"{levels:.1f}"], 11)
 
 
-def video_rows(realdata: Path, device: str = "cpu") -> None:
+def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = None) -> None:
     """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
     frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, tracked with every level of
     every frame searched while no board is tracked, tracked as ``deepcharuco detect`` tracks a video (every level
@@ -147,6 +161,8 @@ def video_rows(realdata: Path, device: str = "cpu") -> None:
     print(f"\nreal videos, every frame in order: fps (frames with >= 4 corners); {realdata}")
     names = ["opencv", "deep", "deep tracked (1)", f"deep, video's ({VIDEO_SEARCH_EVERY})",
              f"deep, camera's ({CAMERA_SEARCH_EVERY})", "hybrid, video's"]
+    if candidate is not None:
+        names += ["candidate", "candidate, video's"]
     print_row("video", names, 20)
     for path in videos:
         board = BoardSpec.load(path.parent / "board.yaml")
@@ -155,6 +171,9 @@ def video_rows(realdata: Path, device: str = "cpu") -> None:
                 names[3]: BoardTracker(deep, search_every=VIDEO_SEARCH_EVERY),
                 names[4]: BoardTracker(deep, search_every=CAMERA_SEARCH_EVERY, look_back=False),
                 names[5]: BoardTracker(hybrid, search_every=VIDEO_SEARCH_EVERY)}
+        if candidate is not None:
+            runs["candidate"] = Detector(board, weights=candidate, device=device)
+            runs["candidate, video's"] = BoardTracker(runs["candidate"], search_every=VIDEO_SEARCH_EVERY)
         frames = video_frames(path)
         for label, clip in ((path.parent.name + "/" + path.name, frames),
                             (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):
@@ -182,6 +201,9 @@ def main() -> None:
     parser.add_argument("--skip-boards", action="store_true", help="leave the drawn boards out (videos only)")
     parser.add_argument("--device", default="cpu",
                         help="where the deep detector's networks run: cpu (default), cuda, ... (PyTorch on a GPU)")
+    parser.add_argument("--candidate", type=Path, default=None,
+                        help="other weights to time and score beside the shipped ones in the same run: a checkpoint, "
+                             "a bundle, or a folder laid out as deepcharuco/weights (e.g. distilled fast networks)")
     args = parser.parse_args()
     if args.count < 1:
         parser.error("--count must be >= 1")
@@ -198,22 +220,19 @@ def main() -> None:
           " (deepcharuco detect's default)")
     if not args.skip_boards:
         sizes = [parse_size(s) for s in args.sizes.split(",")]
-        detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": deep,
-                     "hybrid": Detector(board, mode="hybrid", device=args.device)}
+        detectors = detector_set(board, args.device, args.candidate)
         print(f"\nthe paper's board ({board.squares_x}x{board.squares_y} {board.dictionary}), {args.count} frames a row")
         time_rows(board_rows(board, sizes, args.count, rng, real), detectors, args.seconds)
 
         frames = [with_board(TINY_BOARD, b, rng, Placement(0.08, 0.15), f"5MP #{i}")
                   for i, b in enumerate(backgrounds_for(FIVE_MP, max(2, args.count // 2), rng, real))]
-        tiny = {"opencv": OpenCVDetector(TINY_BOARD, refine="subpix"), "deep": Detector(TINY_BOARD, device=args.device),
-                "hybrid": Detector(TINY_BOARD, mode="hybrid", device=args.device)}
+        tiny = detector_set(TINY_BOARD, args.device, args.candidate)
         print(f"\na 3x3 board (4 corners, {TINY_BOARD.dictionary}) at 8-15 % of a {FIVE_MP[0]}x{FIVE_MP[1]} frame")
         time_rows([("5 MP tiny board", frames), ("5 MP tiny board dark", [darkened(f) for f in frames])], tiny,
                   args.seconds)
 
         for name, unseen in UNSEEN_BOARDS.items():
-            others = {"opencv": OpenCVDetector(unseen, refine="subpix"), "deep": Detector(unseen, device=args.device),
-                      "hybrid": Detector(unseen, mode="hybrid", device=args.device)}
+            others = detector_set(unseen, args.device, args.candidate)
             print(f"\nboard never seen in training ({name}), read by its markers, on clutter")
             frames = [with_board(unseen, b, rng, FILLING, f"{name} #{i}")
                       for i, b in enumerate(backgrounds_for((640, 480), args.count, rng, real))]
@@ -224,7 +243,7 @@ def main() -> None:
     if args.realdata is None:
         print("\nno real videos timed: pass --realdata (docs/evaluation.md, Real captures)")
         return
-    video_rows(args.realdata, args.device)
+    video_rows(args.realdata, args.device, args.candidate)
 
 
 if __name__ == "__main__":

@@ -154,6 +154,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--geometry", choices=(*GEOMETRY_MODES, "markers"), default="repair",
                         help="--threshold auto: the Detector's board-geometry mode to choose it for ('markers' "
                              "whatever is given for a points-only ChArUcoNet, python -m train.charuconet --heads points)")
+    parser.add_argument("--default-geometry", choices=(*GEOMETRY_MODES, "markers"), default=None,
+                        help="how Detector decodes the weights' own board when not told (stored in the bundle; "
+                             "default: none stored, 'repair' where the ID head was trained): 'markers' for a "
+                             "network whose point head serves but whose ID head does not")
     parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE", help="provenance to record (repeatable)")
     args = parser.parse_args(argv)
     note = {}
@@ -182,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                                                   geometry=args.geometry)
             print("right - wrong corners on validation frames by threshold: "
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
-        path = save_bundle(out, args.charuconet, args.refinenet, note, threshold)
+        path = save_bundle(out, args.charuconet, args.refinenet, note, threshold, args.default_geometry)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
         # The same networks as ONNX beside it: Detector(weights=...) loads them where PyTorch is not installed.
         print(f"wrote {write_onnx_bundle(path)} (its ONNX bundle)")

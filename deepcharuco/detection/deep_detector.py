@@ -346,7 +346,9 @@ class Detector:
         self.board = board or trained_for
         own_board = self.board.same_layout(trained_for)
         if geometry is None:
-            geometry = "repair" if own_board else "markers"
+            # the bundle's own choice for its board (train.bundle --default-geometry), else the ID head's
+            stored = self.checkpoint.get("geometry")
+            geometry = ("markers" if not own_board else stored if stored in DECODINGS else "repair")
         elif geometry != "markers" and not own_board:
             raise DeepCharucoError(
                 f"geometry={geometry!r} decodes with the ID head of {weights}, trained for {trained_for}, whose "

@@ -92,14 +92,15 @@ def save_atomically(data: dict, path: str | Path) -> Path:
 
 
 def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path, note: dict | None = None,
-                threshold: float | None = None) -> Path:
+                threshold: float | None = None, geometry: str | None = None) -> Path:
     """Both networks' checkpoints in one shippable file, written atomically.
 
     Training state that only resuming needs (optimizer, AMP scaler) is dropped, which is most of a
     checkpoint's size; the step, the run's settings and its validation metrics are kept under
     ``training``, and ``note`` (free-form: commands, data, hardware) under ``note``. ``threshold``, the
     operating point chosen on validation frames, becomes the ChArUcoNet part's ``threshold``, the
-    `Detector`'s default."""
+    `Detector`'s default; ``geometry`` (`deep_detector.DECODINGS`), its ``geometry``: how `Detector` decodes the
+    weights' own board when not told (else "repair" where the ID head was trained)."""
     parts = {}
     for kind, source in (("charuconet", charuconet), ("refinenet", refinenet)):
         data = read_checkpoint(source, kind)
@@ -109,6 +110,10 @@ def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path,
         if not 0.0 < threshold < 1.0:
             raise CheckpointError(f"threshold {threshold} is not a score in (0, 1)")
         parts["charuconet"]["threshold"] = float(threshold)
+    if geometry is not None:
+        if geometry not in ("repair", "filter", "none", "markers"):
+            raise CheckpointError(f"geometry {geometry!r} is none of repair, filter, none, markers")
+        parts["charuconet"]["geometry"] = geometry
     return save_atomically({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts,
                              "note": note or {}}, path)
 

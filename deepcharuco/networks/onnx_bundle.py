@@ -3,7 +3,8 @@
 A bundle is a folder ``NAME.onnx/`` beside the weights ``NAME.pt`` it was exported from::
 
     bundle.json               format, the board, the score threshold, which heads were trained, the source
-                              weights' file name and the sha256 of ChArUcoNet's weights (as loaded)
+                              weights' file name and the sha256 of ChArUcoNet's weights (as loaded); optionally
+                              ``geometry``: how `Detector` decodes the weights' own board when not told
     charuconet.onnx           ChArUcoNet, both heads (only where the ID head was trained)
     charuconet_points.onnx    ChArUcoNet's point head alone (boards read by their markers)
     charuconet_int8.onnx      the int8 ChArUcoNet the weights carry, where they carry one

@@ -49,3 +49,17 @@ def test_the_bundle_stores_the_threshold_chosen_on_drawn_frames(distilled, tmp_p
                         "--out", str(out)]) == 0
     chosen = float(re.search(r"drawn validation frames by threshold: .* -> ([0-9.]+)", capsys.readouterr().out)[1])
     assert read_checkpoint(out, "charuconet")["threshold"] == pytest.approx(chosen)
+
+
+def test_a_bundle_may_say_how_its_own_board_is_decoded(distilled, tmp_path):
+    """--default-geometry markers: a network whose point head serves and whose ID head does not (a student early
+    in its distillation) reads its own board by its markers unless told otherwise; without it, the ID head."""
+    from deepcharuco import Detector
+
+    out = tmp_path / "markers.pt"
+    assert bundle.main(["--charuconet", str(distilled), "--refinenet", str(DEFAULT_WEIGHTS), "--threshold", "0.3",
+                        "--default-geometry", "markers", "--out", str(out)]) == 0
+    assert Detector(weights=out).geometry == "markers"
+    assert Detector(weights=out.with_suffix(".onnx")).geometry == "markers"  # the ONNX bundle written beside it
+    assert Detector(weights=out, geometry="repair").geometry == "repair"  # asked for: as asked
+    assert Detector(weights=DEFAULT_WEIGHTS).geometry == "repair"
