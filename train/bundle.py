@@ -181,6 +181,9 @@ def main(argv: list[str] | None = None) -> int:
             threshold, balance = choose_threshold_drawn(args.charuconet, args.threshold_frames or 192, geometry=geometry)
             print("right - wrong corners on drawn validation frames by threshold: "
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
+            if max(balance.values()) <= 0:
+                print(f"warning: at no threshold did the network find more right corners than wrong ones on "
+                      f"{args.threshold_frames or 192} drawn frames: it is not ready to use (train it longer)")
         elif threshold == "auto":
             threshold, balance = choose_threshold(args.charuconet, args.threshold_data, args.threshold_frames or 300,
                                                   geometry=args.geometry)
