@@ -161,6 +161,20 @@ def test_find_cells_kernel_finds_the_same_cells(integer):
     assert 50 <= len(cells) < len(plain)  # de-duplicated: each cell found from several of its corners once
 
 
+def test_cell_homographies_kernel_maps_as_numpy(monkeypatch):
+    """The compiled closed form gives numpy's maps bit for bit, a degenerate quad (three corners on a line) alike."""
+    pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    rng = np.random.default_rng(9)
+    pixels = rng.uniform(0, 640, (60, 2)).astype(np.float32)
+    pixels[1:4] = [[10, 10], [30, 30], [20, 20]]  # on one line: b, d and c of the last quad
+    quads = np.array([rng.choice(60, 4, replace=False) for _ in range(200)] + [[0, 1, 2, 3]])
+    compiled = lattice.cell_homographies(pixels, quads)
+    with monkeypatch.context() as patch:
+        patch.setattr(lattice, "compiled_kernel", None)
+        plain = lattice.cell_homographies(pixels, quads)
+    assert np.array_equal(compiled, plain, equal_nan=True)
+    assert not np.isfinite(plain[-1]).all() and np.isfinite(plain[:-1]).all(axis=(1, 2)).mean() > 0.9
+
 def test_agreement_kernel_decides_as_numpy():
     """`decode_kernel.agreement` gives `placement._agreement`'s (H, K) decisions: proposals of one view (which agree)
     among random ones, a proposal sending points to infinity, and one that is not finite."""

@@ -1,6 +1,6 @@
 """The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
 decisions as their numpy paths (`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._cell_quads`,
-`lattice._squarest_keep`, `placement._agreement`), in one pass over the data
+`lattice.cell_homographies`, `lattice._squarest_keep`, `placement._agreement`), in one pass over the data
 instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's few thousand square
 reads (`docs/detector.md`, "A compiled decoder").
 
@@ -206,3 +206,23 @@ def agreement(proposals, square_xy, hypotheses, reach):
                     break
             agrees[h, k] = lands
     return agrees
+
+
+@njit(cache=True, error_model="numpy")
+def cell_homographies(x, y):
+    """`lattice.cell_homographies` compiled: (Q, 4) float64 corner x and y of each cell -> (Q, 3, 3) unit square ->
+    image maps, by the same closed form in the same order of operations (a degenerate quad: not finite)."""
+    count = x.shape[0]
+    maps = np.empty((count, 3, 3))
+    for q in range(count):
+        x0, x1, x2, x3 = x[q, 0], x[q, 1], x[q, 2], x[q, 3]
+        y0, y1, y2, y3 = y[q, 0], y[q, 1], y[q, 2], y[q, 3]
+        dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+        dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+        det = dx1 * dy2 - dx2 * dy1
+        g = (dx3 * dy2 - dx2 * dy3) / det
+        h = (dx1 * dy3 - dx3 * dy1) / det
+        maps[q, 0, 0], maps[q, 0, 1], maps[q, 0, 2] = x1 - x0 + g * x1, x3 - x0 + h * x3, x0
+        maps[q, 1, 0], maps[q, 1, 1], maps[q, 1, 2] = y1 - y0 + g * y1, y3 - y0 + h * y3, y0
+        maps[q, 2, 0], maps[q, 2, 1], maps[q, 2, 2] = g, h, 1.0
+    return maps

@@ -179,6 +179,8 @@ def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
         return np.zeros((0, 3, 3))
     # float32 pixels, as the detector's candidates are; the map itself in float64.
     x, y = np.moveaxis(np.asarray(pixels, np.float32).astype(np.float64)[quads], -1, 0)  # each (Q, 4)
+    if compiled_kernel is not None:
+        return compiled_kernel.cell_homographies(np.ascontiguousarray(x), np.ascontiguousarray(y))
     (x0, x1, x2, x3), (y0, y1, y2, y3) = x.T, y.T
     dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
     dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
