@@ -116,7 +116,7 @@ def test_kernels_compute_the_numpy_paths_values():
         assert compiled.dtype == plain.dtype and np.array_equal(compiled, plain)
 
 
-def test_squarest_cells_kernel_keeps_the_same_cells():
+def test_squarest_cells_kernel_keeps_the_same_cells(monkeypatch):
     kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
     rng = np.random.default_rng(3)
     # a sheared, jittered lattice and clutter: many quads, rivals on shared sides
@@ -139,6 +139,10 @@ def test_squarest_cells_kernel_keeps_the_same_cells():
     plain = lattice._squarest_keep(sides, cosine, area, order)
     assert np.array_equal(compiled, plain)
     assert np.array_equal(quads[plain], kept)
+    # the whole choice compiled (angles, areas, side IDs, order: `squarest_cells_keep`) keeps the same quads
+    with monkeypatch.context() as patch:
+        patch.setattr(lattice, "compiled_kernel", None)
+        assert np.array_equal(lattice.squarest_cells(pixels, quads), kept)
 
 
 

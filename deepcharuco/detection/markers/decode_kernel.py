@@ -1,6 +1,6 @@
 """The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
 decisions as their numpy paths (`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._cell_quads`,
-`lattice.cell_homographies`, `lattice._squarest_keep`, `placement._agreement`), in one pass over the data
+`lattice.cell_homographies`, `lattice.squarest_cells`, `placement._agreement`), in one pass over the data
 instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's few thousand square
 reads (`docs/detector.md`, "A compiled decoder").
 
@@ -12,7 +12,8 @@ seconds, cached on disk beside this file where it is writable).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.typed import Dict
 
 
 @njit(cache=True)
@@ -226,3 +227,34 @@ def cell_homographies(x, y):
         maps[q, 1, 0], maps[q, 1, 1], maps[q, 1, 2] = y1 - y0 + g * y1, y3 - y0 + h * y3, y0
         maps[q, 2, 0], maps[q, 2, 1], maps[q, 2, 2] = g, h, 1.0
     return maps
+
+
+@njit(cache=True)
+def squarest_cells_keep(points, quads, squarer_by, same_area, contained_area):
+    """`lattice.squarest_cells`' choice compiled whole: (N, 2) float64 ``points``, (Q, 4) int64 ``quads`` -> (Q,) bool
+    kept. Each quad's largest |cos| of a corner angle and its area as `lattice.squarest_cells` computes them (the
+    same operations in the same order), its directed sides as compact IDs, visited squarest first (a stable sort),
+    then `squarest_keep`."""
+    count = quads.shape[0]
+    cosine = np.empty(count)
+    area = np.empty(count)
+    sides = np.empty((count, 4), np.int64)
+    ids = Dict.empty(key_type=types.int64, value_type=types.int64)
+    base = quads.max() + 1
+    for q in range(count):
+        largest, twice_area = 0.0, 0.0
+        for i in range(4):
+            here, after, before = quads[q, i], quads[q, (i + 1) % 4], quads[q, (i + 3) % 4]
+            ax, ay = points[after, 0] - points[here, 0], points[after, 1] - points[here, 1]
+            bx, by = points[before, 0] - points[here, 0], points[before, 1] - points[here, 1]
+            value = abs(ax * bx + ay * by) / max(np.sqrt(ax * ax + ay * ay) * np.sqrt(bx * bx + by * by), 1e-12)
+            largest = value if i == 0 else max(largest, value)
+            twice_area += points[here, 0] * points[after, 1] - points[after, 0] * points[here, 1]
+            key = here * base + after
+            if key not in ids:
+                ids[key] = len(ids)
+            sides[q, i] = ids[key]
+        cosine[q] = largest
+        area[q] = 0.5 * abs(twice_area)
+    order = np.argsort(cosine, kind="mergesort")
+    return squarest_keep(sides, cosine, area, order, squarer_by, same_area, contained_area)

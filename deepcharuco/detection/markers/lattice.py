@@ -109,6 +109,9 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     if len(quads) < 2:
         return quads
     points = np.asarray(pixels, np.float64).reshape(-1, 2)
+    if compiled_kernel is not None:
+        return quads[compiled_kernel.squarest_cells_keep(points, np.ascontiguousarray(quads, np.int64), SQUARER_BY,
+                                                         SAME_AREA, CONTAINED_AREA)]
     corners = points[quads]  # (Q, 4, 2), around the quad
     ahead, behind = np.roll(corners, -1, axis=1) - corners, np.roll(corners, 1, axis=1) - corners
     cosine = (np.abs(np.sum(ahead * behind, axis=2)) / np.maximum(
@@ -117,13 +120,7 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     # Each quad's four directed sides a -> b as integers a * n + b (n: one more than the largest index): (Q, 4).
     sides = quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)
     order = np.argsort(cosine, kind="stable")
-    if compiled_kernel is not None:
-        _, compact = np.unique(sides, return_inverse=True)  # the sides as IDs 0 .. S-1 for the kernel's tables
-        keep = compiled_kernel.squarest_keep(compact.reshape(sides.shape).astype(np.int64), cosine, area, order,
-                                             SQUARER_BY, SAME_AREA, CONTAINED_AREA)
-    else:
-        keep = _squarest_keep(sides, cosine, area, order)
-    return quads[keep]
+    return quads[_squarest_keep(sides, cosine, area, order)]
 
 
 def _squarest_keep(sides: np.ndarray, cosine: np.ndarray, area: np.ndarray, order: np.ndarray) -> np.ndarray:
