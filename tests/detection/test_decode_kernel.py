@@ -179,6 +179,17 @@ def test_cell_homographies_kernel_maps_as_numpy(monkeypatch):
     assert np.array_equal(compiled, plain, equal_nan=True)
     assert not np.isfinite(plain[-1]).all() and np.isfinite(plain[:-1]).all(axis=(1, 2)).mean() > 0.9
 
+def test_square_sides_kernel_measures_as_numpy(monkeypatch):
+    pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    squares = random_squares(np.random.default_rng(13), 300, (640, 480)).astype(np.float64)
+    squares[5, 2] = [0.0, 0.0, 0.0]  # a frame sending the square to infinity
+    compiled = placement._square_sides(squares)
+    with monkeypatch.context() as patch:
+        patch.setattr(placement, "compiled_kernel", None)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plain = placement._square_sides(squares)
+    assert np.array_equal(compiled, plain, equal_nan=True) and np.isfinite(plain).sum() == 299
+
 def test_agreement_kernel_decides_as_numpy():
     """`decode_kernel.agreement` gives `placement._agreement`'s (H, K) decisions: proposals of one view (which agree)
     among random ones, a proposal sending points to infinity, and one that is not finite."""

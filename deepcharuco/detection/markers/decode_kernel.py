@@ -1,8 +1,8 @@
 """The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
 decisions as their numpy paths (`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._cell_quads`,
-`lattice.cell_homographies`, `lattice.squarest_cells`, `placement._agreement`), in one pass over the data
-instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's few thousand square
-reads (`docs/detector.md`, "A compiled decoder").
+`lattice.cell_homographies`, `lattice.squarest_cells`, `placement._square_sides`, `placement._agreement`), in one
+pass over the data instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's
+few thousand square reads (`docs/detector.md`, "A compiled decoder").
 
 Imported only where numba is installed (``pip install deepcharuco[fast]``); the callers use the numpy paths
 otherwise, and tests/detection/test_decode_kernel.py checks both give the same detections. The first call compiles (a few
@@ -258,3 +258,25 @@ def squarest_cells_keep(points, quads, squarer_by, same_area, contained_area):
         area[q] = 0.5 * abs(twice_area)
     order = np.argsort(cosine, kind="mergesort")
     return squarest_keep(sides, cosine, area, order, squarer_by, same_area, contained_area)
+
+
+@njit(cache=True, error_model="numpy")
+def square_sides(squares):
+    """`placement._square_sides` compiled: (R, 3, 3) float64 unit-square frames -> (R,) the square root of each
+    square's area in the image (its four corners through the frame, then the shoelace), the same operations in order."""
+    count = squares.shape[0]
+    sides = np.empty(count)
+    xs, ys = np.empty(4), np.empty(4)
+    for r in range(count):
+        h = squares[r]
+        for i in range(4):
+            u, v = (0.0, 1.0, 1.0, 0.0)[i], (0.0, 0.0, 1.0, 1.0)[i]
+            w = u * h[2, 0] + v * h[2, 1] + 1.0 * h[2, 2]
+            xs[i] = (u * h[0, 0] + v * h[0, 1] + 1.0 * h[0, 2]) / w
+            ys[i] = (u * h[1, 0] + v * h[1, 1] + 1.0 * h[1, 2]) / w
+        twice_area = 0.0
+        for i in range(4):
+            j = (i + 1) % 4
+            twice_area += xs[i] * ys[j] - xs[j] * ys[i]
+        sides[r] = np.sqrt(0.5 * abs(twice_area))
+    return sides

@@ -33,7 +33,7 @@ from deepcharuco.detection.markers.verification import (MIN_MARKERS, marker_view
                                                         square_translations)
 from deepcharuco.networks.cells import CellCandidates
 
-try:  # the hypotheses' agreement compiled (pip install deepcharuco[fast]); else numpy's, the same decisions
+try:  # the squares' sizes and the hypotheses' agreement compiled (pip install deepcharuco[fast]); else numpy's
     import deepcharuco.detection.markers.decode_kernel as compiled_kernel
 except ImportError:
     compiled_kernel = None
@@ -239,7 +239,10 @@ def _lands_within(mapped: np.ndarray, observed: np.ndarray, reach: np.ndarray) -
 
 
 def _square_sides(squares: np.ndarray) -> np.ndarray:
-    """(R, 3, 3) unit-square frames -> (R,) square root of each square's area in the image (pixels)."""
+    """(R, 3, 3) unit-square frames -> (R,) square root of each square's area in the image (pixels)
+    (`decode_kernel.square_sides` computes the same, compiled)."""
+    if compiled_kernel is not None:
+        return compiled_kernel.square_sides(np.ascontiguousarray(squares, np.float64))
     unit = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], np.float64)
     corners = unit @ np.transpose(squares, (0, 2, 1))  # (R, 4, 3)
     return np.sqrt(quad_areas(corners[:, :, :2] / corners[:, :, 2:]))
