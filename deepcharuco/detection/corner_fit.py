@@ -154,7 +154,7 @@ def fit_corners(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, ids:
     extent = np.abs(axes).sum(axis=2).max(axis=1) * reach  # (N,) px: the window's half-size along x or y
     half = int(np.clip(np.ceil(np.max(np.where(usable, extent, 0.0))), 1, MAX_HALF_WINDOW_PX))
     height, width = gray.shape
-    origin = np.where(usable[:, None], np.round(np.where(usable[:, None], start, 0.0)), 0.0)
+    origin = np.round(np.where(usable[:, None], start, 0.0))  # each start's nearest pixel
     # The region every window lies in, and the pre-blur's reach (3 px at PRE_BLUR_PX) around it.
     inside = np.clip(origin, 0, [width - 1, height - 1]).astype(np.int64)
     x0, y0 = np.maximum(inside.min(axis=0) - half - 4, 0)
@@ -243,9 +243,9 @@ def _start_params(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
 def _iterate(values: np.ndarray, weight: np.ndarray, pattern: "_Pattern", params: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton over (N,) corners' ``params`` (N, 6), updated in place, each corner until its step was shorter
-    than `CONVERGED_PX` (or `ITERATIONS`). Returns (the cost at the start (N,), at the end (N,), and the normal
-    matrices J^T W J there (N, 6, 6)). numpy over every corner at once; `corner_fit_kernel.fit_windows` takes the
-    same steps compiled."""
+    than `CONVERGED_PX` (or `ITERATIONS`). Returns (the cost at the start (N,), at the end (N,), and the shift's
+    block (N, 2, 2) of the inverse normal matrix J^T W J there, `_corner_block`). numpy over every corner at once;
+    `corner_fit_kernel.fit_windows` takes the same steps compiled."""
     residual, jacobian = _residual(values, params, pattern, derivatives=True)
     start_cost = (weight * residual ** 2).sum(axis=1)
     moving = np.ones(len(params), bool)

@@ -118,14 +118,16 @@ def _solve6(matrix, vector, out) -> bool:
 
 @njit(cache=True)
 def fit_windows(smooth, x0, y0, width, height, origin, start, to_board, normals, margins, black, usable, reach, half,
-                log_start_sigma, iterations, damping, max_step, max_log_blur_step, log_blur_low, log_blur_high, converged):
+                log_start_sigma, iterations, damping, max_step, max_log_blur_step, log_blur_low, log_blur_high,
+                converged):
     """`corner_fit`'s windows and iterations for (N,) corners, compiled.
 
     Each corner's window: the pixels of the (2 ``half`` + 1)^2 grid about its ``origin`` (N, 2) (the start's
     nearest pixel) inside the ``width`` x ``height`` image whose offsets from ``start`` (N, 2), taken to board
     squares by ``to_board`` (N, 2, 2), are within ``reach`` along both; none where ``usable`` (N,) is False. Their
-    values come from ``smooth``, the image's region from (``x0``, ``y0``) blurred. Then Gauss-Newton from the window's
-    paper level and contrast and blurs of exp(``log_start_sigma``), each corner until its step was shorter than ``converged`` px (or ``iterations``).
+    values come from ``smooth``, the image's region from (``x0``, ``y0``) blurred. Then Gauss-Newton from the
+    window's paper level and contrast and blurs of exp(``log_start_sigma``), each corner until its step was shorter
+    than ``converged`` px (or ``iterations``).
 
     Returns (params (N, 6): shift x, y, log blurs, alpha, beta; the cost at the start (N,), at the end (N,); the
     corner block (N, 2, 2) of the inverse of the normal matrix J^T J there, NaN where it is singular or not finite;

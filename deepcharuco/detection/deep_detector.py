@@ -143,7 +143,8 @@ def shipped_weights(board: BoardSpec | None, folder: str | Path | None = None) -
 def _model_file(stem: Path) -> Path:
     """``stem``.pt, or its ONNX bundle ``stem``.onnx where only that is there."""
     checkpoint = stem.with_suffix(".pt")
-    return stem.with_suffix(".onnx") if not checkpoint.is_file() and is_bundle(stem.with_suffix(".onnx")) else checkpoint
+    bundle = stem.with_suffix(".onnx")
+    return bundle if not checkpoint.is_file() and is_bundle(bundle) else checkpoint
 
 
 def is_weights_folder(path: str | Path) -> bool:
@@ -346,9 +347,8 @@ class Detector:
         self.board = board or trained_for
         own_board = self.board.same_layout(trained_for)
         if geometry is None:
-            # the bundle's own choice for its board (train.bundle --default-geometry), else the ID head's
-            stored = self.checkpoint.get("geometry")
-            geometry = ("markers" if not own_board else stored if stored in DECODINGS else "repair")
+            stored = self.checkpoint.get("geometry")  # its own board's, where the bundle says (--default-geometry)
+            geometry = (stored if stored in DECODINGS else "repair") if own_board else "markers"
         elif geometry != "markers" and not own_board:
             raise DeepCharucoError(
                 f"geometry={geometry!r} decodes with the ID head of {weights}, trained for {trained_for}, whose "

@@ -80,7 +80,8 @@ def _cell_quads(points: np.ndarray, near: np.ndarray) -> np.ndarray:
     side_ab, side_ac = lengths(ab), lengths(ac)
     shorter = np.minimum(side_ab, side_ac)
     sine = np.abs(ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]) / np.maximum(side_ab * side_ac, 1e-9)
-    plausible = (shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter) & (sine > MIN_SINE)
+    plausible = ((shorter >= MIN_SIDE_PX) & (np.maximum(side_ab, side_ac) <= MAX_SIDE_RATIO * shorter)
+                 & (sine > MIN_SINE))
     a, b, c, shorter = a[plausible], b[plausible], c[plausible], shorter[plausible]
     expected = points[b] + points[c] - points[a]
     # d is a's diagonal neighbour: look for it among a's nearest candidates only, O(P k) not O(P N).
