@@ -145,7 +145,6 @@ def test_squarest_cells_kernel_keeps_the_same_cells(monkeypatch):
         assert np.array_equal(lattice.squarest_cells(pixels, quads), kept)
 
 
-
 @pytest.mark.parametrize("integer", [False, True], ids=["subpixel", "integer pixels (ties)"])
 def test_find_cells_kernel_finds_the_same_cells(integer):
     """`decode_kernel.cell_quads` makes `lattice._cell_quads`' quads, in their order, on a jittered lattice among
@@ -179,6 +178,7 @@ def test_cell_homographies_kernel_maps_as_numpy(monkeypatch):
     assert np.array_equal(compiled, plain, equal_nan=True)
     assert not np.isfinite(plain[-1]).all() and np.isfinite(plain[:-1]).all(axis=(1, 2)).mean() > 0.9
 
+
 def test_square_sides_kernel_measures_as_numpy(monkeypatch):
     pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
     squares = random_squares(np.random.default_rng(13), 300, (640, 480)).astype(np.float64)
@@ -189,6 +189,7 @@ def test_square_sides_kernel_measures_as_numpy(monkeypatch):
         with np.errstate(divide="ignore", invalid="ignore"):
             plain = placement._square_sides(squares)
     assert np.array_equal(compiled, plain, equal_nan=True) and np.isfinite(plain).sum() == 299
+
 
 def test_agreement_kernel_decides_as_numpy():
     """`decode_kernel.agreement` gives `placement._agreement`'s (H, K) decisions: proposals of one view (which agree)
@@ -209,6 +210,7 @@ def test_agreement_kernel_decides_as_numpy():
     assert np.array_equal(compiled, plain)
     assert 0.1 < plain.mean() < 0.9  # both outcomes are decided, not all alike
     assert not plain[:, [7, 11]].any() and not plain[np.isin(hypotheses, [7, 11])].any()
+
 
 def test_cell_reads_reuse_reads_and_read_only_new_cells():
     rng = np.random.default_rng(11)
