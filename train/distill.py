@@ -4,12 +4,14 @@ drawn in torch (`train.draw`): no renders needed, any device.
     python -m train.distill --teacher deepcharuco/weights/detector.pt --out runs/distill_paper --steps 60000
     python -m train.distill --out runs/distill_paper --resume          # continue exactly where it stopped
     python -m train.distill --teacher deepcharuco/weights/families/DICT_4X4.pt --family DICT_4X4 --out runs/distill_4x4
+    python -m train.distill --points-only --out runs/distill_paper_points     # the paper's board, point head alone
 
 Loss, on every 8x8 cell of every frame:
 
     T^2 KL(teacher || student) of the 65-way point softmax at temperature T       (--distill-weight)
     + cross-entropy on the exact point label (the drawn corner's pixel, or none)   (--label-weight)
-    and where the teacher's ID head was trained (the paper's board; not a family model, ``heads: points``):
+    and where the teacher's ID head was trained (the paper's board; not a family model, ``heads: points``) and
+    the student learns it (not with --points-only):
     + T^2 KL of the (N+1)-way ID softmax + cross-entropy on the exact ID label, the cells holding a corner
       weighted --id-positive-weight times.
 
@@ -106,17 +108,19 @@ class Distiller:
         # teacher's forward pass costs about what the student's whole step does.
         self.teacher_session = (_session(float_onnx(self.teacher), torch.get_num_threads())
                                 if device.type == "cpu" else None)
-        self.with_ids = id_head_trained(data)
+        teacher_ids = id_head_trained(data)
+        # --points-only: the point head alone from a teacher that has an ID head too (a student read by its markers)
+        self.with_ids = teacher_ids and not args.points_only
         stored = BoardSpec.from_dict(data["board"])
         self.board = stored
-        if not self.with_ids and not args.family:
+        if not teacher_ids and not args.family:
             # A family model's stored board is its warm start's (the paper's board), not of its family.
             raise DeepCharucoError(f"--teacher {args.teacher} is a points-only (family) model: name the marker family "
                                    "it was trained on with --family (its model card says; e.g. --family DICT_4X4)")
-        if self.with_ids and args.family:
+        if teacher_ids and args.family:
             raise DeepCharucoError(f"--family: the teacher {args.teacher} was trained on one board ({stored}), whose "
                                    "corner IDs the student learns; --family is for points-only (family) teachers")
-        boards = [stored] if self.with_ids else family_boards(args.family, args.boards, args.seed)
+        boards = [stored] if teacher_ids else family_boards(args.family, args.boards, args.seed)
         self.size = parse_size(args.size, "--size")
         self.val_size = parse_size(args.val_size, "--val-size")
         self.drawer = FrameDrawer(boards, DrawConfig(size=self.size), device)
@@ -343,6 +347,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--label-weight", type=float, default=1.0, help="weight of the cross-entropy on the exact labels")
     p.add_argument("--id-positive-weight", type=float, default=10.0,
                    help="weight of the cells holding a corner in the ID cross-entropy (the shipped model's stage B)")
+    p.add_argument("--points-only", action="store_true",
+                   help="distil the point head alone, from a teacher whose ID head was trained too (the paper's "
+                        "board): the student is a points-only model, which reads its board by its markers")
     p.add_argument("--family", default="",
                    help="a points-only (family) teacher: the marker family it was trained on (DICT_4X4, DICT_6X6, ...)")
     p.add_argument("--boards", type=int, default=64, help="a family teacher: random boards of its family drawn")

@@ -195,3 +195,19 @@ def test_a_family_teacher_distils_the_point_head_on_random_boards_of_its_family(
     without = tiny_args(tmp_path / "other", "--teacher", "deepcharuco/weights/families/DICT_4X4.pt")
     with pytest.raises(distill.DeepCharucoError, match="--family"):  # its checkpoint does not say which family
         distill.Distiller(without, torch.device("cpu"))
+
+
+def test_points_only_distils_the_point_head_of_a_teacher_with_ids(tmp_path):
+    """--points-only: the paper's teacher's point head alone; the student is a points-only model (read by its markers,
+    as a family model is), drawn on the teacher's board."""
+    args = tiny_args(tmp_path / "run", "--points-only")
+    distiller = distill.Distiller(args, torch.device("cpu"))
+    assert not distiller.with_ids and distiller.drawer.boards == [PAPER_BOARD]
+    _, terms = distiller.loss(*distiller.batch(0))
+    assert set(terms) == {"kl_points", "ce_points"}
+    distill.run(args)
+    _, board, data = load_charuconet(tmp_path / "run" / "last.pt")
+    assert data["heads"] == "points" and type(board).__name__ == "PointsOnlyBoard"
+    assert Detector(board=PAPER_BOARD, weights=tmp_path / "run" / "last.pt", refine="none").geometry == "markers"
+    # a run made before the option resumes: its settings lack it, and the default stands for it
+    assert distill.parser().get_default("points_only") is False
