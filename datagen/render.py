@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import socket
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -25,7 +26,8 @@ from pathlib import Path
 from datagen.family import FamilySampling, check_prefixes, parse_families
 from datagen.render_cluster import add_options as add_cluster_options, submit_render
 from datagen.scene import RANDOM_BOARD_SCENE, SceneConfig, random_board_config
-from datagen.shards import INDEX_NAME, ShardReader, list_shards, temporary_prefix, update_index, write_shard
+from datagen.shards import (INDEX_NAME, ShardReader, index_temporary_writer, list_shards, temporary_prefix,
+                            update_index, write_shard)
 from datagen.workers import TaskError, death_cause, report_progress, run_tasks
 import deepcharuco
 from deepcharuco.boards.board import BoardSpec
@@ -158,17 +160,32 @@ def check_existing(job: RenderJob, mine: list[int], resume: bool) -> set[int]:
 
 def remove_stale_temporaries(out: Path, shards: list[int]) -> None:
     """Leftovers of a killed run for the shards this job owns (never complete, never read), and a half-written
-    index of a run killed while it rebuilt the index (this run rebuilds it). A fresh index temporary is left alone:
-    it may be another array task's, renamed a moment later (removing it made that task fail)."""
+    index of a run killed while it rebuilt the index (this run rebuilds it). A fresh index temporary is left alone
+    unless its writer was a process of this host that no longer runs (a worker killed mid-write): it may be another
+    array task's, renamed a moment later (removing it made that task fail)."""
     for shard in shards:
         for path in out.glob(f"{temporary_prefix(shard)}*"):
             path.unlink(missing_ok=True)
     for path in out.glob(f".{INDEX_NAME}.tmp-*"):
         try:
-            if time.time() - path.stat().st_mtime > STALE_INDEX_S:
+            if _writer_gone(path.name) or time.time() - path.stat().st_mtime > STALE_INDEX_S:
                 path.unlink(missing_ok=True)
         except FileNotFoundError:  # renamed by its task meanwhile
             pass
+
+
+def _writer_gone(name: str) -> bool:
+    """Whether the index temporary ``name`` was written by a process of this host that has ended."""
+    writer = index_temporary_writer(name)
+    if writer is None or writer[0] != socket.gethostname():
+        return False
+    try:
+        os.kill(writer[1], 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # another user's live process
+        return False
+    return False
 
 
 def run_shard_tasks(function, tasks: list[tuple], shards: list[int], out: Path, *, noun: str = "shard",

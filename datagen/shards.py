@@ -264,6 +264,18 @@ def list_shards(directory: str | Path) -> list[Path]:
     return sorted((p for p in directory.iterdir() if _SHARD_RE.match(p.name)), key=lambda p: int(_SHARD_RE.match(p.name)[1]))
 
 
+def index_temporary_name(host: str, pid: int) -> str:
+    """The name `update_index` writes the index under before renaming it: the writer's host and process ID, so that
+    a run can tell its own killed writer's leftover from another host's task writing at that moment."""
+    return f".{INDEX_NAME}.tmp-{host}-{pid}"
+
+
+def index_temporary_writer(name: str) -> tuple[str, int] | None:
+    """(host, process ID) of an index temporary's writer (`index_temporary_name`), or None for another name."""
+    host, _, pid = name.partition(".tmp-")[2].rpartition("-")
+    return (host, int(pid)) if host and pid.isdigit() else None
+
+
 def update_index(directory: str | Path) -> dict:
     """Rebuild ``index.json`` from the complete shards on disk; returns its content."""
     directory = Path(directory)
@@ -271,7 +283,7 @@ def update_index(directory: str | Path) -> dict:
     for path in list_shards(directory):
         shards.append({"file": path.name, "frames": len(ShardReader(path))})
     index = {"schema_version": SCHEMA_VERSION, "frames": sum(s["frames"] for s in shards), "shards": shards}
-    temporary = directory / f".{INDEX_NAME}.tmp-{os.getpid()}"
+    temporary = directory / index_temporary_name(socket.gethostname(), os.getpid())
     temporary.write_text(json.dumps(index, indent=1) + "\n")
     os.replace(temporary, directory / INDEX_NAME)
     return index

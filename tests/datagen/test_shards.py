@@ -95,3 +95,28 @@ def test_reader_pickles_unopened_and_refuses_other_schemas(tmp_path):
         ShardReader(tmp_path / "nope.h5")
     with pytest.raises(ShardError, match="not a folder of shards"):
         list_shards(tmp_path / "nope")
+
+
+def test_an_index_temporary_is_removed_when_its_writer_is_gone(tmp_path):
+    """A worker killed while it rewrote index.json leaves its temporary: the run removes it once that process has
+    ended on this host, or once it is old; a fresh one of a live process, or of another host's task, stays."""
+    import os
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    from datagen.render import STALE_INDEX_S, remove_stale_temporaries
+    from datagen.shards import index_temporary_name, index_temporary_writer
+
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid, host = int(ended.stdout), socket.gethostname()
+    names = {"dead": index_temporary_name(host, dead_pid), "alive": index_temporary_name(host, os.getpid()),
+             "elsewhere": index_temporary_name("another-host-1", dead_pid), "old": index_temporary_name("h", 7)}
+    for name in names.values():
+        (tmp_path / name).write_text("{}")
+    stale = time.time() - STALE_INDEX_S - 60
+    os.utime(tmp_path / names["old"], (stale, stale))
+    assert index_temporary_writer(names["elsewhere"]) == ("another-host-1", dead_pid)
+    remove_stale_temporaries(tmp_path, [])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([names["alive"], names["elsewhere"]])

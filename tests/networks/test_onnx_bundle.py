@@ -130,7 +130,8 @@ MARKERS_BOARD = BoardSpec(5, 7, 0.04, 0.02, "DICT_6X6_250")  # not the weights' 
     (lambda d: (d / "charuconet_points.onnx").write_bytes(b""), MARKERS_BOARD, "charuconet_points.onnx is empty"),
     (lambda d: (d / "charuconet_points.onnx").write_bytes((d / "refinenet.onnx").read_bytes()), MARKERS_BOARD,
      "charuconet_points.onnx is not a charuconet_points model (its outputs are logits"),
-    (lambda d: (d / "bundle.json").unlink(), None, "is a folder without bundle.json, so not an ONNX bundle"),
+    (lambda d: (d / "bundle.json").unlink(), None,
+     "is a folder without bundle.json or detector.pt, so neither an ONNX bundle nor a weights folder"),
 ], ids=["truncated", "truncated-refinenet", "empty", "swapped", "no-bundle-json"])
 def test_a_damaged_model_file_is_named_not_a_traceback(tmp_path, damage, board, message):
     """A bundle whose model file was cut short, emptied or replaced by another model's, or a folder without
