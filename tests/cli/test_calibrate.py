@@ -44,8 +44,21 @@ def detections(waved):
 
 @pytest.fixture(scope="module")
 def calibrated(detections):
-    """The default calibration of the waved frames (every step, the bootstrap's deviations too)."""
-    return calibrate(detections, BOARD, SIZE)
+    """(result, bootstrap): the default calibration of the waved frames (every step), and its call of
+    `bootstrap_std` ((args, kwargs), the spread it returned) as calibrate made it."""
+    import deepcharuco.calibration.intrinsics as intrinsics
+
+    calls, bootstrap_std = [], intrinsics.bootstrap_std
+
+    def recorded(*args, **kwargs):
+        calls.append(((args, kwargs), bootstrap_std(*args, **kwargs)))
+        return calls[-1][1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(intrinsics, "bootstrap_std", recorded)
+        result = calibrate(detections, BOARD, SIZE)
+    assert len(calls) == 1
+    return result, calls[0]
 
 
 def _video(path, images):
@@ -58,7 +71,7 @@ def _video(path, images):
 
 def test_calibration_recovers_the_true_camera(waved, calibrated):
     _, K, dist = waved
-    result = calibrated
+    result, _ = calibrated
     estimate = result.camera.K
     # Within 3 of its own standard deviations (they are honest) and within 0.6 % / 2.5 px outright.
     for (row, col), name in (((0, 0), "fx"), ((1, 1), "fy"), ((0, 2), "cx"), ((1, 2), "cy")):
@@ -240,7 +253,7 @@ def test_an_output_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys)
     assert code == 2 and "is a folder" in capsys.readouterr().err
 
 
-def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, waved):
+def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, waved, without_bootstrap):
     from datagen.shards import FrameLabels, write_shard
     from evaluate.calibration.calibration_eval import calibration_experiment, calibration_sections
 
@@ -433,14 +446,16 @@ def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detection
     assert any("folds back 97 %" in note for note in calibrate(detections, BOARD, SIZE).notes)
 
 
-def test_deviations_are_at_least_the_view_bootstrap_spread(detections, calibrated):
+def test_deviations_are_at_least_the_view_bootstrap_spread(calibrated):
     from deepcharuco.calibration.terms import bootstrap_std
 
-    result = calibrated
+    result, ((args, kwargs), spread) = calibrated  # the bootstrap calibrate ran: of its kept views, with its terms
     objects = [BOARD.object_points()[v.ids] for v in result.views]
     images = [v.corners for v in result.views]
+    assert not kwargs and args[2:5] == (SIZE, "pinhole", result.terms) and np.array_equal(args[5].K, result.camera.K)
+    assert [o.tolist() for o in args[0]] == [o.tolist() for o in objects]
+    assert [i.tolist() for i in args[1]] == [i.tolist() for i in images]
     solution = type("S", (), {"K": result.camera.K, "dist": result.camera.dist})()
-    spread = bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution)
     # seeded: the same resamples (OpenCV 5's calibrateCamera repeats itself to ~1e-9, not bit for bit); 4 rounds
     # show it as 20 do, and the second seed draws other views
     few = [bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution, rounds=4, seed=s) for s in (0, 0, 1)]
