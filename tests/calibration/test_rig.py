@@ -203,9 +203,13 @@ def test_the_command_calibrates_a_rig_into_camera_files_a_toml_and_a_report(tmp_
     import deepcharuco.cli.calibrate_rig as rig_command
 
     truth, folders, board = drawn
-    solved = []  # the command's RigResult, kept for --origin board's default instant below
-    solve = rig_command.solve_rig
-    monkeypatch.setattr(rig_command, "solve_rig", lambda *args, **kwargs: solved.append(solve(*args, **kwargs)) or solved[-1])
+    solved, solve = [], rig_command.solve_rig
+
+    def kept(*args, **kwargs):  # the command's RigResult, kept for --origin board's default instant below
+        solved.append(solve(*args, **kwargs))
+        return solved[-1]
+
+    monkeypatch.setattr(rig_command, "solve_rig", kept)
     out = tmp_path / "rig"
     assert main([*map(str, folders), "--board", str(board), "--detector", "opencv", "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
