@@ -199,6 +199,17 @@ def unwritable_dir(tmp_path):
 
 
 @pytest.fixture
+def without_bootstrap(monkeypatch):
+    """`calibrate` without its last step, `calibration.terms.bootstrap_std` (20 OpenCV solves: ~60-70 % of a call's
+    time), for tests that assert nothing of the deviations. That step only raises `CalibrationResult.std`: the
+    camera, terms, weights, views and decisions are bit for bit a full call's (checked 2026-11-28). The tests of the
+    deviations keep it (test_calibrate: test_calibration_recovers_the_true_camera,
+    test_deviations_are_at_least_the_view_bootstrap_spread; test_calibration_terms: test_views_alike_keep_equal_weights,
+    the rational model's test)."""
+    monkeypatch.setattr("deepcharuco.calibration.intrinsics.bootstrap_std", lambda *args, **kwargs: {})
+
+
+@pytest.fixture
 def torch_threads():
     """``torch_threads(n)`` sets torch's thread count for one test (ONNX Runtime runners take theirs from it when
     made); the suite's count is restored after the test."""

@@ -10,7 +10,7 @@ import pytest
 
 from deepcharuco import BoardSpec
 from deepcharuco.calibration.intrinsics import calibrate
-from deepcharuco.calibration.terms import terms_name
+from deepcharuco.calibration.terms import bootstrap_std, terms_name
 from deepcharuco.calibration.views import FrameDetection, SelectionOptions
 from evaluate.calibration.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of
 
@@ -41,7 +41,7 @@ def _centre_error(result) -> np.ndarray:
     return result.camera.K[:2, 2] - K[:2, 2]
 
 
-def test_a_lens_without_tangential_terms_gets_a_steadier_principal_point():
+def test_a_lens_without_tangential_terms_gets_a_steadier_principal_point(without_bootstrap):
     # p1 p2 move the image much as a shift of (cx, cy) does: solved where the lens has none they only add noise
     # to the principal point. Over 6 noise draws (and waving paths) the held-out views keep them at 0 in most,
     # and the principal point's error shrinks (measured: RMS 0.83 -> 0.53 px over these 6 seeds; at 0 in 5).
@@ -64,7 +64,7 @@ def test_a_lens_without_tangential_terms_gets_a_steadier_principal_point():
     assert chosen_rms < 0.75 * full_rms, (chosen_rms, full_rms)
 
 
-def test_a_lens_with_tangential_terms_keeps_them():
+def test_a_lens_with_tangential_terms_keeps_them(without_bootstrap):
     # Where the lens has p1 p2 of a few 1e-3, holding them at 0 would move the principal point by pixels;
     # the held-out views see that and keep them.
     dist = np.array([0.1, 0.01, 0.006, -0.005, 0.0])
@@ -80,6 +80,12 @@ def test_a_lens_with_tangential_terms_keeps_them():
 def test_few_views_solve_every_term_and_names_are_the_models():
     result = calibrate(_views(np.array([0.1, 0.01, 0.0, 0.0, 0.0]), 0, count=8), BOARD, SIZE)
     assert result.terms == "k1 k2 p1 p2 k3" and result.held_out == {}  # too few views to hold any out
+    # The bootstrap's deviations are of the terms solved alone: none for p1 p2 held at 0 (the tests that choose
+    # the terms leave the bootstrap out: `without_bootstrap`).
+    objects = [BOARD.object_points()[v.ids] for v in result.views]
+    solution = type("S", (), {"K": result.camera.K, "dist": result.camera.dist})()
+    spread = bootstrap_std(objects, [v.corners for v in result.views], SIZE, "pinhole", "k1 k2 k3", solution, rounds=4)
+    assert set(spread) == {"fx", "fy", "cx", "cy", "k1", "k2", "k3"}
     assert terms_name("pinhole", True, True) == "k1 k2"
     assert terms_name("rational", False, False) == "k1 k2 p1 p2 k3 k4 k5 k6"
     assert terms_name("fisheye", False, False) == "k1 k2 k3 k4"
@@ -113,7 +119,7 @@ def _blurred(frames: list[FrameDetection], seed: int, along_px: float = 0.3, str
     return out, smeared
 
 
-def test_views_smeared_along_one_direction_weigh_less_and_the_camera_comes_closer():
+def test_views_smeared_along_one_direction_weigh_less_and_the_camera_comes_closer(without_bootstrap):
     # 10 of 30 views smeared (0.3 px along one direction, a 3 % stretch along it): within the outlier rule's 0.5 px,
     # so OpenCV's equal weights let them pull the camera. Weighed by their residuals' spread, they count less only
     # along their smear. Measured over these 4 seeds: fx RMS error 0.70 -> 0.46 %, cx 2.4 -> 0.5 px.
@@ -151,7 +157,7 @@ def test_views_alike_keep_equal_weights():
         assert weighted.std[name] == pytest.approx(equal.std[name], rel=0.1)
 
 
-def test_weighing_with_equal_weights_is_opencvs_solution():
+def test_weighing_with_equal_weights_is_opencvs_solution(without_bootstrap):
     # weigh_views' solver (Levenberg-Marquardt, poses eliminated) finds OpenCV's solution when nothing is weighed:
     # a spread so large that every view keeps its full weight.
     dist = np.array([0.1, 0.01, 0.0, 0.0, 0.0])

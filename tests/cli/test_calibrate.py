@@ -42,6 +42,25 @@ def detections(waved):
     return frames
 
 
+@pytest.fixture(scope="module")
+def calibrated(detections):
+    """(result, bootstrap): the default calibration of the waved frames (every step), and its call of
+    `bootstrap_std` ((args, kwargs), the spread it returned) as calibrate made it."""
+    import deepcharuco.calibration.intrinsics as intrinsics
+
+    calls, bootstrap_std = [], intrinsics.bootstrap_std
+
+    def recorded(*args, **kwargs):
+        calls.append(((args, kwargs), bootstrap_std(*args, **kwargs)))
+        return calls[-1][1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(intrinsics, "bootstrap_std", recorded)
+        result = calibrate(detections, BOARD, SIZE)
+    assert len(calls) == 1
+    return result, calls[0]
+
+
 def _video(path, images):
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, SIZE)
     for image in images:
@@ -50,9 +69,9 @@ def _video(path, images):
     return path
 
 
-def test_calibration_recovers_the_true_camera(waved, detections):
+def test_calibration_recovers_the_true_camera(waved, calibrated):
     _, K, dist = waved
-    result = calibrate(detections, BOARD, SIZE)
+    result, _ = calibrated
     estimate = result.camera.K
     # Within 3 of its own standard deviations (they are honest) and within 0.6 % / 2.5 px outright.
     for (row, col), name in (((0, 0), "fx"), ((1, 1), "fy"), ((0, 2), "cx"), ((1, 2), "cy")):
@@ -147,7 +166,7 @@ def test_fisheye_file_reads_back_as_fisheye(tmp_path, waved):
     assert read_camera(tmp_path / "pinhole.yaml").model == "pinhole"
 
 
-def test_a_wrong_corner_costs_itself_and_a_wrong_view_is_dropped(detections):
+def test_a_wrong_corner_costs_itself_and_a_wrong_view_is_dropped(detections, without_bootstrap):
     frames = [FrameDetection(f.index, f.name, f.ids, f.corners.copy(), f.sharpness) for f in detections]
     full = [f for f in frames if len(f.ids) >= 12]
     full[0].corners[3] += (12.0, -9.0)  # one wrong corner
@@ -160,7 +179,7 @@ def test_a_wrong_corner_costs_itself_and_a_wrong_view_is_dropped(detections):
     assert result.rms < 0.3
 
 
-def test_near_duplicates_and_blurred_views_are_dropped(detections):
+def test_near_duplicates_and_blurred_views_are_dropped(detections, without_bootstrap):
     frames = list(detections)
     twin = frames[10]
     frames.append(FrameDetection(FRAMES, "twin", twin.ids, twin.corners + 0.3, twin.sharpness * 0.9))
@@ -171,7 +190,7 @@ def test_near_duplicates_and_blurred_views_are_dropped(detections):
     assert decisions["blurred"].reason.startswith("blurred")
 
 
-def test_max_views_keeps_the_most_varied(detections):
+def test_max_views_keeps_the_most_varied(detections, without_bootstrap):
     result = calibrate(detections, BOARD, SIZE, options=SelectionOptions(max_views=12))
     assert len(result.views) <= 12
     centres = np.array([v.corners.mean(0) for v in result.views])
@@ -234,7 +253,7 @@ def test_an_output_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys)
     assert code == 2 and "is a folder" in capsys.readouterr().err
 
 
-def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, waved):
+def test_the_report_section_measures_each_detector_against_the_truth(tmp_path, waved, without_bootstrap):
     from datagen.shards import FrameLabels, write_shard
     from evaluate.calibration.calibration_eval import calibration_experiment, calibration_sections
 
@@ -300,7 +319,7 @@ def _exact_views(waved, noise_px=0.0, seed=0):
     return frames
 
 
-def test_exact_views_recover_the_camera_exactly(waved):
+def test_exact_views_recover_the_camera_exactly(waved, without_bootstrap):
     # The views, not the solver, limit the rendered sequences' accuracy: from exact corners it is exact.
     _, K, dist = waved
     result = calibrate(_exact_views(waved), BOARD, SIZE)
@@ -308,14 +327,14 @@ def test_exact_views_recover_the_camera_exactly(waved):
     np.testing.assert_allclose(result.camera.dist, dist, atol=1e-4)
 
 
-def test_per_corner_uncertainty_matches_the_noise(tmp_path, waved):
+def test_per_corner_uncertainty_matches_the_noise(waved, without_bootstrap):
     result = calibrate(_exact_views(waved, noise_px=0.15), BOARD, SIZE)
     # The residual RMS (per axis) understates the noise: the fit absorbs part of it; corner_sigma does not.
     assert result.rms / np.sqrt(2) < result.corner_sigma
     assert result.corner_sigma == pytest.approx(0.15, rel=0.1)
 
 
-def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved):
+def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved, without_bootstrap):
     out = tmp_path / "camera.yaml"
     assert main([str(_video(tmp_path / "wave.avi", waved[0])), "--out", str(out), "--quiet", "--no-report"]) == 0
     storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
@@ -338,7 +357,7 @@ def test_camera_file_holds_the_per_corner_uncertainty(tmp_path, waved):
     assert abs(read_camera(equal).K[0, 0] / read_camera(out).K[0, 0] - 1) < 2.5e-4  # 7.6e-5 apart (2026-11-27)
 
 
-def test_a_wrong_corner_at_the_edge_cannot_bend_k3():
+def test_a_wrong_corner_at_the_edge_cannot_bend_k3(without_bootstrap):
     # The deep detector's corners on the rendered k1 = +0.1 validation sequence (evaluate.calibration.calibration_sequences,
     # seed 0, good light; the true camera stored beside them): one corner lies 17 px off at the image's edge.
     # Solved with k3 free from the start, k2 and k3 bent the edges to meet it (fx +0.7 %, cy +4 px, RMS 0.185 px);
@@ -412,7 +431,7 @@ def test_a_distortion_model_that_folds_inside_the_image_is_found():
     assert 0.6 < folds["k3"] < 0.7 and 0.95 < folds["k2"] < 1.0
 
 
-def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detections, monkeypatch):
+def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detections, monkeypatch, without_bootstrap):
     import deepcharuco.calibration.intrinsics as calibration
 
     shares = iter([0.6, None])
@@ -427,16 +446,20 @@ def test_a_fold_inside_the_image_is_solved_again_without_k3_or_refused(detection
     assert any("folds back 97 %" in note for note in calibrate(detections, BOARD, SIZE).notes)
 
 
-def test_deviations_are_at_least_the_view_bootstrap_spread(detections):
+def test_deviations_are_at_least_the_view_bootstrap_spread(calibrated):
     from deepcharuco.calibration.terms import bootstrap_std
 
-    result = calibrate(detections, BOARD, SIZE)
+    result, ((args, kwargs), spread) = calibrated  # the bootstrap calibrate ran: of its kept views, with its terms
     objects = [BOARD.object_points()[v.ids] for v in result.views]
     images = [v.corners for v in result.views]
+    assert not kwargs and args[2:5] == (SIZE, "pinhole", result.terms) and np.array_equal(args[5].K, result.camera.K)
+    assert [o.tolist() for o in args[0]] == [o.tolist() for o in objects]
+    assert [i.tolist() for i in args[1]] == [i.tolist() for i in images]
     solution = type("S", (), {"K": result.camera.K, "dist": result.camera.dist})()
-    spread = bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution)
-    # seeded: the same resamples (OpenCV 5's calibrateCamera repeats itself to ~1e-9, not bit for bit)
-    assert spread == pytest.approx(bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution), rel=1e-6)
+    # seeded: the same resamples (OpenCV 5's calibrateCamera repeats itself to ~1e-9, not bit for bit); 4 rounds
+    # show it as 20 do, and the second seed draws other views
+    few = [bootstrap_std(objects, images, SIZE, "pinhole", result.terms, solution, rounds=4, seed=s) for s in (0, 0, 1)]
+    assert few[0] == pytest.approx(few[1], rel=1e-6) and few[0] != pytest.approx(few[2], rel=1e-3)
     assert set(spread) >= {"fx", "fy", "cx", "cy", "k1"}
     for name, value in spread.items():
         assert result.std[name] >= value * (1 - 1e-6)  # the larger of the solver's and the bootstrap's

@@ -92,69 +92,77 @@ def wave_video(tmp_path_factory, waved):  # noqa: F811
 
 
 @pytest.fixture(scope="module")
-def calibrated(tmp_path_factory, wave_video):
+def short_video(tmp_path_factory, waved):  # noqa: F811
+    """Every third frame of the waved board (20 of 60, spread over its path): a calibration of its own in a third of
+    the time, for the tests of what is written, not of the numbers."""
+    return _write_video(tmp_path_factory.mktemp("short") / "short.mp4", waved[0][::3])
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory, short_video):
     """A finished calibration: (folder, camera file, report), made by the command itself."""
     folder = tmp_path_factory.mktemp("calibrated")
     out = folder / "cam.yaml"
-    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 0
+    assert calibrate_cli.main([str(short_video), "--out", str(out), "--quiet"]) == 0
     return folder, out, folder / "cam_report.html"
 
 
-def test_calibrate_onto_a_full_disk_keeps_the_previous_camera_file_and_report(calibrated, wave_video):
+def test_calibrate_onto_a_full_disk_keeps_the_previous_camera_file_and_report(calibrated, short_video):
     folder, out, report = calibrated
     before = out.read_bytes(), report.read_bytes()
-    done = _command("deepcharuco.cli.calibrate", str(wave_video), "--out", str(out), "--quiet", limit=20_000)
+    # 10 kB: the camera file (21 kB from the 20-frame clip, 2026-11-28) cannot be written, nor the report (200 kB)
+    done = _command("deepcharuco.cli.calibrate", str(short_video), "--out", str(out), "--quiet", limit=10_000)
     assert done.returncode == 2, done.stderr
     assert "error: could not write" in done.stderr and "Traceback" not in done.stderr
     assert "the previous file is unchanged" in done.stderr
     assert (out.read_bytes(), report.read_bytes()) == before and _leftovers(folder) == []
 
 
-def test_calibrate_without_report_onto_a_full_disk_writes_nothing(tmp_path, wave_video):
+def test_calibrate_without_report_onto_a_full_disk_writes_nothing(tmp_path, short_video):
     out = tmp_path / "new.yaml"
-    done = _command("deepcharuco.cli.calibrate", str(wave_video), "--out", str(out), "--no-report", "--quiet", limit=4_000)
+    done = _command("deepcharuco.cli.calibrate", str(short_video), "--out", str(out), "--no-report", "--quiet", limit=4_000)
     assert done.returncode == 2 and "nothing was written" in done.stderr and "Traceback" not in done.stderr
     assert not out.exists() and _leftovers(tmp_path) == []
 
 
-def test_calibrate_refuses_to_overwrite_a_file_that_is_not_a_camera_file(tmp_path, wave_video, capsys):
+def test_calibrate_refuses_to_overwrite_a_file_that_is_not_a_camera_file(tmp_path, short_video, capsys):
     notes = tmp_path / "notes.txt"
     notes.write_text("my notes")
-    assert calibrate_cli.main([str(wave_video), "--out", str(notes), "--no-report", "--quiet"]) == 2
+    assert calibrate_cli.main([str(short_video), "--out", str(notes), "--no-report", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: --out {notes} exists and is not a camera file: choose another --out, or pass --force to "
                    f"overwrite it"]
     assert notes.read_text() == "my notes"
     report = tmp_path / "page.html"
     report.write_text("<html>my page</html>")
-    assert calibrate_cli.main([str(wave_video), "--out", str(tmp_path / "c.yaml"), "--report", str(report),
+    assert calibrate_cli.main([str(short_video), "--out", str(tmp_path / "c.yaml"), "--report", str(report),
                                "--quiet"]) == 2
     assert "--report" in capsys.readouterr().err and report.read_text() == "<html>my page</html>"
     assert not (tmp_path / "c.yaml").exists()
-    assert calibrate_cli.main([str(wave_video), "--out", str(notes), "--no-report", "--quiet", "--force"]) == 0
+    assert calibrate_cli.main([str(short_video), "--out", str(notes), "--no-report", "--quiet", "--force"]) == 0
     assert read_camera(notes).image_size == SIZE
 
 
-def test_calibrate_refuses_a_report_named_as_the_camera_file(tmp_path, wave_video, capsys):
+def test_calibrate_refuses_a_report_named_as_the_camera_file(tmp_path, short_video, capsys):
     out = tmp_path / "cam.yaml"
-    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--report", str(out), "--quiet"]) == 2
+    assert calibrate_cli.main([str(short_video), "--out", str(out), "--report", str(out), "--quiet"]) == 2
     assert "--report and --out both name" in capsys.readouterr().err and not out.exists()
 
 
-def test_calibrate_may_overwrite_its_own_camera_file(calibrated, wave_video):
+def test_calibrate_may_overwrite_its_own_camera_file(calibrated, short_video):
     _, out, report = calibrated
-    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 0
+    assert calibrate_cli.main([str(short_video), "--out", str(out), "--quiet"]) == 0
     assert read_camera(out).image_size == SIZE and report.read_bytes().startswith(calibrate_cli.REPORT_START)
 
 
-def test_two_calibrations_onto_one_file_the_second_is_refused(tmp_path, wave_video, capsys):
+def test_two_calibrations_onto_one_file_the_second_is_refused(tmp_path, short_video, capsys):
     out = tmp_path / "cam.yaml"
     with OutputLock(out, "another calibrate"):  # the first run, still writing
-        assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 2
+        assert calibrate_cli.main([str(short_video), "--out", str(out), "--quiet"]) == 2
     assert "another calibrate is writing" in capsys.readouterr().err and not out.exists()
 
 
-def test_calibrate_stopped_by_ctrl_c_says_so_without_a_traceback(calibrated, wave_video, monkeypatch, capsys):
+def test_calibrate_stopped_by_ctrl_c_says_so_without_a_traceback(calibrated, short_video, monkeypatch, capsys):
     _, out, _ = calibrated
     before = out.read_bytes()
 
@@ -162,7 +170,7 @@ def test_calibrate_stopped_by_ctrl_c_says_so_without_a_traceback(calibrated, wav
         raise KeyboardInterrupt
 
     monkeypatch.setattr(calibrate_cli, "calibrate", interrupted)  # Ctrl-C during the solve
-    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 130
+    assert calibrate_cli.main([str(short_video), "--out", str(out), "--quiet"]) == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("stopped: nothing written") and len(err) == 1
     assert out.read_bytes() == before and _leftovers(out.parent) == []
@@ -349,7 +357,7 @@ def test_a_missing_extra_is_named_before_any_work(tmp_path, hidden, argv, messag
     assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["sitecustomize.py"]
 
 
-def test_calibrate_stopped_by_sigterm_says_so_and_leaves_no_lock(calibrated, wave_video, monkeypatch, capsys):
+def test_calibrate_stopped_by_sigterm_says_so_and_leaves_no_lock(calibrated, short_video, monkeypatch, capsys):
     """SIGTERM during the solve (kill, a scheduler's stop) exited 143 without the ``stopped:`` line the docs promise
     and left the output's .lock file; now it is taken as Ctrl-C is: one line, the camera file as it was, exit 143."""
     import os
@@ -362,7 +370,7 @@ def test_calibrate_stopped_by_sigterm_says_so_and_leaves_no_lock(calibrated, wav
         os.kill(os.getpid(), signal.SIGTERM)
 
     monkeypatch.setattr(calibrate_cli, "calibrate", terminated)
-    assert calibrate_cli.main([str(wave_video), "--out", str(out), "--quiet"]) == 143
+    assert calibrate_cli.main([str(short_video), "--out", str(out), "--quiet"]) == 143
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("stopped (SIGTERM): nothing written")
     assert out.read_bytes() == before and _leftovers(out.parent) == []

@@ -203,10 +203,11 @@ def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path, stop, code):
     scheduler sends it): a checkpoint, and exit code 128 + the signal, so ``train && bundle`` stops there."""
     args = [sys.executable, "-m", "train.refinenet", "--data", str(patches), "--out", str(tmp_path), "--steps", "100000",
             "--batch-size", "16", "--width", "lite", "--workers", "1", "--checkpoint-every", "100000", "--val-every", "100000",
-            "--quiet"]
+            "--log-every", "2", "--quiet"]
     # The trainer runs 100000 steps: it and its DataLoader worker must not outlive a failing test (process_group).
     with process_group(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
-        # Until two rows are logged (no bound on how long that takes: a loaded machine is slow, not wrong).
+        # Until two rows are logged, steps 2 and 4: training under way, its worker feeding it (no bound on how long
+        # that takes: a loaded machine is slow, not wrong).
         while not (tmp_path / "log.csv").exists() or len((tmp_path / "log.csv").read_text().splitlines()) < 3:
             assert process.poll() is None, process.communicate()[1][-2000:]
             time.sleep(0.1)
@@ -215,9 +216,9 @@ def test_ctrl_c_saves_and_resume_finishes(patches, tmp_path, stop, code):
     assert process.returncode == code and "--resume" in out, err[-2000:]
     step = torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"]
     assert 0 < step < 100000
-    done = _trainer(args[3:8] + [str(step + 10)] + args[9:] + ["--resume"])
+    done = _trainer(args[3:8] + [str(step + 3)] + args[9:] + ["--resume"])
     assert done.returncode == 0, done.stderr[-2000:]
-    assert torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"] == step + 10
+    assert torch.load(tmp_path / "last.pt", weights_only=False)["training"]["step"] == step + 3
 
 
 def _trainer(args: list[str], code: str | None = None) -> subprocess.CompletedProcess:
@@ -229,14 +230,14 @@ def _trainer(args: list[str], code: str | None = None) -> subprocess.CompletedPr
     return subprocess.CompletedProcess(command, process.returncode, out, err)
 
 
-# The trainer SIGKILLed by itself as step 28 starts: after the checkpoint at step 20 and the log's row of step 25,
-# before the next checkpoint: nothing of it runs after the signal (no handler, no finally, no flush).
-KILLED_AT_28 = """
+# The trainer SIGKILLed by itself as step 7 starts: after the checkpoint at step 4 and the log's rows of steps 5 and
+# 6, before the next checkpoint: nothing of it runs after the signal (no handler, no finally, no flush).
+KILLED_AT_7 = """
 import os, signal, sys
 import train.loop as loop
 real = loop.learning_rate
 def dying(step, config):
-    if step == 27:
+    if step == 6:
         os.kill(os.getpid(), signal.SIGKILL)
     return real(step, config)
 loop.learning_rate = dying
@@ -247,26 +248,28 @@ sys.exit(main(sys.argv[1:]))
 
 def test_a_trainer_killed_with_sigkill_resumes_to_the_weights_of_an_uninterrupted_run(patches, tmp_path):
     def args(out):
-        return ["--data", str(patches), "--out", str(out), "--steps", "40", "--batch-size", "16", "--lr", "3e-3",
-                "--warmup", "5", "--width", "lite", "--val-every", "20", "--val-batches", "2", "--checkpoint-every", "20",
-                "--log-every", "5", "--workers", "0", "--seed", "1", "--val-fraction", "0.34", "--quiet"]
+        return ["--data", str(patches), "--out", str(out), "--steps", "8", "--batch-size", "16", "--lr", "3e-3",
+                "--warmup", "2", "--width", "lite", "--val-every", "4", "--val-batches", "2", "--checkpoint-every", "4",
+                "--log-every", "1", "--workers", "0", "--seed", "1", "--val-fraction", "0.34", "--quiet"]
 
     whole = _trainer(args(tmp_path / "whole"))
     assert whole.returncode == 0, whole.stderr[-2000:]
-    killed = _trainer(args(tmp_path / "killed"), KILLED_AT_28)
+    killed = _trainer(args(tmp_path / "killed"), KILLED_AT_7)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
-    assert torch.load(tmp_path / "killed" / "last.pt", weights_only=False)["training"]["step"] == 20
+    assert torch.load(tmp_path / "killed" / "last.pt", weights_only=False)["training"]["step"] == 4
+    rows = (tmp_path / "killed" / "log.csv").read_text().splitlines()[1:]
+    assert [int(row.split(",")[0]) for row in rows] == list(range(1, 7))  # steps 5 and 6 logged, then lost
     resumed = _trainer(args(tmp_path / "killed") + ["--resume"])
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     a = torch.load(tmp_path / "whole" / "last.pt", weights_only=False)
     b = torch.load(tmp_path / "killed" / "last.pt", weights_only=False)
-    assert a["training"]["step"] == b["training"]["step"] == 40
+    assert a["training"]["step"] == b["training"]["step"] == 8
     assert a["state_dict"].keys() == b["state_dict"].keys()
     for key in a["state_dict"]:
         assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
     for name in ("whole", "killed"):  # the steps the kill lost run again, and are logged once
         steps = [int(row.split(",")[0]) for row in (tmp_path / name / "log.csv").read_text().splitlines()[1:]]
-        assert steps == list(range(5, 41, 5)), (name, steps)
+        assert steps == list(range(1, 9)), (name, steps)
 
 
 def test_resume_after_a_kill_logs_each_step_once(patches, tmp_path):
