@@ -25,7 +25,6 @@ from pathlib import Path
 
 import deepcharuco
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -36,13 +35,12 @@ from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.board_check import GEOMETRY_MODES
 from deepcharuco.detection.deep_detector import Detector
-from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
 from deepcharuco.detection.metrics import match_corners
 from deepcharuco.networks.checkpoint import id_head_trained, read_checkpoint, save_bundle
 from train.dataset import FrameDataset, split_shards
 from train.drawn_threshold import choose_threshold_drawn
+from train.thresholds import MARKER_THRESHOLDS, THRESHOLDS, best_threshold, tally_detections
 
-THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
 PACKAGE_DIR = Path(deepcharuco.__file__).resolve().parent
 
 
@@ -84,8 +82,7 @@ def choose_threshold(charuconet: str | Path, data: str | None = None, max_frames
                 continue
             match = match_corners(Detection(ids, pixels, scores), frame["corners"].numpy(), frame["visible"].numpy())
             balance[threshold] += 2 * match.num_correct - len(ids)
-    best = max(THRESHOLDS, key=lambda t: (balance[t], t))
-    return float(best), {float(t): int(v) for t, v in balance.items()}
+    return best_threshold(balance)
 
 
 def _validation_shards(charuconet: str | Path, checkpoint: dict, data: str | None) -> tuple[list[Path], list[Path]]:
@@ -109,8 +106,7 @@ def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_fram
     where a 22x22 board's one view, fitted on one corner of the board, was extrapolated across a wide lens."""
     checkpoint = read_checkpoint(charuconet, "charuconet")
     _, validation = _validation_shards(charuconet, checkpoint, data)
-    thresholds = tuple(t for t in THRESHOLDS if t > WEAK_CONFIDENCE)
-    balance = dict.fromkeys(thresholds, 0)
+    balance = dict.fromkeys(MARKER_THRESHOLDS, 0)
     budget = max(1, max_frames // 3)
     frames = [(reader, index) for reader in map(ShardReader, validation) for index in range(len(reader))][:budget]
     detectors: dict = {}  # one per board: a shard of random boards (datagen.render --family) has one per frame
@@ -119,17 +115,9 @@ def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_fram
         board = frame.board or reader.board_of(index)
         if board not in detectors:
             detectors[board] = Detector(board=board, weights=charuconet, refine="none", geometry="markers")
-        detector = detectors[board]
-        for threshold in thresholds:
-            detector.threshold = threshold
-            detection = detector.detect(frame.image)
-            if not frame.meta["has_board"]:
-                balance[threshold] -= len(detection.ids)
-                continue
-            match = match_corners(detection, frame.corners, frame.visible)
-            balance[threshold] += 2 * match.num_correct - len(detection.ids)
-    best = max(thresholds, key=lambda t: (balance[t], t))
-    return float(best), {float(t): int(v) for t, v in balance.items()}
+        has_board = frame.meta["has_board"]
+        tally_detections(balance, detectors[board], frame.image, frame.corners if has_board else None, frame.visible)
+    return best_threshold(balance)
 
 
 def main(argv: list[str] | None = None) -> int:

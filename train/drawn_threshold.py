@@ -22,14 +22,12 @@ from tqdm import tqdm
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
-from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
-from deepcharuco.detection.metrics import match_corners
 from deepcharuco.networks.checkpoint import read_checkpoint
 from train.distill import family_boards, parse_size
 from train.draw import DrawConfig, FrameDrawer
+from train.thresholds import MARKER_THRESHOLDS, best_threshold, tally_detections
 
 DRAWN_SEED = 2000  # distinct from a run's training seed (0) and validation seed (1000): frames neither saw
-THRESHOLDS = tuple(float(t) for t in np.round(np.arange(0.05, 0.951, 0.05), 2) if t > WEAK_CONFIDENCE)
 BATCH = 16
 
 
@@ -56,22 +54,15 @@ def choose_threshold_drawn(charuconet: str | Path, frames: int = 192, size: str 
     frame_size = parse_size(size or settings.get("val_size", "320x240"), "--threshold-size")
     drawer = FrameDrawer(boards, DrawConfig(size=frame_size))
     detectors = [Detector(board=board, weights=charuconet, refine="none", geometry=geometry) for board in boards]
-    balance = dict.fromkeys(THRESHOLDS, 0)
+    balance = dict.fromkeys(MARKER_THRESHOLDS, 0)
     with tqdm(total=frames, desc="threshold (drawn frames)", unit="frame", leave=False) as progress:
         for batch in range(-(-frames // BATCH)):
             drawn = drawer.draw(np.random.default_rng([DRAWN_SEED, batch]), min(BATCH, frames - batch * BATCH))
             images = np.rint(drawn.image[:, 0].cpu().numpy() * 255).astype(np.uint8)
             for image, board, corners, visible in zip(images, drawn.board, drawn.corners, drawn.visible):
                 detector = detectors[max(int(board), 0)]  # a frame without a board: any board's detector
-                for threshold in THRESHOLDS:
-                    detector.threshold = threshold
-                    detection = detector.detect(image)
-                    if board < 0:
-                        balance[threshold] -= len(detection.ids)
-                        continue
-                    count = detector.board.num_corners
-                    match = match_corners(detection, corners[:count].astype(np.float32), visible[:count])
-                    balance[threshold] += 2 * match.num_correct - len(detection.ids)
+                count = detector.board.num_corners
+                tally_detections(balance, detector, image, corners[:count].astype(np.float32) if board >= 0 else None,
+                                 visible[:count])
                 progress.update()
-    best = max(THRESHOLDS, key=lambda t: (balance[t], t))
-    return float(best), {float(t): int(v) for t, v in balance.items()}
+    return best_threshold(balance)

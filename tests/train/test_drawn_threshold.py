@@ -9,7 +9,8 @@ from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.networks.checkpoint import read_checkpoint
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS
 from train import bundle
-from train.drawn_threshold import DRAWN_SEED, THRESHOLDS, choose_threshold_drawn, run_boards
+from train.drawn_threshold import DRAWN_SEED, choose_threshold_drawn, run_boards
+from train.thresholds import MARKER_THRESHOLDS
 
 
 @pytest.fixture(scope="module")
@@ -27,8 +28,8 @@ def distilled(tmp_path_factory):
 def test_the_threshold_is_the_best_balance_on_frames_the_run_never_drew(distilled):
     assert DRAWN_SEED not in (0, 1000)  # the run's training and validation seeds
     threshold, balance = choose_threshold_drawn(distilled, frames=6, geometry="markers")
-    assert set(balance) == set(THRESHOLDS)
-    assert threshold == max(THRESHOLDS, key=lambda t: (balance[t], t))
+    assert set(balance) == set(MARKER_THRESHOLDS)
+    assert threshold == max(MARKER_THRESHOLDS, key=lambda t: (balance[t], t))
     # The shipped network finds the drawn boards: right corners outweigh wrong ones at the chosen threshold (a
     # drawing whose labels missed its corners, or frames not in the detector's pixels, would score <= 0).
     assert balance[threshold] >= 10, balance

@@ -1,0 +1,36 @@
+"""The score thresholds `train.bundle --threshold auto` chooses among, and how each is scored on a validation frame.
+
+A threshold's balance is 2 x the right corners minus the corners reported (so right minus wrong: a wrong ID, > 3 px
+off, or any corner on a frame without a board), summed over the frames; the largest balance wins, the higher
+threshold among equals. Boards read by their markers are scored only above `placement.WEAK_CONFIDENCE`
+(`bundle._choose_threshold_markers` says why).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
+from deepcharuco.detection.metrics import match_corners
+
+THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
+MARKER_THRESHOLDS = tuple(float(t) for t in THRESHOLDS if t > WEAK_CONFIDENCE)
+
+
+def tally_detections(balance: dict, detector, image: np.ndarray, corners: np.ndarray | None,
+                     visible: np.ndarray | None) -> None:
+    """Adds one frame to ``balance`` ({threshold: right - wrong}): ``detector.detect(image)`` at each of its thresholds
+    against the frame's true ``corners`` (C, 2) and ``visible`` (C,), or None for a frame without a board."""
+    for threshold in balance:
+        detector.threshold = threshold
+        detection = detector.detect(image)
+        if corners is None:
+            balance[threshold] -= len(detection.ids)
+            continue
+        balance[threshold] += 2 * match_corners(detection, corners, visible).num_correct - len(detection.ids)
+
+
+def best_threshold(balance: dict) -> tuple[float, dict]:
+    """(the threshold of the largest balance, the higher among equals; the balance as plain numbers)."""
+    best = max(balance, key=lambda t: (balance[t], t))
+    return float(best), {float(t): int(v) for t, v in balance.items()}
