@@ -96,14 +96,16 @@ def _validation_shards(charuconet: str | Path, checkpoint: dict, data: str | Non
 
 def _choose_threshold_markers(charuconet: str | Path, data: str | None, max_frames: int) -> tuple[float, dict]:
     """`choose_threshold` for geometry "markers": every validation frame is detected whole (its shard's board,
-    read by its markers) at each threshold above `placement.WEAK_CONFIDENCE`, as `Detector.detect` does; the
-    network runs once per frame and threshold, so fewer frames are used (a third of ``max_frames``).
+    read by its markers) at each of `MARKER_THRESHOLDS`, as `Detector.detect` does; the network runs once per frame
+    and threshold, so fewer frames are used (a third of ``max_frames``).
 
-    Only thresholds above WEAK_CONFIDENCE: the threshold is what a corner needs to find and fit the view, and
-    the weaker cells may only fill in corners that their found neighbours place (`placement._fill_in`,
-    `settle_corners`). At WEAK_CONFIDENCE every cell is "confident" and those local checks never run: the
-    DICT_4X4 family model chose 0.05 on its 320x240 validation frames and then put a corner two squares off
-    where a 22x22 board's one view, fitted on one corner of the board, was extrapolated across a wide lens."""
+    The threshold is what a corner needs to find and fit the view; the weaker cells (from
+    `placement.weak_confidence`: WEAK_CONFIDENCE, or half a threshold below 2 x WEAK_CONFIDENCE) may only fill in
+    corners that their found neighbours place (`placement._fill_in`, `settle_corners`). Where every cell was
+    "confident" those local checks never ran: the DICT_4X4 family model, when its weak cells started at
+    WEAK_CONFIDENCE whatever its threshold, chose 0.05 on its 320x240 validation frames and then put a corner two
+    squares off where a 22x22 board's one view, fitted on one corner of the board, was extrapolated across a wide
+    lens."""
     checkpoint = read_checkpoint(charuconet, "charuconet")
     _, validation = _validation_shards(charuconet, checkpoint, data)
     balance = dict.fromkeys(MARKER_THRESHOLDS, 0)

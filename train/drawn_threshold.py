@@ -6,8 +6,8 @@ board, or ``--boards`` random boards of its ``--family``; poses, lenses, backgro
 table) from a seed that no training step (``[seed, step]``) and no validation batch (``[val_seed, i]``) used:
 ``[DRAWN_SEED, i]``.
 
-Each frame is detected whole, as `Detector.detect` does with the geometry asked for, at every threshold above
-`placement.WEAK_CONFIDENCE` (`bundle._choose_threshold_markers` says why not below), and scored as the shard route
+Each frame is detected whole, as `Detector.detect` does with the geometry asked for, at every threshold of
+`thresholds.MARKER_THRESHOLDS` (`bundle._choose_threshold_markers` says how the low ones keep weak cells), and scored as the shard route
 scores: 2 x right corners minus the corners reported (a wrong ID, > 3 px off, or any corner on a frame without a
 board), so the threshold maximises right minus wrong.
 """

@@ -2,7 +2,8 @@
 
 A threshold's balance is 2 x the right corners minus the corners reported (so right minus wrong: a wrong ID, > 3 px
 off, or any corner on a frame without a board), summed over the frames; the largest balance wins, the higher
-threshold among equals. Boards read by their markers are scored only above `placement.WEAK_CONFIDENCE`
+threshold among equals. Boards read by their markers are scored at lower thresholds too, down to LOW_THRESHOLDS
+(a distilled network's confidences run low in the dark); their weak cells start at `placement.weak_confidence`
 (`bundle._choose_threshold_markers` says why).
 """
 
@@ -10,11 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
 from deepcharuco.detection.metrics import match_corners
 
 THRESHOLDS = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
-MARKER_THRESHOLDS = tuple(float(t) for t in THRESHOLDS if t > WEAK_CONFIDENCE)
+LOW_THRESHOLDS = (0.02, 0.03, 0.04)
+MARKER_THRESHOLDS = LOW_THRESHOLDS + tuple(float(t) for t in THRESHOLDS)
 
 
 def tally_detections(balance: dict, detector, image: np.ndarray, corners: np.ndarray | None,

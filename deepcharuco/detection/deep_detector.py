@@ -39,7 +39,7 @@ from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
 from deepcharuco.detection.levels import (EarlyRefinement, Found, candidates_in_image, moves_limited, network_input, nudged,
                                           from_level, on_cell_grid, patches_around, reduced, to_level)
 from deepcharuco.detection.markers.marker_reader import READERS
-from deepcharuco.detection.markers.placement import PATTERN_SCORE, WEAK_CONFIDENCE, corners_from_markers
+from deepcharuco.detection.markers.placement import PATTERN_SCORE, corners_from_markers, weak_confidence
 from deepcharuco.detection.markers.settling import drop_isolated, neighbour_distances, settle_corners
 from deepcharuco.detection.markers.verification import layout_ends_short, marker_view_verified
 from deepcharuco.detection.opencv_detector import OpenCVDetector
@@ -691,7 +691,7 @@ class Detector:
         if self.geometry == "markers":
             # Weaker cells too: they may only fill in corners of the view the confident ones found (`placement`).
             with stage("candidates"):
-                candidates = candidates_in_image(cell_candidates(point_logits, None, min(self.threshold, WEAK_CONFIDENCE),
+                candidates = candidates_in_image(cell_candidates(point_logits, None, weak_confidence(self.threshold),
                                                      confidence), (width, height))
             tally("candidate cells", int((candidates.confidence >= self.threshold).sum()))
             early = self._refine_early(gray, candidates.pixels[candidates.confidence >= self.threshold])

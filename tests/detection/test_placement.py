@@ -87,29 +87,38 @@ def test_blurred_look_alikes_stay_refused(name):
     assert_look_alike_refused(SMALL_MARKERS, name, (lambda image: image, blur))
 
 
-def test_weak_candidates_fill_in_corners_of_the_verified_view_only():
+def test_weak_cells_start_below_every_threshold():
+    # The shipped networks' thresholds (0.1-0.5) keep WEAK_CONFIDENCE; a low one (a distilled network's) keeps weak
+    # cells below it, so that its fill-ins are still checked by their neighbours.
+    assert [placement.weak_confidence(t) for t in (0.95, 0.5, 0.25, 0.1)] == [placement.WEAK_CONFIDENCE] * 4
+    assert placement.weak_confidence(0.03) == pytest.approx(0.015)
+    assert all(0 < placement.weak_confidence(t) < t for t in (0.01, 0.02, 0.05, 0.1, 0.95))
+
+
+@pytest.mark.parametrize("threshold, weak", [(0.25, 0.1), (0.03, 0.02)])
+def test_weak_candidates_fill_in_corners_of_the_verified_view_only(threshold, weak):
     board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
     image, truth, _ = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
     missing = 8  # an inner corner: its neighbours on the board are found
     pixels = np.round(truth).astype(np.float32)
     confidence = np.full(len(truth), 0.9, np.float32)
-    confidence[missing] = 0.1
+    confidence[missing] = weak
     spurious = np.array([[5.0, 5.0], [np.round((truth[0, 0] + truth[1, 0]) / 2), np.round(truth[0, 1]) + 40]],
                         np.float32)  # weak points where the view puts no corner
-    candidates = CellCandidates(np.r_[pixels, spurious], np.r_[confidence, [0.1, 0.1]].astype(np.float32),
+    candidates = CellCandidates(np.r_[pixels, spurious], np.r_[confidence, [weak, weak]].astype(np.float32),
                                 np.zeros((len(truth) + 2, 0), np.float32))
-    (ids, found, scores), marker_view = placement.corners_from_markers(image, board, candidates, threshold=0.25)
+    (ids, found, scores), marker_view = placement.corners_from_markers(image, board, candidates, threshold=threshold)
     assert marker_view is not None
     assert sorted(ids.tolist()) == list(range(board.num_corners))  # the weak corner is in, the spurious points not
-    assert np.allclose(found[ids == missing], pixels[missing]) and scores[ids == missing] == pytest.approx(0.1)
+    assert np.allclose(found[ids == missing], pixels[missing]) and scores[ids == missing] == pytest.approx(weak)
     assert list(scores) == sorted(scores, reverse=True)
-    strong = confidence >= 0.25
+    strong = confidence >= threshold
     (ids, _, _), _ = placement.corners_from_markers(
         image, board, CellCandidates(pixels[strong], confidence[strong], np.zeros((int(strong.sum()), 0), np.float32)))
     assert missing not in ids.tolist()  # without the weak candidates the corner stays missing
     # Weak candidates alone find no view: they only fill in.
-    weak_only = CellCandidates(pixels, np.full(len(truth), 0.1, np.float32), np.zeros((len(truth), 0), np.float32))
-    assert len(placement.corners_from_markers(image, board, weak_only, threshold=0.25)[0][0]) == 0
+    weak_only = CellCandidates(pixels, np.full(len(truth), weak, np.float32), np.zeros((len(truth), 0), np.float32))
+    assert len(placement.corners_from_markers(image, board, weak_only, threshold=threshold)[0][0]) == 0
 
 
 def test_filled_in_corners_refined_away_from_their_neighbours_are_left_out():

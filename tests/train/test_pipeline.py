@@ -17,7 +17,7 @@ from conftest import ROOT, VIEW_POSES, make_view, needs_bpy, process_group
 from datagen.shards import FrameLabels, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
-from deepcharuco.detection.markers.placement import WEAK_CONFIDENCE
+from deepcharuco.detection.markers.placement import weak_confidence
 from deepcharuco.networks import load_charuconet
 from deepcharuco.networks.checkpoint import PointsOnlyBoard, read_checkpoint
 from train.bundle import choose_threshold
@@ -340,8 +340,9 @@ def test_points_only_training_marks_the_id_head_untrained(two_boards, tmp_path):
     with pytest.raises(DeepCharucoError, match="geometry='repair' decodes with the ID head"):
         Detector(board=BoardSpec(), weights=tmp_path / "best.pt", refine="none", geometry="repair")
     threshold, balance = choose_threshold(tmp_path / "best.pt", max_frames=6)
-    # Read by markers: only thresholds above WEAK_CONFIDENCE, below which no cell is left to be a checked fill-in
-    assert WEAK_CONFIDENCE < threshold < 1 and set(balance) == {float(t) for t in np.round(np.arange(0.1, 0.951, 0.05), 2)}
+    # Read by markers: low thresholds too, each keeping weak cells below it that only fill in checked corners
+    assert 0 < threshold < 1 and set(balance) == {0.02, 0.03, 0.04, *np.round(np.arange(0.05, 0.951, 0.05), 2)}
+    assert all(weak_confidence(t) < t for t in balance)
 
 
 def test_points_only_options_are_checked(two_boards, tmp_path):

@@ -52,10 +52,23 @@ NEAR_SHARE = 0.9
 
 
 # Corners the verified view predicts where no candidate reaches the detector's threshold may take a weaker one
-# (point confidence >= WEAK_CONFIDENCE, within WEAK_REACH_PX of the prediction): the markers already name the
+# (point confidence >= `weak_confidence`, within WEAK_REACH_PX of the prediction): the markers already name the
 # corner, the point head need only say that one is there.
 WEAK_CONFIDENCE = 0.05
 WEAK_REACH_PX = 3.0
+
+
+# A network whose confidences run low (a distilled student in the dark: its corners at 0.02-0.1 where its teacher's
+# are above 0.25) is given a threshold at or below WEAK_CONFIDENCE; its weak cells then start at WEAK_SHARE of it, so
+# that some cells are still weak and take a corner only where their found neighbours place it (without any, one view
+# fitted on a corner of a 22x22 board was carried across a wide lens and put a corner two squares off). Every
+# threshold >= 2 x WEAK_CONFIDENCE, the shipped networks' among them, keeps WEAK_CONFIDENCE.
+WEAK_SHARE = 0.5
+
+
+def weak_confidence(threshold: float) -> float:
+    """The point confidence a cell needs to fill in a corner of a verified view, for a detector's ``threshold``."""
+    return min(WEAK_CONFIDENCE, WEAK_SHARE * float(threshold))
 
 
 # Corners the verified view predicts where the point head gave no candidate at all (a cast shadow's edge across them
@@ -282,7 +295,7 @@ def corners_from_markers(gray: np.ndarray, board: BoardSpec, candidates: CellCan
     ``gray``: the canonical image the candidates were found in; ``read_gray``: the same image at full
     resolution, where the markers are read (default ``gray``); ``reader``: how (`marker_reader.READERS`);
     ``threshold``: the point confidence a candidate needs to find and fit the view (default: every
-    candidate). Candidates below it (down to `WEAK_CONFIDENCE`, as the caller chose them) only fill in
+    candidate). Candidates below it (down to `weak_confidence`, as the caller chose them) only fill in
     the corners the verified view predicts where no confident candidate lies (`_fill_in`).
 
     Returns ((ids (K,), pixels (K, 2) float32, scores (K,) float32) strongest first, the marker view or
