@@ -31,7 +31,7 @@ from deepcharuco import BoardSpec, OpenCVDetector
 import deepcharuco.detection.deep_detector as deep_detector
 from deepcharuco.detection.markers import lattice, marker_reader, placement
 from deepcharuco.detection.markers.placement import corners_from_markers
-from deepcharuco.networks.onnx_runner import single_threaded_blas
+from deepcharuco.core.blas import single_threaded_blas
 from evaluate.captures.reader import video_frames
 from evaluate.paper.protocols import darken
 from evaluate.speed.machine import cpu_description

@@ -13,6 +13,7 @@ import numpy as np
 
 from deepcharuco.calibration.solve import STD_NAMES, Solution, intrinsic_names, residuals_of
 from deepcharuco.calibration.views import VIEW_WEIGHT_SPREAD
+from deepcharuco.core.blas import single_threaded_blas
 
 
 # ----------------------------------------------------------------------------------------- view weights
@@ -48,9 +49,16 @@ def weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray],
     view's."""
     names = intrinsic_names(model)
     free = np.array([n in ("fx", "fy", "cx", "cy") or n in terms.split() for n in names])
+    with single_threaded_blas():  # many small inverses and products (`core.blas` says why)
+        if corner_covariances is not None:
+            return _weigh_corners(object_points, image_points, solution, model, free, corner_covariances, rounds)
+        return _weigh_views(object_points, image_points, solution, model, free, spread, rounds)
+
+
+def _weigh_views(object_points: list[np.ndarray], image_points: list[np.ndarray], solution: Solution, model: str,
+                 free: np.ndarray, spread: float, rounds: int) -> tuple[Solution, np.ndarray]:
+    """`weigh_views` with each view's residuals' spread (its docstring)."""
     current = solution
-    if corner_covariances is not None:
-        return _weigh_corners(object_points, image_points, current, model, free, corner_covariances, rounds)
     information = [np.eye(2)] * len(object_points)
     for _ in range(rounds):
         residuals = residuals_of(object_points, image_points, current, model)[0]
@@ -126,26 +134,28 @@ def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarra
         return float(sum(np.sum(p ** 2) for p in parts))
 
     def normal_equations(parts):
-        U, g = np.zeros((count, count)), np.zeros(count)
-        blocks = []
-        for residual, pose_jacobian, intrinsic_jacobian in parts:
-            U += intrinsic_jacobian.T @ intrinsic_jacobian
-            g += intrinsic_jacobian.T @ residual
-            blocks.append((pose_jacobian.T @ pose_jacobian, intrinsic_jacobian.T @ pose_jacobian, pose_jacobian.T @ residual))
-        return U, g, blocks
+        """(U (c, c), g (c,), V (views, 6, 6), W (views, c, 6), gv (views, 6)): the intrinsics' block and gradient,
+        and each view's pose block, cross block and pose gradient."""
+        U = sum(j.T @ j for _, _, j in parts)
+        g = sum(j.T @ r for r, _, j in parts)
+        V = np.stack([p.T @ p for _, p, _ in parts])
+        W = np.stack([j.T @ p for _, p, j in parts])
+        gv = np.stack([p.T @ r for r, p, _ in parts])
+        return U, g, V, W, gv
 
     current = cost(whitened(K, dist, rvecs, tvecs, False))
     damping = 1e-3
+    diagonal = np.eye(6, dtype=bool)
     for _ in range(LM_STEPS):
-        U, g, blocks = normal_equations(whitened(K, dist, rvecs, tvecs, True))
+        U, g, V, W, gv = normal_equations(whitened(K, dist, rvecs, tvecs, True))
         improved = False
         while damping < 1e8:
-            reduced, rhs, inverses = U + damping * np.diag(np.diag(U)), -g.copy(), []
-            for V, W, gv in blocks:
-                inverse = np.linalg.inv(V + damping * np.diag(np.diag(V)))
-                inverses.append(inverse)
-                reduced -= W @ inverse @ W.T
-                rhs += W @ inverse @ gv
+            # The poses eliminated (Schur complement), all views' 6 x 6 blocks inverted in one call.
+            damped = V + damping * V * diagonal
+            inverses = np.linalg.inv(damped)
+            WV = W @ inverses  # (views, c, 6)
+            reduced = U + damping * np.diag(np.diag(U)) - np.einsum("vij,vkj->ik", WV, W)
+            rhs = -g + np.einsum("vij,vj->i", WV, gv)
             step = np.linalg.solve(reduced, rhs)
             full = np.zeros(len(free))
             full[free] = step
@@ -155,7 +165,7 @@ def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarra
             K2[0, 2] += full[2]
             K2[1, 2] += full[3]
             dist2 = dist + full[4:]
-            poses = np.stack([inverse @ (-gv - W.T @ step) for (V, W, gv), inverse in zip(blocks, inverses)])
+            poses = np.einsum("vij,vj->vi", inverses, -gv - np.einsum("vji,j->vi", W, step))
             rvecs2, tvecs2 = rvecs + poses[:, :3], tvecs + poses[:, 3:]
             trial = cost(whitened(K2, dist2, rvecs2, tvecs2, False))
             if trial < current:
@@ -168,9 +178,8 @@ def weighted_solve(object_points: list[np.ndarray], image_points: list[np.ndarra
         if not improved or converged:
             break
     # Standard deviations: the weighted normal equations' inverse (poses eliminated), scaled by the residual variance.
-    U, g, blocks = normal_equations(whitened(K, dist, rvecs, tvecs, True))
-    for V, W, _ in blocks:
-        U = U - W @ np.linalg.inv(V) @ W.T
+    U, g, V, W, gv = normal_equations(whitened(K, dist, rvecs, tvecs, True))
+    U = U - np.einsum("vij,vkj->ik", W @ np.linalg.inv(V), W)
     measurements = 2 * sum(len(p) for p in objects)
     freedom = measurements - count - 6 * len(objects)
     scale = current / freedom if freedom > 0 else math.nan

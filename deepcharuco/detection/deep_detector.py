@@ -25,6 +25,7 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.boards.dictionaries import marker_family
 from deepcharuco.boards.print_face import (canonical_view, canonical_view_local_white, corners_from_canonical,
                                            covariances_from_canonical)
+from deepcharuco.core.blas import single_threaded_blas
 from deepcharuco.core.checks import check_choice
 from deepcharuco.core.detection import Detection, corner_spacing, detect_board_result, no_corners
 from deepcharuco.core.errors import DeepCharucoError
@@ -52,7 +53,7 @@ from deepcharuco.networks.offsets import soft_argmax_offsets
 from deepcharuco.networks.onnx_bundle import (
     BundleError, OnnxBundle, bundle_path, check_exported_from, checked_runner, is_bundle, read_bundle,
 )
-from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available, single_threaded_blas
+from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
 
 
@@ -425,7 +426,7 @@ class Detector:
         for in that view, moved onto the point head's corners and verified by its markers as any view is
         (`placement.view_near`), and searched for through its cells only where that fails.
 
-        numpy's BLAS runs single-threaded for the call (`runtime.single_threaded_blas`) and is restored after."""
+        numpy's BLAS runs single-threaded for the call (`core.blas.single_threaded_blas`) and is restored after."""
         if self._each:
             raise DeepCharucoError(f"this Detector finds {len(self._each)} boards: detect_boards(image) returns one "
                                    f"Detection per board")

@@ -7,7 +7,7 @@ protocol; `deepcharuco.networks.runtime` makes one from networks loaded with PyT
 Threads: each network runs on as many threads as PyTorch would (`network_threads`; idle workers sleep);
 `OnnxRunner.refinenet_in_background` runs RefineNet on one thread of its own while the caller's numpy
 decoding holds the other core (`levels.EarlyRefinement`), and the detector runs numpy's BLAS on one
-thread (`single_threaded_blas`): its spinning workers would take that core from the networks.
+thread (`deepcharuco.core.blas`): its spinning workers would take that core from the networks.
 """
 
 from __future__ import annotations
@@ -16,29 +16,10 @@ import importlib.util
 import os
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
-from functools import cache
-from typing import Callable, ContextManager
+from typing import Callable
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
-
 from deepcharuco.core.platform import available_cpus
-
-
-@cache
-def _numpy_blas() -> ThreadpoolController:
-    return ThreadpoolController().select(user_api="blas")
-
-
-def single_threaded_blas() -> ContextManager:
-    """A context in which numpy's BLAS (OpenBLAS) runs on the calling thread alone, restored on exit.
-
-    Why: after a threaded BLAS call (the marker reader's correlation is one) OpenBLAS's idle workers spin
-    on the other core for milliseconds, and the next network run in ONNX Runtime's 2-thread pool waits for
-    that core: on the 11x8 board at 320x240 (AVX2 host, fresh processes) RefineNet took 11 ms a frame
-    instead of 6 and a frame 40-49 ms instead of 34-36. The decoding's matrices are small; one thread
-    costs them nothing measurable."""
-    return _numpy_blas().limit(limits=1)
 
 
 def onnxruntime_available() -> bool:

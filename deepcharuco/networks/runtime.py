@@ -14,7 +14,7 @@ The float32 ONNX models are exported from the loaded networks in memory when the
 (``charuconet["int8"]``) with what it was calibrated and checked on. Both runners take and return
 the same arrays, so the decoding never knows which one ran.
 
-The ONNX Runtime side (`OnnxRunner`, its threads, `single_threaded_blas`) is `deepcharuco.networks.onnx_runner`, which
+The ONNX Runtime side (`OnnxRunner`, its threads) is `deepcharuco.networks.onnx_runner`, which
 needs no PyTorch: the `Detector` runs the shipped ONNX bundles with it where PyTorch is not installed.
 
 Measured on this project's 2-core CPU (``python benchmarks/detect.py``): PyTorch's default NCHW
@@ -39,7 +39,7 @@ from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.charuconet import ChArUcoNet, PointHeadOnly
 from deepcharuco.networks.onnx_export import network_specs, onnx_bytes
 from deepcharuco.networks.onnx_runner import (  # noqa: F401 (re-exported: the runners' API in one place)
-                                              BackgroundThread, OnnxRunner, network_threads, onnxruntime_available, single_threaded_blas,
+                                              BackgroundThread, OnnxRunner, network_threads, onnxruntime_available,
                                               )
 from deepcharuco.networks.refinenet import PATCH, RefineNet
 
