@@ -48,7 +48,7 @@ def test_view_verified_by_ranks_beside_the_fraction_rule(monkeypatch, best, rank
     readable = np.arange(40)
     reads_best = np.arange(40) < best
     rank = np.linspace(0, 1, 40) if ranks == "uniform" else np.full(40, ranks)
-    monkeypatch.setattr(verification, "_expected_ranks", lambda *args: (readable, reads_best, rank))
+    monkeypatch.setattr(verification, "_ranks_of", lambda *args: (readable, reads_best, rank))
     ids = placement.board_markers(board).ids if chosen_by == "all" else None
     assert verification.view_is_verified(np.zeros((240, 320), np.uint8), board, np.eye(3), chosen_by=ids) is verified
 
@@ -322,3 +322,17 @@ def test_a_wrong_expected_view_is_refused_by_the_markers_and_the_cells_searched(
     searched = placement.corners_from_markers(image, board, candidates)[0]
     assert marker_view is not None and np.array_equal(ids, searched[0]) and np.array_equal(found, searched[1])
     assert np.abs(found - truth[ids]).max() < 1.0
+
+
+@pytest.mark.parametrize("dictionary", ["DICT_4X4_1000", "DICT_6X6_250", "DICT_7X7_50"])
+def test_code_words_count_the_bits_that_differ(dictionary):
+    # The layout check compares reads with every code of the dictionary by XOR and popcount of bit words: the same
+    # counts as comparing the bits one by one, up to 49-bit (7x7) codes.
+    codes = verification.dictionary_codes(dictionary)
+    reads = np.random.default_rng(0).random((20, codes.shape[1])) > 0.5
+    reads[:3] = codes[[0, 5, len(codes) - 1]]  # exact codes: 0 bits off
+    reads[3] = ~codes[1]  # every bit off
+    counted = verification._popcount(verification._code_words(reads)[:, None]
+                                     ^ verification.dictionary_words(dictionary)[None, :])
+    assert np.array_equal(counted, np.sum(reads[:, None, :] != codes[None, :, :], axis=2))
+    assert counted[:3].min(axis=1).tolist() == [0, 0, 0] and counted[3, 1] == codes.shape[1]

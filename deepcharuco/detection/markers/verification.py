@@ -102,7 +102,12 @@ def _expected_ranks(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, 
     -> (readable markers' indices (R,) into `board_markers`, whether each read correlates best with the marker
     printed there in the right turn (R,) bool, the rank of that (marker, turn) among all the board's (R,) in [0, 1]:
     the fraction of the other (marker, turn) pairs that correlate less, ties counted half)."""
-    markers, bits, readable = _read_markers(gray, board, homography, reader)
+    return _ranks_of(*_read_markers(gray, board, homography, reader), reader)
+
+
+def _ranks_of(markers: BoardMarkers, bits: np.ndarray, readable: np.ndarray, reader: str | None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_expected_ranks` of reads made (`_read_markers`' three results)."""
     if len(readable) == 0:
         return readable, np.zeros(0, bool), np.zeros(0)
     ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
@@ -153,19 +158,19 @@ def view_is_verified(gray: np.ndarray, board: BoardSpec, homography: np.ndarray,
     marker above chance by `MIN_RANK_Z` standard errors (`rank_z`), or their codes do (`code_chance`); and the
     markers do not contradict the board's layout (`layout_contradicted`: checked last, on the views that pass, as
     most views tried fail before)."""
-    readable, best, ranks = _expected_ranks(gray, board, homography, reader)
+    reads = _read_markers(gray, board, homography, reader)  # once: every rule below reads the same squares
+    readable, best, ranks = _ranks_of(*reads, reader)
     agreeing = int(best.sum())
     if agreeing < MIN_MARKERS:
         return False
-    markers = board_markers(board)
+    markers = reads[0]
     unbiased = ~np.isin(markers.ids[readable], np.asarray([] if chosen_by is None else chosen_by))
     verified = (agreeing >= MIN_MARKER_AGREEMENT * len(readable)
                 and chance_of_agreement(agreeing, len(readable), board.num_markers) <= MAX_CHANCE) \
         or rank_z(ranks[unbiased]) >= MIN_RANK_Z \
-        or code_chance(code_errors(gray, board, homography, reader), markers.size ** 2,
-                       code_error_limit(board)) <= MAX_CHANCE
-    return verified and not layout_contradicted(agreeing, len(readable),
-                                                contradicting_markers(gray, board, homography, reader), board)
+        or code_chance(_code_errors_of(*reads, reader), markers.size ** 2, code_error_limit(board)) <= MAX_CHANCE
+    return verified and not layout_contradicted(agreeing, len(readable), _contradicting_of(*reads, reader, board),
+                                                board)
 
 
 def contradicting_markers(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, reader: str | None = None
@@ -176,14 +181,21 @@ def contradicting_markers(gray: np.ndarray, board: BoardSpec, homography: np.nda
     another: a board file of another layout (transposed, other or shifted IDs) whose markers happen to fit a
     view. A right layout has none: two codes of one dictionary (any turns) differ in more than twice the bits the
     limit allows, and a square that reads as no code (blur, glare, dark) contradicts nothing."""
-    markers, bits, readable = _read_markers(gray, board, homography, reader)
+    return _contradicting_of(*_read_markers(gray, board, homography, reader), reader, board)
+
+
+def _contradicting_of(markers: BoardMarkers, bits: np.ndarray, readable: np.ndarray, reader: str | None,
+                      board: BoardSpec) -> int:
+    """`contradicting_markers` of reads made (`_read_markers`' three results)."""
     if len(readable) == 0:
         return 0
     white = _thresholded(bits[readable], reader)  # (R, n * n)
     limit = code_error_limit(board)
     printed = np.sum(white != markers.bits[readable, 0].reshape(len(readable), -1), axis=1) <= limit
-    codes = dictionary_codes(board.dictionary)  # (D * 4, n * n)
-    errors = np.sum(white[~printed, None, :] != codes[None, :, :], axis=2) if (~printed).any() else np.zeros((0, 1))
+    if printed.all():
+        return 0
+    # Every code of the dictionary in every turn, as bit words: XOR and a popcount (~7x faster than comparing bits).
+    errors = _popcount(_code_words(white[~printed])[:, None] ^ dictionary_words(board.dictionary)[None, :])
     return int(np.sum(errors.min(axis=1) <= limit))
 
 
@@ -267,6 +279,30 @@ def dictionary_codes(dictionary: str) -> np.ndarray:
     return np.array(codes).reshape(len(codes), size * size)
 
 
+@cache
+def dictionary_words(dictionary: str) -> np.ndarray:
+    """(D * 4,) uint64: `dictionary_codes` as bit words (`_code_words`)."""
+    return _code_words(dictionary_codes(dictionary))
+
+
+def _code_words(bits: np.ndarray) -> np.ndarray:
+    """(R, b) bool, b <= 64 -> (R,) uint64: bit i of each word is column i."""
+    weights = np.uint64(1) << np.arange(bits.shape[1], dtype=np.uint64)
+    return (bits.astype(np.uint64) * weights).sum(axis=1, dtype=np.uint64)
+
+
+_M1, _M2, _M4, _H01 = (np.uint64(v) for v in (0x5555555555555555, 0x3333333333333333, 0x0F0F0F0F0F0F0F0F,
+                                                0x0101010101010101))
+
+
+def _popcount(words: np.ndarray) -> np.ndarray:
+    """uint64 array -> the set bits of each, as uint64 (the SWAR count; numpy < 2 has no `bitwise_count`)."""
+    x = words - ((words >> np.uint64(1)) & _M1)
+    x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
+    x = (x + (x >> np.uint64(4))) & _M4
+    return (x * _H01) >> np.uint64(56)  # the byte sums gathered in the top byte (the product wraps, as meant)
+
+
 def _thresholded(bits: np.ndarray, reader: str | None) -> np.ndarray:
     """(R, n, n) reads -> (R, n * n) bool, white bits: sampled reads halfway between the read's darkest and
     brightest bit, learned ones by the logit's sign."""
@@ -287,7 +323,11 @@ def code_errors(gray: np.ndarray, board: BoardSpec, homography: np.ndarray, read
     """(R,) for each marker square of ``board`` that ``homography`` (board metres -> pixels) puts wholly and readably
     in canonical ``gray``: how many of its inner bits, read and thresholded (sampled reads: halfway between the read's
     darkest and brightest bit; learned: the logit's sign), differ from the code printed there."""
-    markers, bits, readable = _read_markers(gray, board, homography, reader)
+    return _code_errors_of(*_read_markers(gray, board, homography, reader), reader)
+
+
+def _code_errors_of(markers: BoardMarkers, bits: np.ndarray, readable: np.ndarray, reader: str | None) -> np.ndarray:
+    """`code_errors` of reads made (`_read_markers`' three results)."""
     if len(readable) == 0:
         return np.zeros(0, np.int64)
     white = _thresholded(bits[readable], reader)
