@@ -341,7 +341,7 @@ def test_points_only_training_marks_the_id_head_untrained(two_boards, tmp_path):
         Detector(board=BoardSpec(), weights=tmp_path / "best.pt", refine="none", geometry="repair")
     threshold, balance = choose_threshold(tmp_path / "best.pt", max_frames=6)
     # Read by markers: low thresholds too, each keeping weak cells below it that only fill in checked corners
-    assert 0 < threshold < 1 and set(balance) == {0.02, 0.03, 0.04, *np.round(np.arange(0.05, 0.951, 0.05), 2)}
+    assert 0 < threshold < 1 and set(balance) == {0.01, 0.02, 0.03, 0.04, *np.round(np.arange(0.05, 0.951, 0.05), 2)}
     assert all(weak_confidence(t) < t for t in balance)
 
 
