@@ -5,6 +5,7 @@ drawn in torch (`train.draw`): no renders needed, any device.
     python -m train.distill --out runs/distill_paper --resume          # continue exactly where it stopped
     python -m train.distill --teacher deepcharuco/weights/families/DICT_4X4.pt --family DICT_4X4 --out runs/distill_4x4
     python -m train.distill --points-only --out runs/distill_paper_points     # the paper's board, point head alone
+    python -m train.distill ... --init runs/distill_4x4/best.pt --out runs/distill_4x4_inv  # a student's weights to start
 
 Loss, on every 8x8 cell of every frame:
 
@@ -17,7 +18,8 @@ Loss, on every 8x8 cell of every frame:
 
 Frames: the teacher's board (a family teacher, ``heads: points``: ``--boards`` random boards of the marker family
 ``--family`` names, which its checkpoint does not record) through random
-poses and lenses onto photographs, noise and clutter, under the paper's augmentations (`train.draw`). The batch
+poses and lenses onto photographs, noise and clutter, under the paper's augmentations, ``--inverted-p`` of them an
+inverted print seen as the detector sees it (the frame inverted whole; `train.draw`). The batch
 at step s is drawn from ``default_rng([seed, s])`` alone, so ``--resume`` continues bit for bit: the model,
 AdamW's state and the step are in ``last.pt``; the learning rate is a function of the step (warm-up, cosine).
 
@@ -64,6 +66,9 @@ from train.loop import _Stop, truncate_log
 
 # Options --resume may change: they do not decide what the run computes.
 RESUME_MAY_CHANGE = ("resume", "out", "steps", "quiet", "device", "threads", "checkpoint_minutes", "log_every")
+# Options added since runs began, and the value a run that began before had (what it computed then).
+ADDED_SINCE = {"inverted_p": 0.0}
+INVERTED_P = 0.2  # a new run's share of inverted prints (the family renders' `datagen.family` inverted_p)
 METRICS = ("score", "f1", "recall", "precision", "recall_vs_teacher", "precision_vs_teacher", "corner_accuracy",
            "teacher_f1")
 
@@ -123,7 +128,8 @@ class Distiller:
         boards = [stored] if teacher_ids else family_boards(args.family, args.boards, args.seed)
         self.size = parse_size(args.size, "--size")
         self.val_size = parse_size(args.val_size, "--val-size")
-        self.drawer = FrameDrawer(boards, DrawConfig(size=self.size), device)
+        inverted_p = INVERTED_P if args.inverted_p is None else args.inverted_p
+        self.drawer = FrameDrawer(boards, DrawConfig(size=self.size, inverted_p=inverted_p), device)
         torch.manual_seed(args.seed)
         self.student = ChArUcoNet(named_config(args.arch, stored.num_corners)).to(device)
         self.id_weights = torch.full((stored.num_corners + 1,), float(args.id_positive_weight), device=device)
@@ -214,6 +220,24 @@ class Distiller:
         return metrics
 
 
+def warm_start(student: ChArUcoNet, path: str, arch: str) -> None:
+    """``student``'s weights from the student checkpoint ``path`` (a `train.distill` run's) of the same ``arch``; its
+    optimizer state and step are not taken: the run's schedule starts at step 0."""
+    try:
+        data = read_checkpoint(path, "charuconet")
+    except CheckpointError as error:
+        raise DeepCharucoError(f"--init: {error}") from None
+    was = data.get("training", {}).get("settings", {}).get("arch")
+    if data.get("training", {}).get("kind") != "distill" or was != arch:
+        raise DeepCharucoError(f"--init {path}: not a student of --arch {arch} (a train.distill checkpoint"
+                               f"{'' if was is None else ' of --arch ' + str(was)}); start without --init")
+    try:
+        student.load_state_dict(data["state_dict"])
+    except RuntimeError as error:
+        first = str(error).splitlines()[1].strip() if len(str(error).splitlines()) > 1 else str(error)
+        raise DeepCharucoError(f"--init {path}: its weights do not fit this student ({first})") from None
+
+
 def learning_rate(step: int, args: argparse.Namespace) -> float:
     """Linear warm-up to --lr, then cosine decay to 1 % of it at --steps."""
     if step < args.warmup:
@@ -240,15 +264,19 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
             raise DeepCharucoError(f"--resume: no {last_path} to resume from (start without --resume)")
         saved = torch.load(last_path, map_location="cpu", weights_only=True)
         before = saved["training"]["settings"]
+        if args.inverted_p is None:  # not given: the run's own
+            args.inverted_p = before.get("inverted_p", ADDED_SINCE["inverted_p"])
         defaults = parser()  # an option added since the run started: the run had its default
-        differs = [name for name, value in settings(args).items()
-                   if name not in RESUME_MAY_CHANGE and before.get(name, defaults.get_default(name)) != value]
+        differs = [name for name, value in settings(args).items() if name not in RESUME_MAY_CHANGE
+                   and before.get(name, ADDED_SINCE.get(name, defaults.get_default(name))) != value]
         if differs:
             raise DeepCharucoError(f"--resume: {', '.join('--' + n.replace('_', '-') for n in differs)} differ from "
                                    f"the run in {out} ({'; '.join(f'{n}: {before.get(n)!r} there' for n in differs)}); "
                                    "resume with its settings")
     elif last_path.exists():
         raise DeepCharucoError(f"{out} already holds a run (last.pt): pass --resume to continue it or choose another --out")
+    if args.inverted_p is None:
+        args.inverted_p = INVERTED_P
     try:
         read_checkpoint(args.teacher, "charuconet")
     except CheckpointError as error:
@@ -258,6 +286,8 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
     student = distiller.student
     optimizer = torch.optim.AdamW(student.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     step, best, elapsed, metrics = 0, None, 0.0, {}
+    if saved is None and args.init:
+        warm_start(student, args.init, args.arch)
     if saved is not None:
         student.load_state_dict(saved["state_dict"])
         optimizer.load_state_dict(saved["training"]["optimizer"])
@@ -353,7 +383,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--family", default="",
                    help="a points-only (family) teacher: the marker family it was trained on (DICT_4X4, DICT_6X6, ...)")
     p.add_argument("--boards", type=int, default=64, help="a family teacher: random boards of its family drawn")
+    p.add_argument("--inverted-p", type=float, default=None,
+                   help="share of frames of an inverted print (a board file's inverted: true), seen as the detector "
+                        "sees it: the frame inverted whole, a dark frame a washed-out bright one (default: 0.2, as the "
+                        "family renders; --resume: the run's own, 0 for runs begun before this option)")
     p.add_argument("--seed", type=int, default=0, help="seeds the student's initial weights and every training frame")
+    p.add_argument("--init", default="",
+                   help="start from this student's weights (a train.distill checkpoint of the same --arch), e.g. to "
+                        "train on new frames on from a run's best.pt; the schedule starts at step 0")
     p.add_argument("--val-seed", type=int, default=1000, help="seeds the validation frames (not the training seed)")
     p.add_argument("--val-size", default="320x240", help="validation frames WxH")
     p.add_argument("--val-batches", type=int, default=8, help="validation batches (of --batch-size frames)")
@@ -377,6 +414,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                  ("lr", "temperature", "checkpoint_minutes", "id_positive_weight") if getattr(args, name) <= 0]
     problems += [f"--{name.replace('_', '-')} must be >= 0" for name in ("distill_weight", "label_weight", "weight_decay")
                  if getattr(args, name) < 0]
+    if args.inverted_p is not None and not 0 <= args.inverted_p <= 1:
+        problems.append("--inverted-p must be within 0 and 1")
     for option in ("size", "val_size"):
         try:
             parse_size(getattr(args, option), "--" + option.replace("_", "-"))

@@ -13,7 +13,11 @@ A frame (``size`` = (W, H) pixels, pixel centres at integers as everywhere in th
   scikit-image's bundled photographs under a random affine map, or smooth random noise, plus a few random
   grey rectangles (clutter); ``negative_p`` of the frames hold no board;
 - then the paper's photometric augmentations (`train.augment`, in numpy: noise, blur, motion blur, speckle,
-  darkness, shadows and spotlights).
+  darkness, shadows and spotlights);
+- ``inverted_p`` of the frames are a board file's ``inverted: true`` print (white squares and markers on black
+  paper) as the detector sees it: drawn so, lit and augmented as any frame, then the whole frame inverted (the
+  detector's canonical view, `print_face.canonical_view`): the board reads as a normal print in a negative scene,
+  and a dark frame becomes a bright, washed-out one.
 
 The lens: a drawn pixel p is the ideal (pinhole) pixel ``c + f x (1 + k |x|^2)`` with ``x = (p - c) / f``
 (k > 0: barrel, k < 0: pincushion), so the image is sampled without inverting anything; a corner's label is
@@ -62,6 +66,7 @@ class DrawConfig:
     lens_k: tuple[float, float] = (-0.12, 0.25)
     negative_p: float = 0.1  # share of frames without a board
     photo_p: float = 0.6  # share of backgrounds that are photographs (the rest smooth noise)
+    inverted_p: float = 0.0  # share of frames of an inverted print, inverted whole (module docstring)
     augmentation: AugmentConfig = AugmentConfig(homography_p=0.0)  # photometric only: the pose is drawn here
 
 
@@ -70,13 +75,14 @@ class Frames:
     """A drawn batch. ``image`` (B, 1, H, W) float32 in [0, 1] on the drawer's device; ``corners`` (B, C, 2)
     float64 pixels (NaN where the board is behind the camera or absent); ``visible`` (B, C) bool (inside the
     frame); ``board`` (B,) index into the drawer's boards (-1: no board); ``params``: the geometry of each frame,
-    for `FrameDrawer.texture_points`."""
+    for `FrameDrawer.texture_points`; ``inverted`` (B,) bool: an inverted print, the frame inverted whole."""
 
     image: torch.Tensor
     corners: np.ndarray
     visible: np.ndarray
     board: np.ndarray
     params: list[dict]
+    inverted: np.ndarray | None = None
 
 
 def load_photos() -> np.ndarray:
@@ -291,6 +297,8 @@ class FrameDrawer:
         boards = np.where(has_board, rng.integers(len(self.boards), size=count), -1)
         params = [self._geometry(rng, size, int(b)) for b in boards]
         background = self._backgrounds(rng, count, size)
+        # Drawn only when asked for: frames of runs without inverted prints stay those of their seed.
+        inverted = rng.random(count) < self.config.inverted_p if self.config.inverted_p > 0 else np.zeros(count, bool)
         fine = self._fine_pixels(size)
         pixels = F.avg_pool2d(fine.permute(2, 0, 1)[None], s)[0].permute(1, 2, 0)  # the frame's own pixel centres
         num_corners = max(b.num_corners for b in self.boards)
@@ -304,7 +312,8 @@ class FrameDrawer:
                 ink, paper = rng.uniform(0.0, 0.3), rng.uniform(0.55, 1.0)
                 gradient = rng.normal(0, 0.4, 2) / max(width, height)
                 light = 1 + gradient[0] * (pixels[..., 0] - width / 2) + gradient[1] * (pixels[..., 1] - height / 2)
-                board = (ink + (paper - ink) * printed[j]) * light.clamp(0.3, 1.7)
+                shade = 1 - printed[j] if inverted[i] else printed[j]  # an inverted print: white on black paper
+                board = (ink + (paper - ink) * shade) * light.clamp(0.3, 1.7)
                 image[i] = coverage[j] * board + (1 - coverage[j]) * background[i]
                 c, v = self.labels(params[i], size)
                 corners[i, :len(c)], visible[i, :len(v)] = c, v
@@ -314,4 +323,7 @@ class FrameDrawer:
             for i in range(count):
                 host[i, 0], _, _ = augment(host[i, 0], corners[i], visible[i], False, rng, self.config.augmentation)
             image = torch.from_numpy(host).to(self.device)
-        return Frames(image.contiguous(), corners, visible, boards, params)
+        if inverted.any():  # the detector's canonical view of an inverted print: the whole frame inverted
+            flip = torch.as_tensor(inverted, device=self.device)[:, None, None, None]
+            image = torch.where(flip, 1 - image, image)
+        return Frames(image.contiguous(), corners, visible, boards, params, inverted)

@@ -52,7 +52,7 @@ def choose_threshold_drawn(charuconet: str | Path, frames: int = 192, size: str 
     settings = checkpoint.get("training", {}).get("settings", {})
     boards = run_boards(charuconet)
     frame_size = parse_size(size or settings.get("val_size", "320x240"), "--threshold-size")
-    drawer = FrameDrawer(boards, DrawConfig(size=frame_size))
+    drawer = FrameDrawer(boards, DrawConfig(size=frame_size, inverted_p=float(settings.get("inverted_p", 0.0))))
     detectors = [Detector(board=board, weights=charuconet, refine="none", geometry=geometry) for board in boards]
     balance = dict.fromkeys(MARKER_THRESHOLDS, 0)
     with tqdm(total=frames, desc="threshold (drawn frames)", unit="frame", leave=False) as progress:

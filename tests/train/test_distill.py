@@ -132,6 +132,55 @@ def test_a_missing_teacher_is_one_line_and_writes_nothing(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_inverted_prints_are_drawn_as_the_detector_sees_them():
+    # A board file's inverted print (white on black paper), drawn, then the frame inverted whole (the detector's
+    # canonical view): OpenCV reads the board there as a normal print, and not in the frame as the camera saw it.
+    config = DrawConfig(size=(320, 240), lens_p=0.0, negative_p=0.0, square_px=(12.0, 16.0), max_tilt_deg=20.0,
+                        inverted_p=1.0)
+    frames = FrameDrawer([PAPER_BOARD], config).draw(np.random.default_rng(7), 8, augment_frames=False)
+    assert frames.inverted.all()
+    detector = cv2.aruco.CharucoDetector(PAPER_BOARD.cv_board())
+    whole = np.flatnonzero(frames.visible.sum(axis=1) == PAPER_BOARD.num_corners)  # the board wholly in the frame
+    assert len(whole) >= 2
+    for k in range(8):
+        canonical = np.rint(frames.image[k, 0].numpy() * 255).astype(np.uint8)
+        corners, ids, _, _ = detector.detectBoard(canonical)
+        if k in whole:
+            assert ids is not None and len(ids) >= 8
+            # OpenCV 4.11's CharucoDetector is shifted ~0.5 px (its issue 25539)
+            assert np.abs(corners.reshape(-1, 2) - frames.corners[k][ids.ravel()]).max() < 1.5
+        assert detector.detectBoard(255 - canonical)[1] is None  # as captured: an inverted print
+    plain = FrameDrawer([PAPER_BOARD], DrawConfig(size=(64, 48))).draw(np.random.default_rng(7), 2)
+    assert not plain.inverted.any()
+
+
+def test_a_run_begun_before_inverted_prints_resumes_without_them(tmp_path, capsys):
+    distill.run(tiny_args(tmp_path / "run", "--inverted-p", "0"))
+    resumed = distill.parse_args(["--out", str(tmp_path / "run"), "--resume", "--quiet", "--steps", "7", "--size",
+                                  "64x48", "--val-size", "64x48", "--batch-size", "3", "--warmup", "2", "--val-batches",
+                                  "1", "--val-every", "3", "--threads", "1", "--device", "cpu"])
+    assert resumed.inverted_p is None and distill.run(resumed)["step"] == 7 and resumed.inverted_p == 0.0
+    code = distill.main(["--out", str(tmp_path / "run"), "--resume", "--quiet", "--steps", "8", "--size", "64x48",
+                         "--val-size", "64x48", "--batch-size", "3", "--warmup", "2", "--val-batches", "1",
+                         "--val-every", "3", "--threads", "1", "--device", "cpu", "--inverted-p", "0.2"])
+    assert code == 2 and "--inverted-p" in capsys.readouterr().err
+    assert distill.parse_args(["--out", str(tmp_path / "new")]).inverted_p is None  # a new run: INVERTED_P
+
+
+def test_init_starts_a_run_from_a_students_weights(tmp_path, capsys):
+    distill.run(tiny_args(tmp_path / "first"))
+    saved = read_checkpoint(tmp_path / "first" / "last.pt", "charuconet")["state_dict"]
+    student = ChArUcoNet(distill.named_config("fast", PAPER_BOARD.num_corners))
+    distill.warm_start(student, str(tmp_path / "first" / "last.pt"), "fast")
+    assert all(torch.equal(student.state_dict()[name], value) for name, value in saved.items())
+    result = distill.run(tiny_args(tmp_path / "second", "--init", str(tmp_path / "first" / "last.pt")))
+    assert result["step"] == 6  # its own schedule, from step 0
+    code = distill.main(["--out", str(tmp_path / "third"), "--arch", "lite", "--init", str(tmp_path / "first" / "last.pt"),
+                         "--steps", "2", "--quiet", "--size", "64x48", "--val-size", "64x48", "--batch-size", "2"])
+    error = capsys.readouterr().err
+    assert code == 2 and "--init" in error and "--arch lite" in error and not (tmp_path / "third" / "last.pt").exists()
+
+
 def test_resume_refuses_other_settings(tmp_path, capsys):
     distill.run(tiny_args(tmp_path / "run"))
     code = distill.main(["--out", str(tmp_path / "run"), "--resume", "--quiet", "--steps", "8", "--size", "64x48",
