@@ -112,7 +112,9 @@ class FrameDrawer:
             margin = 0.5 * board.square_length
             textures = [board.render_texture(px_per_m / 2**k, margin) for k in range(LEVELS)]
             self.textures.append(textures)
-            self.levels.append([torch.from_numpy(t.image.astype(np.float32) / 255.0)[None, None].to(self.device)
+            # each level with a channel of ones: one grid_sample gives the print and its coverage
+            self.levels.append([torch.from_numpy(np.stack([t.image.astype(np.float32) / 255.0,
+                                                           np.ones(t.image.shape, np.float32)]))[None].to(self.device)
                                 for t in textures])
         self.photos = torch.from_numpy(load_photos())[:, None].to(self.device)
 
@@ -227,20 +229,18 @@ class FrameDrawer:
         uvw = F.interpolate(uvw, size=(fine_h, fine_w), mode="bilinear", align_corners=True).permute(0, 2, 3, 1)
         in_front = uvw[..., 2:] > 0
         uv = uvw[..., :2] / uvw[..., 2:].clamp_min(1e-12)
-        printed, coverage = [], []
-        for i, p in enumerate(params):
-            # The mip level whose texels are about one fine pixel at the board's centre.
-            texels_per_fine_px = TEXELS_PER_SQUARE / (p["square_px"] * s)
-            level = int(np.clip(math.floor(math.log2(max(texels_per_fine_px, 1.0))), 0, LEVELS - 1))
-            texture = self.levels[p["board"]][level]
-            height, width = texture.shape[-2:]
-            at = (uv[i] + 0.5) / 2**level - 0.5  # level-k texels: area-exact halvings of level 0
-            grid = torch.stack([(2 * at[..., 0] + 1) / width - 1, (2 * at[..., 1] + 1) / height - 1], dim=-1)
-            grid = torch.where(in_front[i], grid, torch.full_like(grid, -4.0))[None]
-            printed.append(F.grid_sample(texture, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0])
-            coverage.append(F.grid_sample(torch.ones_like(texture), grid, mode="bilinear", padding_mode="zeros",
-                                          align_corners=False)[0, 0])
-        printed, coverage = torch.stack(printed), torch.stack(coverage)
+        # The mip level whose texels are about one fine pixel at each board's centre.
+        levels = [int(np.clip(math.floor(math.log2(max(TEXELS_PER_SQUARE / (p["square_px"] * s), 1.0))), 0, LEVELS - 1))
+                  for p in params]
+        textures = [self.levels[p["board"]][level] for p, level in zip(params, levels)]  # (1, 2, h, w): print, ones
+        per_frame = lambda values: tensor(values)[:, None, None]  # noqa: E731
+        at = (uv + 0.5) / per_frame([2**level for level in levels])[..., None] - 0.5  # level-k texels: area-exact halvings
+        grid = torch.stack([(2 * at[..., 0] + 1) / per_frame([t.shape[-1] for t in textures]) - 1,
+                            (2 * at[..., 1] + 1) / per_frame([t.shape[-2] for t in textures]) - 1], dim=-1)
+        grid = torch.where(in_front, grid, torch.full_like(grid, -4.0))
+        sampled = torch.cat([F.grid_sample(texture, grid[i:i + 1], mode="bilinear", padding_mode="zeros",
+                                           align_corners=False) for i, texture in enumerate(textures)])
+        printed, coverage = sampled[:, 0], sampled[:, 1]
         pooled = F.avg_pool2d(torch.stack([printed * coverage, coverage], dim=1), s)
         return pooled[:, 0] / pooled[:, 1].clamp_min(1e-6), pooled[:, 1]
 
