@@ -16,7 +16,7 @@ steps 5-6 in `bundle`):
    spanning tree), so a camera that never shares a view with camera 0 is reached through the others; a camera
    that shares fewer than `MIN_SHARED_VIEWS` instants with all the others is refused, saying what to capture;
 4. each (instant, board)'s pose in the rig's frame (camera 0's) from the view of it with the most corners;
-5. `bundle_adjust`: ``scipy.optimize.least_squares`` (trust region, sparse finite-difference Jacobian, Huber loss
+5. `bundle_adjust`: ``scipy.optimize.least_squares`` (trust region, sparse Jacobian in closed form (`rig_jacobian`; finite differences with a fisheye camera), Huber loss
    of scale `HUBER_PX`) over every camera's free intrinsics (fx fy cx cy and its distortion terms), every camera's
    pose but camera 0's, and every (instant, board)'s pose, minimising the corners' reprojection error in every
    view (each corner weighed by its detector's covariance and its view's excess where the views carry covariances:
