@@ -336,3 +336,14 @@ def test_code_words_count_the_bits_that_differ(dictionary):
                                      ^ verification.dictionary_words(dictionary)[None, :])
     assert np.array_equal(counted, np.sum(reads[:, None, :] != codes[None, :, :], axis=2))
     assert counted[:3].min(axis=1).tolist() == [0, 0, 0] and counted[3, 1] == codes.shape[1]
+
+
+def test_dictionary_codes_are_opencvs_bits_in_every_quarter_turn():
+    # Unpacked for all markers at once: OpenCV's own bits (getBitsFromByteList) of each marker, turned as np.rot90 turns.
+    for name in ("DICT_4X4_50", "DICT_5X5_100", "DICT_6X6_250", "DICT_7X7_50", "DICT_ARUCO_ORIGINAL",
+                 "DICT_APRILTAG_36h11"):
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+        size = dictionary.markerSize
+        expected = [np.rot90(cv2.aruco.Dictionary.getBitsFromByteList(dictionary.bytesList[i:i + 1], size) > 0, turn)
+                    for i in range(len(dictionary.bytesList)) for turn in range(4)]
+        assert np.array_equal(verification.dictionary_codes(name), np.reshape(expected, (len(expected), -1))), name
