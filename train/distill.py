@@ -61,14 +61,19 @@ from deepcharuco.networks.checkpoint import (CheckpointError, id_head_trained, l
 from deepcharuco.networks.onnx_runner import _session
 from deepcharuco.networks.runtime import float_onnx
 from train.charuconet import POINT_CONFIDENCE, match_points
+from train.augment import AugmentConfig
 from train.draw import DrawConfig, FrameDrawer
 from train.loop import _Stop, truncate_log
 
 # Options --resume may change: they do not decide what the run computes.
 RESUME_MAY_CHANGE = ("resume", "out", "steps", "quiet", "device", "threads", "checkpoint_minutes", "log_every")
-# Options added since runs began, and the value a run that began before had (what it computed then).
-ADDED_SINCE = {"inverted_p": 0.0}
-INVERTED_P = 0.2  # a new run's share of inverted prints (the family renders' `datagen.family` inverted_p)
+# Options added since runs began: the value a run that began before had (what it computed then), and a new run's.
+ADDED_SINCE = {"inverted_p": 0.0, "bits": 0, "min_brightness": 0.02}
+NEW_RUN = {
+    "inverted_p": 0.2,  # the family renders' share of inverted prints (`datagen.family`)
+    "bits": 8,  # frames of a camera's grey levels
+    "min_brightness": 0.005,  # the darkest frames at ~0.6^10 of the light: the paper's darkness k = 10
+}
 METRICS = ("score", "f1", "recall", "precision", "recall_vs_teacher", "precision_vs_teacher", "corner_accuracy",
            "teacher_f1")
 
@@ -128,8 +133,7 @@ class Distiller:
         boards = [stored] if teacher_ids else family_boards(args.family, args.boards, args.seed)
         self.size = parse_size(args.size, "--size")
         self.val_size = parse_size(args.val_size, "--val-size")
-        inverted_p = INVERTED_P if args.inverted_p is None else args.inverted_p
-        self.drawer = FrameDrawer(boards, DrawConfig(size=self.size, inverted_p=inverted_p), device)
+        self.drawer = FrameDrawer(boards, draw_config(args, self.size), device)
         torch.manual_seed(args.seed)
         self.student = ChArUcoNet(named_config(args.arch, stored.num_corners)).to(device)
         self.id_weights = torch.full((stored.num_corners + 1,), float(args.id_positive_weight), device=device)
@@ -220,6 +224,16 @@ class Distiller:
         return metrics
 
 
+def draw_config(settings, size: tuple[int, int]) -> DrawConfig:
+    """The `DrawConfig` of a run's ``settings`` (parsed arguments, or a checkpoint's settings dict), frames of ``size``:
+    options it does not give take a new run's values (`NEW_RUN`) where parsed, a run's of before where stored."""
+    stored = isinstance(settings, dict)
+    get = (lambda name: settings.get(name, ADDED_SINCE[name])) if stored else \
+        (lambda name: NEW_RUN[name] if getattr(settings, name) is None else getattr(settings, name))
+    return DrawConfig(size=size, inverted_p=float(get("inverted_p")), bits=int(get("bits")),
+                      augmentation=AugmentConfig(homography_p=0.0, min_brightness=float(get("min_brightness"))))
+
+
 def warm_start(student: ChArUcoNet, path: str, arch: str) -> None:
     """``student``'s weights from the student checkpoint ``path`` (a `train.distill` run's) of the same ``arch``; its
     optimizer state and step are not taken: the run's schedule starts at step 0."""
@@ -264,8 +278,9 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
             raise DeepCharucoError(f"--resume: no {last_path} to resume from (start without --resume)")
         saved = torch.load(last_path, map_location="cpu", weights_only=True)
         before = saved["training"]["settings"]
-        if args.inverted_p is None:  # not given: the run's own
-            args.inverted_p = before.get("inverted_p", ADDED_SINCE["inverted_p"])
+        for name in NEW_RUN:  # not given: the run's own
+            if getattr(args, name) is None:
+                setattr(args, name, before.get(name, ADDED_SINCE[name]))
         defaults = parser()  # an option added since the run started: the run had its default
         differs = [name for name, value in settings(args).items() if name not in RESUME_MAY_CHANGE
                    and before.get(name, ADDED_SINCE.get(name, defaults.get_default(name))) != value]
@@ -275,8 +290,9 @@ def run(args: argparse.Namespace, stop_at: int | None = None) -> dict:
                                    "resume with its settings")
     elif last_path.exists():
         raise DeepCharucoError(f"{out} already holds a run (last.pt): pass --resume to continue it or choose another --out")
-    if args.inverted_p is None:
-        args.inverted_p = INVERTED_P
+    for name, value in NEW_RUN.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     try:
         read_checkpoint(args.teacher, "charuconet")
     except CheckpointError as error:
@@ -387,6 +403,12 @@ def parser() -> argparse.ArgumentParser:
                    help="share of frames of an inverted print (a board file's inverted: true), seen as the detector "
                         "sees it: the frame inverted whole, a dark frame a washed-out bright one (default: 0.2, as the "
                         "family renders; --resume: the run's own, 0 for runs begun before this option)")
+    p.add_argument("--bits", type=int, default=None,
+                   help="frames rounded to this many bits, as a camera's (0: not rounded; default: 8; --resume: the "
+                        "run's own, 0 for runs begun before this option)")
+    p.add_argument("--min-brightness", type=float, default=None,
+                   help="the darkest frames' share of the light (default: 0.005, the paper's darkness k = 10; "
+                        "--resume: the run's own, 0.02 for runs begun before this option)")
     p.add_argument("--seed", type=int, default=0, help="seeds the student's initial weights and every training frame")
     p.add_argument("--init", default="",
                    help="start from this student's weights (a train.distill checkpoint of the same --arch), e.g. to "
@@ -416,6 +438,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                  if getattr(args, name) < 0]
     if args.inverted_p is not None and not 0 <= args.inverted_p <= 1:
         problems.append("--inverted-p must be within 0 and 1")
+    if args.bits is not None and not 0 <= args.bits <= 16:
+        problems.append("--bits must be within 0 (not rounded) and 16")
+    if args.min_brightness is not None and not 0 < args.min_brightness <= 1:
+        problems.append("--min-brightness must be within 0 (exclusive) and 1")
     for option in ("size", "val_size"):
         try:
             parse_size(getattr(args, option), "--" + option.replace("_", "-"))

@@ -17,7 +17,10 @@ A frame (``size`` = (W, H) pixels, pixel centres at integers as everywhere in th
 - ``inverted_p`` of the frames are a board file's ``inverted: true`` print (white squares and markers on black
   paper) as the detector sees it: drawn so, lit and augmented as any frame, then the whole frame inverted (the
   detector's canonical view, `print_face.canonical_view`): the board reads as a normal print in a negative scene,
-  and a dark frame becomes a bright, washed-out one.
+  and a dark frame becomes a bright, washed-out one;
+- with ``bits`` (8), every frame rounded to 2^bits - 1 grey levels as a camera's frame is, before any inversion: in
+  the dark a white paper is then a few grey levels (the paper's darkness k = 9 leaves 3 of 255), as the detector
+  meets it.
 
 The lens: a drawn pixel p is the ideal (pinhole) pixel ``c + f x (1 + k |x|^2)`` with ``x = (p - c) / f``
 (k > 0: barrel, k < 0: pincushion), so the image is sampled without inverting anything; a corner's label is
@@ -67,6 +70,7 @@ class DrawConfig:
     negative_p: float = 0.1  # share of frames without a board
     photo_p: float = 0.6  # share of backgrounds that are photographs (the rest smooth noise)
     inverted_p: float = 0.0  # share of frames of an inverted print, inverted whole (module docstring)
+    bits: int = 0  # frames rounded to this many bits, as a camera's (0: not rounded)
     augmentation: AugmentConfig = AugmentConfig(homography_p=0.0)  # photometric only: the pose is drawn here
 
 
@@ -323,6 +327,9 @@ class FrameDrawer:
             for i in range(count):
                 host[i, 0], _, _ = augment(host[i, 0], corners[i], visible[i], False, rng, self.config.augmentation)
             image = torch.from_numpy(host).to(self.device)
+        if self.config.bits:  # a camera's grey levels
+            levels = float(2 ** self.config.bits - 1)
+            image = torch.round(image * levels) / levels
         if inverted.any():  # the detector's canonical view of an inverted print: the whole frame inverted
             flip = torch.as_tensor(inverted, device=self.device)[:, None, None, None]
             image = torch.where(flip, 1 - image, image)

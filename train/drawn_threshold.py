@@ -23,8 +23,8 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.networks.checkpoint import read_checkpoint
-from train.distill import family_boards, parse_size
-from train.draw import DrawConfig, FrameDrawer
+from train.distill import draw_config, family_boards, parse_size
+from train.draw import FrameDrawer
 from train.thresholds import MARKER_THRESHOLDS, best_threshold, tally_detections
 
 DRAWN_SEED = 2000  # distinct from a run's training seed (0) and validation seed (1000): frames neither saw
@@ -52,7 +52,7 @@ def choose_threshold_drawn(charuconet: str | Path, frames: int = 192, size: str 
     settings = checkpoint.get("training", {}).get("settings", {})
     boards = run_boards(charuconet)
     frame_size = parse_size(size or settings.get("val_size", "320x240"), "--threshold-size")
-    drawer = FrameDrawer(boards, DrawConfig(size=frame_size, inverted_p=float(settings.get("inverted_p", 0.0))))
+    drawer = FrameDrawer(boards, draw_config(settings, frame_size))
     detectors = [Detector(board=board, weights=charuconet, refine="none", geometry=geometry) for board in boards]
     balance = dict.fromkeys(MARKER_THRESHOLDS, 0)
     with tqdm(total=frames, desc="threshold (drawn frames)", unit="frame", leave=False) as progress:

@@ -154,17 +154,35 @@ def test_inverted_prints_are_drawn_as_the_detector_sees_them():
     assert not plain.inverted.any()
 
 
-def test_a_run_begun_before_inverted_prints_resumes_without_them(tmp_path, capsys):
-    distill.run(tiny_args(tmp_path / "run", "--inverted-p", "0"))
-    resumed = distill.parse_args(["--out", str(tmp_path / "run"), "--resume", "--quiet", "--steps", "7", "--size",
-                                  "64x48", "--val-size", "64x48", "--batch-size", "3", "--warmup", "2", "--val-batches",
-                                  "1", "--val-every", "3", "--threads", "1", "--device", "cpu"])
-    assert resumed.inverted_p is None and distill.run(resumed)["step"] == 7 and resumed.inverted_p == 0.0
-    code = distill.main(["--out", str(tmp_path / "run"), "--resume", "--quiet", "--steps", "8", "--size", "64x48",
-                         "--val-size", "64x48", "--batch-size", "3", "--warmup", "2", "--val-batches", "1",
-                         "--val-every", "3", "--threads", "1", "--device", "cpu", "--inverted-p", "0.2"])
-    assert code == 2 and "--inverted-p" in capsys.readouterr().err
-    assert distill.parse_args(["--out", str(tmp_path / "new")]).inverted_p is None  # a new run: INVERTED_P
+def test_a_run_begun_before_the_newer_frames_resumes_with_its_own(tmp_path, capsys):
+    # A run whose checkpoint predates --inverted-p, --bits and --min-brightness drew plain, unrounded frames down to
+    # 0.02 of the light: --resume keeps drawing those; asking for others is refused; a new run gets the newer frames.
+    distill.run(tiny_args(tmp_path / "run"))
+    saved = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    for name in ("inverted_p", "bits", "min_brightness"):
+        del saved["training"]["settings"][name]
+    torch.save(saved, tmp_path / "run" / "last.pt")
+    common = ["--out", str(tmp_path / "run"), "--resume", "--quiet", "--size", "64x48", "--val-size", "64x48",
+              "--batch-size", "3", "--warmup", "2", "--val-batches", "1", "--val-every", "3", "--threads", "1",
+              "--device", "cpu"]
+    resumed = distill.parse_args([*common, "--steps", "7"])
+    assert distill.run(resumed)["step"] == 7
+    assert (resumed.inverted_p, resumed.bits, resumed.min_brightness) == (0.0, 0, 0.02)
+    assert distill.draw_config(resumed, (64, 48)).augmentation.min_brightness == 0.02
+    for option in (["--inverted-p", "0.2"], ["--bits", "8"], ["--min-brightness", "0.005"]):
+        assert distill.main([*common, "--steps", "8", *option]) == 2 and option[0] in capsys.readouterr().err
+    new = distill.parse_args(["--out", str(tmp_path / "new")])
+    config = distill.draw_config(new, (64, 48))
+    assert (config.inverted_p, config.bits, config.augmentation.min_brightness) == (0.2, 8, 0.005)
+
+
+def test_frames_are_rounded_to_a_cameras_grey_levels():
+    frames = FrameDrawer([PAPER_BOARD], DrawConfig(size=(64, 48), bits=8, inverted_p=0.5)).draw(
+        np.random.default_rng(3), 6)
+    levels = frames.image.numpy() * 255
+    assert np.abs(levels - np.round(levels)).max() < 1e-4 and frames.inverted.any()
+    plain = FrameDrawer([PAPER_BOARD], DrawConfig(size=(64, 48))).draw(np.random.default_rng(3), 6).image.numpy() * 255
+    assert np.abs(plain - np.round(plain)).max() > 0.1  # unrounded without bits
 
 
 def test_init_starts_a_run_from_a_students_weights(tmp_path, capsys):
