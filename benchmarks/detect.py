@@ -36,7 +36,6 @@ from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.cli.detect import CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY
 from deepcharuco.core.stage_times import StageTimes, stage
 from deepcharuco.detection.deep_detector import Detector
-from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.tracking import BoardTracker
 from evaluate.paper.protocols import TestFrame, darken, score_corners, time_pipelines
 from evaluate.paper.unseen_boards import UNSEEN_BOARDS
@@ -153,7 +152,8 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
     every frame searched while no board is tracked, tracked as ``deepcharuco detect`` tracks a video (every level
     every `VIDEO_SEARCH_EVERY`-th frame while no board is tracked, looking back: `BoardTracker.push`) and as it
     tracks a camera (every `CAMERA_SEARCH_EVERY`-th frame, no looking back), and the hybrid detector tracked as a
-    video."""
+    video. The detectors take the frames in turn (each frame by every detector, then the next), so that load on the
+    machine hits all alike."""
     videos = sorted(realdata.glob("*/*.mp4"))
     if not videos:
         print(f"\nno real videos under {realdata}: pass --realdata")
@@ -177,15 +177,26 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
         frames = video_frames(path)
         for label, clip in ((path.parent.name + "/" + path.name, frames),
                             (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):
-            cells = []
-            for name in names:
-                detector = runs[name]
+            for detector in runs.values():
                 if isinstance(detector, BoardTracker):
                     detector.reset()
-                started = time.perf_counter()
-                detections = detect_all(detector, clip)  # a tracker as a video or a camera: `push`, looking back or not
-                found = sum(len(detection) >= 4 for detection in detections)
-                cells.append(f"{len(clip) / (time.perf_counter() - started):6.1f} ({found:3d}/{len(clip)})")
+            # Frame by frame, each detector in turn (load on the machine hits all alike); a tracker as a video or a
+            # camera: `push`, looking back or not, its held frames flushed at the end.
+            seconds, detections = dict.fromkeys(names, 0.0), {name: [] for name in names}
+            for frame in [*clip, None]:
+                for name in names:
+                    detector = runs[name]
+                    started = time.perf_counter()
+                    if frame is None:
+                        settled = detector.flush() if hasattr(detector, "flush") else []
+                    elif hasattr(detector, "push"):
+                        settled = detector.push(frame)
+                    else:
+                        settled = [detector.detect(frame)]
+                    seconds[name] += time.perf_counter() - started
+                    detections[name] += settled
+            cells = [f"{len(clip) / seconds[name]:6.1f} ({sum(len(d) >= 4 for d in detections[name]):3d}/{len(clip)})"
+                     for name in names]
             print_row(label, cells, 20)
 
 
