@@ -36,6 +36,7 @@ from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.cli.detect import CAMERA_SEARCH_EVERY, VIDEO_SEARCH_EVERY
 from deepcharuco.core.stage_times import StageTimes, stage
 from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.parallel import flushed, settled
 from deepcharuco.detection.tracking import BoardTracker
 from evaluate.paper.protocols import TestFrame, darken, score_corners, time_pipelines
 from evaluate.paper.unseen_boards import UNSEEN_BOARDS
@@ -187,14 +188,9 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
                 for name in names:
                     detector = runs[name]
                     started = time.perf_counter()
-                    if frame is None:
-                        settled = detector.flush() if hasattr(detector, "flush") else []
-                    elif hasattr(detector, "push"):
-                        settled = detector.push(frame)
-                    else:
-                        settled = [detector.detect(frame)]
+                    done = flushed(detector) if frame is None else settled(detector, frame)
                     seconds[name] += time.perf_counter() - started
-                    detections[name] += settled
+                    detections[name] += done
             cells = [f"{len(clip) / seconds[name]:6.1f} ({sum(len(d) >= 4 for d in detections[name]):3d}/{len(clip)})"
                      for name in names]
             print_row(label, cells, 20)

@@ -14,16 +14,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
 
-from deepcharuco.calibration.rig_model import rotations_from_vectors
+from deepcharuco.calibration.rig_model import cross_matrices, rotations_from_vectors
 
 SMALL_ANGLE = 1e-8  # below this rotation angle (rad) dR/dw is the cross-product matrix of the axis (its limit at 0)
-
-
-def _cross_matrices(v: np.ndarray) -> np.ndarray:
-    """(K, 3) vectors -> (K, 3, 3) their cross-product matrices [v]x."""
-    x, y, z = v[:, 0], v[:, 1], v[:, 2]
-    zero = np.zeros_like(x)
-    return np.stack([np.stack([zero, -z, y], 1), np.stack([z, zero, -x], 1), np.stack([-y, x, zero], 1)], 1)
 
 
 def rotation_derivatives(rvecs: np.ndarray) -> np.ndarray:
@@ -35,13 +28,13 @@ def rotation_derivatives(rvecs: np.ndarray) -> np.ndarray:
     squared = np.einsum("ki,ki->k", v, v)
     out = np.empty((len(v), 3, 3, 3))
     identity = np.eye(3)
-    vx = _cross_matrices(v)
+    vx = cross_matrices(v)
     small = squared < SMALL_ANGLE ** 2
     for i in range(3):
         column = np.einsum("kab,b->ka", identity - R, identity[i])  # (I - R) e_i
-        inner = v[:, i, None, None] * vx + _cross_matrices(np.cross(v, column))
+        inner = v[:, i, None, None] * vx + cross_matrices(np.cross(v, column))
         out[:, i] = inner @ R / np.where(small, 1.0, squared)[:, None, None]
-        out[small, i] = _cross_matrices(identity[i][None])[0]
+        out[small, i] = cross_matrices(identity[i][None])[0]
     return out
 
 

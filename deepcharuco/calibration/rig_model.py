@@ -159,15 +159,20 @@ class RigResult:
 
 
 # ----------------------------------------------------------------------------------------- geometry
+def cross_matrices(v: np.ndarray) -> np.ndarray:
+    """(K, 3) vectors -> (K, 3, 3) their cross-product matrices [v]x."""
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], 1), np.stack([z, zero, -x], 1), np.stack([-y, x, zero], 1)], 1)
+
+
 def rotations_from_vectors(rvecs: np.ndarray) -> np.ndarray:
     """(K, 3, 3) rotation matrices of the (K, 3) rotation vectors (Rodrigues' formula, exact near 0)."""
     rvecs = np.asarray(rvecs, np.float64).reshape(-1, 3)
     theta = np.linalg.norm(rvecs, axis=1)
     small = theta < 1e-12
     axis = rvecs / np.where(small, 1.0, theta)[:, None]
-    x, y, z = axis.T
-    zero = np.zeros_like(x)
-    cross = np.stack([np.stack([zero, -z, y], 1), np.stack([z, zero, -x], 1), np.stack([-y, x, zero], 1)], 1)
+    cross = cross_matrices(axis)
     sin, cos = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
     outer = axis[:, :, None] * axis[:, None, :]
     rotation = cos * np.eye(3) + sin * cross + (1 - cos) * outer

@@ -77,16 +77,17 @@ def _continue_chunk(frames: list[np.ndarray], before: list[Detection]) -> list[l
 def detect_all(finder, frames: Iterable[np.ndarray]) -> list[Detection]:
     """``finder``'s detection of each of ``frames``, in order, as a whole video is detected: a tracker's `push`
     (every frame it holds back flushed at the end), another finder's ``detect``."""
-    return [*(d for frame in frames for d in _settled(finder, frame)), *_flushed(finder)]
+    return [*(d for frame in frames for d in settled(finder, frame)), *flushed(finder)]
 
 
-def _settled(finder, image: np.ndarray) -> list[Detection]:
+def settled(finder, image: np.ndarray) -> list[Detection]:
     """The detections ``image`` settles: a tracker's `push` (it may hold frames back to look back through them), or
     the finder's detection of it."""
     return finder.push(image) if hasattr(finder, "push") else [finder.detect(image)]
 
 
-def _flushed(finder) -> list[Detection]:
+def flushed(finder) -> list[Detection]:
+    """The detections a tracker still holds back (the video has ended); none for another finder."""
     return finder.flush() if hasattr(finder, "flush") else []
 
 
@@ -162,17 +163,17 @@ class DetectorPool:
         """`detect` in this process: a frame is answered once every finder has settled it (a tracker looking back
         holds a few frames)."""
         keys: deque[Any] = deque()
-        settled: list[deque[Detection]] = [deque() for _ in self._local]
+        pending: list[deque[Detection]] = [deque() for _ in self._local]
         for key, image in items:
             keys.append(key)
-            for finder, done in zip(self._local, settled):
-                done.extend(_settled(finder, image))
-            while keys and all(settled):
-                yield keys.popleft(), [done.popleft() for done in settled]
-        for finder, done in zip(self._local, settled):
-            done.extend(_flushed(finder))
+            for finder, done in zip(self._local, pending):
+                done.extend(settled(finder, image))
+            while keys and all(pending):
+                yield keys.popleft(), [done.popleft() for done in pending]
+        for finder, done in zip(self._local, pending):
+            done.extend(flushed(finder))
         while keys:
-            yield keys.popleft(), [done.popleft() for done in settled]
+            yield keys.popleft(), [done.popleft() for done in pending]
 
     def close(self) -> None:
         if self._executor is not None:
