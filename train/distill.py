@@ -68,11 +68,12 @@ from train.loop import _Stop, truncate_log
 # Options --resume may change: they do not decide what the run computes.
 RESUME_MAY_CHANGE = ("resume", "out", "steps", "quiet", "device", "threads", "checkpoint_minutes", "log_every")
 # Options added since runs began: the value a run that began before had (what it computed then), and a new run's.
-ADDED_SINCE = {"inverted_p": 0.0, "bits": 0, "min_brightness": 0.02}
+ADDED_SINCE = {"inverted_p": 0.0, "bits": 0, "min_brightness": 0.02, "max_tilt": 55.0}
 NEW_RUN = {
     "inverted_p": 0.2,  # the family renders' share of inverted prints (`datagen.family`)
     "bits": 8,  # frames of a camera's grey levels
     "min_brightness": 0.005,  # the darkest frames at ~0.6^10 of the light: the paper's darkness k = 10
+    "max_tilt": 55.0,  # degrees about each of the board's axes
 }
 METRICS = ("score", "f1", "recall", "precision", "recall_vs_teacher", "precision_vs_teacher", "corner_accuracy",
            "teacher_f1")
@@ -231,6 +232,7 @@ def draw_config(settings, size: tuple[int, int]) -> DrawConfig:
     get = (lambda name: settings.get(name, ADDED_SINCE[name])) if stored else \
         (lambda name: NEW_RUN[name] if getattr(settings, name) is None else getattr(settings, name))
     return DrawConfig(size=size, inverted_p=float(get("inverted_p")), bits=int(get("bits")),
+                      max_tilt_deg=float(get("max_tilt")),
                       augmentation=AugmentConfig(homography_p=0.0, min_brightness=float(get("min_brightness"))))
 
 
@@ -409,6 +411,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--min-brightness", type=float, default=None,
                    help="the darkest frames' share of the light (default: 0.005, the paper's darkness k = 10; "
                         "--resume: the run's own, 0.02 for runs begun before this option)")
+    p.add_argument("--max-tilt", type=float, default=None,
+                   help="the board's largest tilt about each of its axes, degrees (default: 55; --resume: the run's "
+                        "own, 55 for runs begun before this option)")
     p.add_argument("--seed", type=int, default=0, help="seeds the student's initial weights and every training frame")
     p.add_argument("--init", default="",
                    help="start from this student's weights (a train.distill checkpoint of the same --arch), e.g. to "
@@ -442,6 +447,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         problems.append("--bits must be within 0 (not rounded) and 16")
     if args.min_brightness is not None and not 0 < args.min_brightness <= 1:
         problems.append("--min-brightness must be within 0 (exclusive) and 1")
+    if args.max_tilt is not None and not 0 <= args.max_tilt < 90:
+        problems.append("--max-tilt must be within 0 and 90 (exclusive) degrees")
     for option in ("size", "val_size"):
         try:
             parse_size(getattr(args, option), "--" + option.replace("_", "-"))

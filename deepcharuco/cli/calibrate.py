@@ -39,6 +39,7 @@ from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, writ
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.parallel import DetectorPool
 from deepcharuco.geometry.camera import camera_file_text, is_camera_file
+from deepcharuco.networks.shipped import NETWORKS, network_weights
 
 DETECTORS = ("opencv", "deep", "hybrid")
 
@@ -248,6 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid)")
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
+    parser.add_argument("--network", choices=NETWORKS, default="lite",
+                        help="deep/hybrid: lite (default), or fast: the distilled fast networks (docs/detector.md); "
+                             "not with --weights")
     parser.add_argument("--report", default=None, help="HTML report to write (default: <out>_report.html)")
     parser.add_argument("--no-report", action="store_true", help="write the camera file only")
     parser.add_argument("--force", action="store_true",
@@ -320,6 +324,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("; ".join(problems))
     def body() -> None:
         try:
+            args.weights = network_weights(args.network, args.weights)
             if rig:
                 from deepcharuco.cli.calibrate_rig import run_rig
 

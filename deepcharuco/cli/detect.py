@@ -44,6 +44,7 @@ from deepcharuco.detection.tracking import BoardTracker
 from deepcharuco.geometry.camera import Camera, read_camera
 from deepcharuco.geometry.pose import Pose
 from deepcharuco.networks.backends import BACKENDS
+from deepcharuco.networks.shipped import NETWORKS, network_weights
 
 
 # Frames kept (spread over the source, every HINT_STRIDE-th of a camera's, until the board is found) to say what
@@ -136,6 +137,7 @@ def run(args: argparse.Namespace) -> dict:
     (of the first board, where several are given), whose ``complete`` is False when Ctrl-C stopped the run (what
     was done is written all the same). Several ``--board`` files: each board is searched in every frame and gets
     its own ``<source>_<board file stem>.csv`` / ``.json``; the overlay shows them all."""
+    args.weights = network_weights(args.network, args.weights, args.device)
     board_files = args.board or [None]
     suffixes = [""] if len(board_files) == 1 else [f"_{name}" for name in board_names(board_files)]
     boards = [BoardSpec.load(path) if path else None for path in board_files]  # deep: default to the weights' board
@@ -336,6 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "(default: the shipped weights for the board: the paper's "
                                                          "board's own, else its marker family's model where one "
                                                          "is shipped)")
+    parser.add_argument("--network", choices=NETWORKS, default="lite",
+                        help="deep/hybrid: lite (default), or fast: the distilled fast networks, 2-4x less network time "
+                             "on a CPU, less recall on small boards in the dark (docs/detector.md); not with --weights")
     parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
                                                                 "checkpoint when --weights holds only ChArUcoNet")
     parser.add_argument("--out", default="detect_out", help="output folder")

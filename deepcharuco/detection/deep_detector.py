@@ -55,6 +55,7 @@ from deepcharuco.networks.onnx_bundle import (
 )
 from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
+from deepcharuco.networks.shipped import FAST_WEIGHTS_DIR, network_weights  # noqa: F401 (FAST_WEIGHTS_DIR: API)
 
 
 REFINE_MODES = ("refinenet", "subpix", "none")
@@ -277,6 +278,9 @@ class Detector:
             corner's covariance; a corner the fit cannot place keeps ``refine``'s position, with a sigma of
             `FALLBACK_SIGMA_PX` or its distance from where its neighbours put it, whichever is larger.
             False: ``refine``'s positions, no covariances.
+        network: "lite" (default: the shipped networks, or ``weights``) or "fast": the shipped distilled fast
+            ChArUcoNets (`FAST_WEIGHTS_DIR`, ONNX bundles, CPU only; 2-4x less network time, less recall on small
+            and dark boards: docs/detector.md, "The fast networks"). Not with ``weights``.
 
     Every argument after ``weights`` is keyword-only.
 
@@ -293,8 +297,9 @@ class Detector:
                  device: str = "cpu", refine_weights: str | Path | None = None, threshold: float | None = None,
                  soft_radius: int = 2, geometry: str | None = None, working_size: int | None = WORKING_SIZE,
                  mode: str = "deep", backend: str = "auto", reader: str | None = None, preview: bool = True,
-                 boards: list[BoardSpec] | None = None, corner_fit: bool = True):
+                 boards: list[BoardSpec] | None = None, corner_fit: bool = True, network: str = "lite"):
         self._each: list[Detector] = []
+        weights = network_weights(network, weights, device)
         self.corner_fit = bool(corner_fit)
         if boards is not None:
             boards = list(boards)

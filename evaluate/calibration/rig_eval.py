@@ -9,7 +9,9 @@ Two kinds of data:
 - with ``--realdata DIR``, the four synchronised caliscope webcams (``DIR/caliscope_calibration``; no truth of the
   extrinsics exists): per detector the RMS per camera, the square length of the board as the rig triangulates it
   (every corner seen by two cameras or more at one instant, triangulated from all of them; neighbouring corners'
-  distances against the printed 54 mm), and fx/fy against caliscope's own calibration of each camera.
+  distances against the printed 54 mm), and fx/fy against caliscope's own calibration of each camera; with ``--dark
+  K`` also every frame darkened (k = K), each rig's cameras compared with the deep detector's lit rig (rotation,
+  centre per metre of baseline: `rig_agreement`). Detectors: opencv, deep (the lite networks), fast (``network="fast"``).
 
 Both detectors go through the same solver (`deepcharuco.cli.calibrate_rig.solve_rig`, the CLI's defaults). Nothing
 here was tuned on: the solver's constants were set on `tests/calibration/test_rig.py`'s exact projections and seed 0's drawn
@@ -37,7 +39,7 @@ from deepcharuco.core.opencv_api import undistort_points
 from deepcharuco.geometry.camera import Camera, read_camera
 from evaluate.calibration.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
 
-DETECTORS = ("opencv", "deep")
+DETECTORS = ("opencv", "deep", "fast")  # fast: the deep detector with the shipped fast networks (network="fast")
 
 
 def make_detector(name: str, board: BoardSpec):
@@ -47,7 +49,7 @@ def make_detector(name: str, board: BoardSpec):
         return OpenCVDetector(board, refine="subpix"), "subpix"
     from deepcharuco.detection.deep_detector import Detector
 
-    return Detector(board=board), "refinenet"
+    return Detector(board=board, network="lite" if name == "deep" else name), "refinenet"
 
 
 def detect_all(frames: list[list[np.ndarray]], detector, quiet: bool = True, label: str = "") -> list[list[FrameDetection]]:
@@ -207,8 +209,28 @@ def rendered_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: 
     return rows
 
 
-def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool = True) -> list[dict]:
-    """The caliscope rig (module docstring)."""
+def rig_agreement(result: RigResult, reference: RigResult) -> dict:
+    """How far ``result``'s cameras sit from ``reference``'s, both seen from camera 0: per camera the rotation between
+    them (deg) and the centres' distance (mm per metre of the reference's longest baseline), and the worst of each."""
+    def relative(rig: RigResult, c: int) -> tuple[np.ndarray, np.ndarray]:
+        return rig.rotations[c] @ rig.rotations[0].T, rig.rotations[0] @ (rig.centre(c) - rig.centre(0))
+
+    count = len(reference.cameras)
+    centres = [relative(reference, c)[1] for c in range(count)]
+    baseline = max(np.linalg.norm(a - b) for a in centres for b in centres)
+    cameras = []
+    for c in range(count):
+        (rotation, centre), (rotation_ref, centre_ref) = relative(result, c), relative(reference, c)
+        cameras.append({"rotation_deg": rotation_angle_deg(rotation @ rotation_ref.T),
+                        "centre_mm_per_m": 1000 * float(np.linalg.norm(centre - centre_ref)) / baseline})
+    return {"cameras": cameras, "worst_rotation_deg": max(c["rotation_deg"] for c in cameras),
+            "worst_centre_mm_per_m": max(c["centre_mm_per_m"] for c in cameras)}
+
+
+def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool = True, dark: int = 0) -> list[dict]:
+    """The caliscope rig (module docstring); with ``dark`` > 0 also every frame darkened (`darken`, k = ``dark``),
+    each rig compared with the deep detector's lit rig of the same intrinsics (`rig_agreement`, ``vs_lit_deep``)."""
+    from evaluate.paper.protocols import darken
     from evaluate.speed.realistic import video_frames
 
     session = folder / "caliscope_calibration"
@@ -219,16 +241,22 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool
     sizes = [(f[0].shape[1], f[0].shape[0]) for f in frames]
     theirs = [read_camera(session / f"camera_{name}.yaml") for name in names]
     given = [str(session / f"camera_{name}.yaml") for name in names]
-    rows = []
-    for name in detectors:
+    rows, rigs = [], {}
+    conditions = [("lit", frames)] + ([(f"dark k={dark}", [[darken(f, dark) for f in views] for views in frames])]
+                                      if dark > 0 else [])
+    for (condition, seen), name in ((c, n) for c in conditions for n in detectors):
         detector, refine = make_detector(name, board)
-        detections = detect_all(frames, detector, quiet, name)
+        detections = detect_all(seen, detector, quiet, f"{name} {condition}")
         # As a user runs it (every camera's intrinsics solved), and with them held at caliscope's own calibration
         # (--camera per camera), where both detectors' corners go through the same extrinsic solve.
         for intrinsics, held in (("solved", None), ("caliscope's", given)):
             result, why = calibrate(detections, sizes, names, board, refine, held, weigh_rig_corners=weigh)
-            row = {"detector": name, "intrinsics": intrinsics,
+            rigs[(name, condition, intrinsics)] = result
+            reference = rigs.get(("deep", "lit", intrinsics))
+            row = {"detector": name, "condition": condition, "intrinsics": intrinsics,
                    "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
+            if result is not None and reference is not None and dark > 0:
+                row["vs_lit_deep"] = rig_agreement(result, reference)
             if result is None:
                 row["failed"] = why
             else:
@@ -255,6 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--instants", type=int, default=60, help="instants (board poses) per drawn rig")
     parser.add_argument("--detectors", nargs="+", choices=DETECTORS, default=list(DETECTORS))
     parser.add_argument("--realdata", type=Path, default=None, help="folder holding caliscope_calibration/")
+    parser.add_argument("--dark", type=int, default=0,
+                        help="--realdata: also every frame darkened k = DARK (7: the paper's darkness, ~3 %% of the "
+                             "light), each rig compared with the deep detector's lit one (put deep first in --detectors)")
     parser.add_argument("--rendered", type=Path, nargs="*", default=[],
                         help="folders of Blender-rendered rigs (python -m evaluate.calibration.rig_renders)")
     parser.add_argument("--rig-corners-alike", action="store_true",
@@ -272,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--rendered {folder} holds no truth.json: render it with python -m evaluate.calibration.rig_renders")
         results.setdefault("rendered", []).extend(rendered_experiment(folder, args.detectors, args.quiet, weigh))
     if args.realdata is not None:
-        results["caliscope"] = real_experiment(args.realdata, args.detectors, args.quiet, weigh)
+        results["caliscope"] = real_experiment(args.realdata, args.detectors, args.quiet, weigh, args.dark)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1))
     print(f"-> {args.out}")

@@ -94,6 +94,8 @@ def test_folder_of_images_without_camera(tmp_path, camera, default_views):
         (["--detector", "opencv", "--refine", "refinenet"], "needs --detector deep"),
         (["--camera", "missing.yaml"], "camera file missing.yaml does not exist"),
         (["--board", "missing.json"], "board file missing.json does not exist"),
+        (["--network", "fast", "--weights", "mine.pt"], "give weights or network='fast', not both"),
+        (["--network", "fast", "--device", "cuda"], "run on the CPU"),
     ],
 )
 def test_clear_errors(tmp_path, capsys, extra, message):
@@ -226,3 +228,12 @@ def test_a_video_without_frames_is_refused_and_nothing_is_written(tmp_path, caps
     error = capsys.readouterr().err.strip().splitlines()
     assert error[-1].startswith(f"error: no frames could be read from {empty}")
     assert not out.exists() or sorted(p.name for p in out.iterdir()) == []
+
+
+def test_the_fast_networks_find_the_bundled_example(tmp_path, capsys):
+    """--network fast: the shipped distilled networks, named on the terminal."""
+    assert main([str(EXAMPLES / "board_320x240.png"), "--out", str(tmp_path), "--detector", "deep",
+                 "--network", "fast", "--quiet"]) == 0
+    summary = json.loads((tmp_path / "board_320x240.json").read_text())
+    assert summary["frames"][0]["num_corners"] >= 14
+    assert "weights/fast/detector.onnx" in capsys.readouterr().err

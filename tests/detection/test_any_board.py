@@ -445,3 +445,32 @@ def test_a_weights_folder_is_chosen_from_as_the_shipped_one_is(tmp_path, camera)
     assert deep_detector.shipped_weights(None, tmp_path) == tmp_path / "detector.pt"
     with pytest.raises(DeepCharucoError, match="weights folder"):
         Detector(weights=tmp_path / "families")
+
+
+def test_network_fast_picks_the_shipped_fast_networks_as_a_weights_folder(camera):
+    """`Detector(network="fast")`: the distilled fast networks (ONNX bundles of the fast architecture, one per
+    shipped family), chosen per board as the lite ones are; refused with weights, on a GPU, or by another name."""
+    from deepcharuco.core.errors import OptionError
+    from deepcharuco.networks.onnx_bundle import read_bundle
+    from deepcharuco.networks.shipped import FAST_WEIGHTS_DIR
+
+    four = BoardSpec(squares_x=4, squares_y=5, square_length=0.054, marker_length=0.0405, dictionary="DICT_4X4_1000",
+                     inverted=True)  # caliscope's board
+    six = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    assert Detector(network="fast").weights == FAST_WEIGHTS_DIR / "detector.onnx"
+    for board, family in ((four, "DICT_4X4"), (six, "DICT_6X6")):
+        fast = Detector(board=board, network="fast")
+        assert fast.weights == FAST_WEIGHTS_DIR / "families" / f"{family}.onnx"
+        # the fast network is the smaller: its point model is under half the lite one's file
+        lite = read_bundle(Detector(board=board).weights.with_suffix(".onnx")).models["charuconet_points.onnx"]
+        assert len(read_bundle(fast.weights).models["charuconet_points.onnx"]) < 0.5 * len(lite)
+    image, truth = view_of(four, camera, 0.7, tilt_x_deg=20, tilt_y_deg=-10, roll_deg=5)
+    found = Detector(board=four, network="fast").detect(image)
+    assert len(found) >= 10
+    assert np.linalg.norm(found.corners - truth[found.ids], axis=1).max() < 1.0  # every ID right
+    with pytest.raises(OptionError, match="not both"):
+        Detector(network="fast", weights=deep_detector.DEFAULT_WEIGHTS)
+    with pytest.raises(OptionError, match="CPU"):
+        Detector(network="fast", device="cuda")
+    with pytest.raises(OptionError, match="network"):
+        Detector(network="turbo")

@@ -113,10 +113,13 @@ def test_the_package_ships_only_its_own_weights():
     """Every weights file beside the shipped ones is in the wheel: a test's bundle (3.4 MB) once was."""
     from deepcharuco.networks.shipped import WEIGHTS_DIR
 
-    shipped = {"MODEL_CARD.md", "bit_reader.pt", "detector.pt", "detector.onnx", "families"}
+    shipped = {"MODEL_CARD.md", "bit_reader.pt", "detector.pt", "detector.onnx", "families", "fast"}
     assert {path.name for path in WEIGHTS_DIR.iterdir()} - {"__pycache__"} == shipped
     families = {path.name for path in (WEIGHTS_DIR / "families").iterdir()}
     assert families == {f"{family}{suffix}" for family in ("DICT_4X4", "DICT_6X6") for suffix in (".md", ".onnx", ".pt")}
+    # the fast networks (network="fast"): ONNX bundles alone, the same layout
+    assert {path.name for path in (WEIGHTS_DIR / "fast").iterdir()} == {"detector.onnx", "families"}
+    assert {path.name for path in (WEIGHTS_DIR / "fast" / "families").iterdir()} == {"DICT_4X4.onnx", "DICT_6X6.onnx"}
 
 
 MARKERS_BOARD = BoardSpec(5, 7, 0.04, 0.02, "DICT_6X6_250")  # not the weights' board: read by its markers alone
