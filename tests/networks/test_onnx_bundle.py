@@ -118,7 +118,7 @@ def test_the_package_ships_only_its_own_weights():
     families = {path.name for path in (WEIGHTS_DIR / "families").iterdir()}
     assert families == {f"{family}{suffix}" for family in ("DICT_4X4", "DICT_6X6") for suffix in (".md", ".onnx", ".pt")}
     # the fast networks (network="fast"): ONNX bundles alone, the same layout
-    assert {path.name for path in (WEIGHTS_DIR / "fast").iterdir()} == {"detector.onnx", "families"}
+    assert {path.name for path in (WEIGHTS_DIR / "fast").iterdir()} == {"MODEL_CARD.md", "detector.onnx", "families"}
     assert {path.name for path in (WEIGHTS_DIR / "fast" / "families").iterdir()} == {"DICT_4X4.onnx", "DICT_6X6.onnx"}
 
 
