@@ -464,3 +464,12 @@ def test_deviations_are_at_least_the_view_bootstrap_spread(calibrated):
     for name, value in spread.items():
         assert result.std[name] >= value * (1 - 1e-6)  # the larger of the solver's and the bootstrap's
         assert 0 < value < 20 * result.std[name]
+
+
+def test_network_fast_with_weights_is_refused_in_one_line(tmp_path, capsys, waved):
+    video = _video(tmp_path / "waved.avi", waved[0][:6])
+    out = tmp_path / "camera.yaml"
+    code = main([str(video), "--out", str(out), "--quiet", "--network", "fast", "--weights", "mine.pt"])
+    message = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and not out.exists() and len(message) == 1
+    assert "give weights or network='fast', not both" in message[0]
