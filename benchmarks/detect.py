@@ -153,7 +153,8 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
     every frame searched while no board is tracked, tracked as ``deepcharuco detect`` tracks a video (every level
     every `VIDEO_SEARCH_EVERY`-th frame while no board is tracked, looking back: `BoardTracker.push`) and as it
     tracks a camera (every `CAMERA_SEARCH_EVERY`-th frame, no looking back), and the hybrid detector tracked as a
-    video. The detectors take the frames in turn (each frame by every detector, then the next), so that load on the
+    video; with ``candidate``, its deep detector searching each frame whole and tracked as a video, and its hybrid
+    tracked as a video. The detectors take the frames in turn (each frame by every detector, then the next), so that load on the
     machine hits all alike."""
     videos = sorted(realdata.glob("*/*.mp4"))
     if not videos:
@@ -163,7 +164,7 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
     names = ["opencv", "deep", "deep tracked (1)", f"deep, video's ({VIDEO_SEARCH_EVERY})",
              f"deep, camera's ({CAMERA_SEARCH_EVERY})", "hybrid, video's"]
     if candidate is not None:
-        names += ["candidate", "candidate, video's"]
+        names += ["candidate", "candidate, video's", "hybrid cand., video's"]
     print_row("video", names, 20)
     for path in videos:
         board = BoardSpec.load(path.parent / "board.yaml")
@@ -175,6 +176,8 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
         if candidate is not None:
             runs["candidate"] = Detector(board, weights=candidate, device=device)
             runs["candidate, video's"] = BoardTracker(runs["candidate"], search_every=VIDEO_SEARCH_EVERY)
+            runs["hybrid cand., video's"] = BoardTracker(Detector(board, weights=candidate, mode="hybrid", device=device),
+                                                         search_every=VIDEO_SEARCH_EVERY)
         frames = video_frames(path)
         for label, clip in ((path.parent.name + "/" + path.name, frames),
                             (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):
