@@ -159,7 +159,7 @@ def test_a_run_begun_before_the_newer_frames_resumes_with_its_own(tmp_path, caps
     # 0.02 of the light: --resume keeps drawing those; asking for others is refused; a new run gets the newer frames.
     distill.run(tiny_args(tmp_path / "run"))
     saved = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
-    for name in ("inverted_p", "bits", "min_brightness"):
+    for name in ("inverted_p", "bits", "min_brightness", "max_tilt"):
         del saved["training"]["settings"][name]
     torch.save(saved, tmp_path / "run" / "last.pt")
     common = ["--out", str(tmp_path / "run"), "--resume", "--quiet", "--size", "64x48", "--val-size", "64x48",
@@ -169,11 +169,17 @@ def test_a_run_begun_before_the_newer_frames_resumes_with_its_own(tmp_path, caps
     assert distill.run(resumed)["step"] == 7
     assert (resumed.inverted_p, resumed.bits, resumed.min_brightness) == (0.0, 0, 0.02)
     assert distill.draw_config(resumed, (64, 48)).augmentation.min_brightness == 0.02
-    for option in (["--inverted-p", "0.2"], ["--bits", "8"], ["--min-brightness", "0.005"]):
+    assert resumed.max_tilt == 55.0 and distill.draw_config(resumed, (64, 48)).max_tilt_deg == 55.0
+    for option in (["--inverted-p", "0.2"], ["--bits", "8"], ["--min-brightness", "0.005"], ["--max-tilt", "70"]):
         assert distill.main([*common, "--steps", "8", *option]) == 2 and option[0] in capsys.readouterr().err
     new = distill.parse_args(["--out", str(tmp_path / "new")])
     config = distill.draw_config(new, (64, 48))
     assert (config.inverted_p, config.bits, config.augmentation.min_brightness) == (0.2, 8, 0.005)
+    steep = distill.parse_args(["--out", str(tmp_path / "steep"), "--max-tilt", "70"])
+    assert distill.draw_config(steep, (64, 48)).max_tilt_deg == 70.0
+    with pytest.raises(SystemExit) as exit_:
+        distill.parse_args(["--out", str(tmp_path / "bad"), "--max-tilt", "95"])
+    assert exit_.value.code == 2 and "--max-tilt must be within 0 and 90" in capsys.readouterr().err
 
 
 def test_frames_are_rounded_to_a_cameras_grey_levels():
