@@ -55,7 +55,7 @@ from deepcharuco.networks.onnx_bundle import (
 )
 from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
-from deepcharuco.networks.shipped import FAST_WEIGHTS_DIR, network_weights  # noqa: F401 (FAST_WEIGHTS_DIR: API)
+from deepcharuco.networks.shipped import network_weights
 
 
 REFINE_MODES = ("refinenet", "subpix", "none")

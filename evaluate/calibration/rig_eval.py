@@ -241,7 +241,7 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool
     sizes = [(f[0].shape[1], f[0].shape[0]) for f in frames]
     theirs = [read_camera(session / f"camera_{name}.yaml") for name in names]
     given = [str(session / f"camera_{name}.yaml") for name in names]
-    rows, rigs = [], {}
+    rows, lit_deep = [], {}  # the deep detector's lit rig per intrinsics: the dark rigs' reference
     conditions = [("lit", frames)] + ([(f"dark k={dark}", [[darken(f, dark) for f in views] for views in frames])]
                                       if dark > 0 else [])
     for (condition, seen), name in ((c, n) for c in conditions for n in detectors):
@@ -251,8 +251,9 @@ def real_experiment(folder: Path, detectors: list[str], quiet: bool, weigh: bool
         # (--camera per camera), where both detectors' corners go through the same extrinsic solve.
         for intrinsics, held in (("solved", None), ("caliscope's", given)):
             result, why = calibrate(detections, sizes, names, board, refine, held, weigh_rig_corners=weigh)
-            rigs[(name, condition, intrinsics)] = result
-            reference = rigs.get(("deep", "lit", intrinsics))
+            if (name, condition) == ("deep", "lit"):
+                lit_deep[intrinsics] = result
+            reference = lit_deep.get(intrinsics)
             row = {"detector": name, "condition": condition, "intrinsics": intrinsics,
                    "views_detected": [sum(len(f.ids) >= 6 for f in camera) for camera in detections]}
             if result is not None and reference is not None and dark > 0:
