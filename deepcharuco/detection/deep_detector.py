@@ -450,7 +450,8 @@ class Detector:
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
         working_size = working_size or self.working_size
         prior = self._expected_view(expected, full.shape[1])
-        found, board_like = self._search(full, working_size, levels, prior)
+        found, board_like = self._search(full, working_size, levels, prior,
+                                         None if prior is None else corner_spacing(expected.corners))
         if found is None and board_like and self.geometry == "markers" and self.board.inverted and levels is None:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
@@ -578,7 +579,7 @@ class Detector:
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
     def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None,
-                prior: np.ndarray | None = None) -> tuple[Found | None, bool]:
+                prior: np.ndarray | None = None, expected_spacing: float | None = None) -> tuple[Found | None, bool]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
         that decided found, or None; whether any level saw board-like cells or a board).
 
@@ -588,7 +589,10 @@ class Detector:
         (`search_regions.board_like_boxes`), and not at all where it saw neither: a frame without a board
         stops at the coarse levels. Regions that would cover more than `MAX_REGION_SHARE` of a level make it
         searched whole. ``levels``: at most that many levels, coarse first (None: all). ``prior``: (3, 3) board
-        metres -> ``full``'s pixels, where the board is expected (`_expected_view`)."""
+        metres -> ``full``'s pixels, where the board is expected (`_expected_view`); ``expected_spacing``: its
+        corner spacing in ``full``'s pixels. An expected board is searched first from the first level where its
+        squares are `MIN_SQUARE_PX` wide (the level a search from the coarsest would stop at), and the coarser
+        levels only where that finds nothing (`_expected_start`)."""
         height, width = full.shape
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
@@ -597,9 +601,38 @@ class Detector:
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
                 return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True
             # part of the board, or squares too small to trust: the full image decides alone
+        scales = self._level_scales(max(height, width), working_size)[:levels]
+        start = self._expected_start(scales, max(height, width), expected_spacing)
+        if start:
+            found, board_like = self._search_levels(full, scales, start, len(scales), prior)
+            if found is not None:
+                return found, board_like
+            found, coarse_like = self._search_levels(full, scales, 0, start, prior)
+            return found, board_like or coarse_like
+        return self._search_levels(full, scales, 0, len(scales), prior)
+
+    @staticmethod
+    def _expected_start(scales: list[float], longest: int, spacing: float | None) -> int:
+        """The level (an index of ``scales``) an expected board of corner ``spacing`` px (full image, whose longest
+        side is ``longest``) is searched from first: the first where its squares are `MIN_SQUARE_PX` wide (else the
+        finest), or 0 where there is no expectation or that level is longer than
+        `WHOLE_SEARCH_SIZE` (searched whole, it would cost more than the coarse levels save)."""
+        if not spacing or len(scales) < 2:
+            return 0
+        start = next((level for level, scale in enumerate(scales) if spacing * scale >= MIN_SQUARE_PX),
+                     len(scales) - 1)
+        return start if scales[start] * longest <= WHOLE_SEARCH_SIZE else 0
+
+    def _search_levels(self, full: np.ndarray, scales: list[float], first: int, stop: int,
+                       prior: np.ndarray | None) -> tuple[Found | None, bool]:
+        """`_search` through the levels ``scales[first:stop]``, the first of them whole -> (what the level that
+        decided found, or None; whether any of them saw board-like cells or a board)."""
+        height, width = full.shape
+        whole: Box = (0, 0, width, height)
         found, board_like, boxes, dim = None, False, [whole], False
-        for level, scale in enumerate(self._level_scales(max(height, width), working_size)[:levels]):
-            if level > 0:
+        for level in range(first, stop):
+            scale = scales[level]
+            if level > first:
                 if found is not None:  # squares too small where found: look again, closer, around it alone
                     corners = (found.pixels + 0.5) * found.ratio() - 0.5 + np.array(found.box[:2], np.float32)
                     boxes = [search_region(corners, (width, height))]
@@ -616,8 +649,8 @@ class Detector:
                 x0, y0, x1, y1 = box
                 region = full[y0:y1, x0:x1]
                 gray = region if scale == 1.0 else reduced(region, scale)
-                if level == 0:
-                    dim = is_dim(gray)  # the whole frame at the coarse level
+                if level == first:
+                    dim = is_dim(gray)  # the whole frame at the first level searched
                 ids, pixels, scores, early, confidence, view = self._find(gray, region, level,
                                                                     to_level(prior, box, gray.shape, region.shape))
                 reached = gray.shape[1] / region.shape[1]

@@ -200,7 +200,8 @@ class BoardTracker:
         there and at the next level they are too narrow to stop the search. The last level before they are wide
         enough is kept: caliscope's webcams show blurred boards that it reads (squares ~11 px) and full resolution
         (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark).
-        A detector whose ``detect`` takes ``expected`` is told where the board was (the crop's origin at ``origin``
+        A `Detector` told where the board was searches that kept level only where the wide-enough one finds nothing
+        (`Detector._expected_start`). A detector whose ``detect`` takes ``expected`` is told where the board was (the crop's origin at ``origin``
         in the frame)."""
         options = {}
         if self._takes_expected:

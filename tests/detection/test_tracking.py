@@ -6,6 +6,7 @@ import pytest
 from conftest import Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
+from deepcharuco.core.stage_times import StageTimes
 from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.tracking import BoardTracker, search_region
 from deepcharuco.geometry.camera import Camera
@@ -275,6 +276,56 @@ def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_sear
     found = detector.detect(image, expected=before)
     assert np.array_equal(found.ids, searched.ids)
     np.testing.assert_allclose(found.corners, searched.corners, atol=1e-3)
+
+
+def _small_squares_frame():
+    """A 4x5 inverted board (found by its markers) with squares ~35 px in a 1280x720 frame: ~9 px at the 320-px
+    level, too narrow to stop the search there; ~17 px at 640."""
+    board = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
+                      dictionary="DICT_4X4_1000", inverted=True)
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    return board, make_view(board, camera, distance=1.6, tilt_x_deg=15)[0]
+
+
+def test_an_expected_board_is_searched_first_at_the_level_where_its_squares_are_wide_enough():
+    """Expected (a frame before) with squares too narrow for the coarse level: the search starts at the finer one, the
+    coarse level's network never runs, and it finds the corners the search from the coarse level finds."""
+    board, image = _small_squares_frame()
+    detector = Detector(board=board)
+    with StageTimes() as coarse_first:
+        searched = detector.detect(image)
+    assert len(searched) == board.num_corners
+    assert coarse_first.counts["network 0"] == 1 and coarse_first.counts["network 1"] == 1
+    before = Detection(searched.ids, searched.corners + np.array([3.0, -2.0], np.float32), searched.scores)
+    with StageTimes() as expected_first:
+        found = detector.detect(image, expected=before)
+    assert expected_first.counts["network 0"] == 0 and expected_first.counts["network 1"] == 1
+    assert np.array_equal(found.ids, searched.ids)
+    np.testing.assert_allclose(found.corners, searched.corners, atol=0.05)
+
+
+def test_an_expected_board_its_level_does_not_find_is_looked_for_at_the_coarser_levels(monkeypatch):
+    """Where the level an expected board's squares call for finds nothing (a blurred board the coarse level still
+    reads), the coarser levels are searched after it, and only they: the finer ones were searched."""
+    board, image = _small_squares_frame()
+    detector = Detector(board=board)
+    searched = detector.detect(image)
+    searches = []
+    original = Detector._search_levels
+
+    def finer_levels_find_nothing(self, full, scales, first, stop, prior):
+        searches.append((first, stop, len(scales)))
+        return (None, False) if first > 0 else original(self, full, scales, first, stop, prior)
+
+    monkeypatch.setattr(Detector, "_search_levels", finer_levels_find_nothing)
+    with StageTimes() as times:
+        found = detector.detect(image, expected=searched)
+    assert searches == [(1, 3, 3), (0, 1, 3)]  # 320, 640 and 1280 px: from 640 first, then 320 alone
+    assert times.counts["network 0"] == 1 and times.counts["network 1"] == 0
+    assert len(found) == 0 or set(found.ids) <= set(searched.ids)
+    assert Detector._expected_start([0.25, 0.5, 1.0], 1280, None) == 0  # nothing expected: from the coarsest
+    assert Detector._expected_start([0.25, 0.5, 1.0], 1280, 80.0) == 0  # squares of 20 px at 320 px already
+    assert Detector._expected_start([0.25, 0.5, 1.0], 1280, 20.0) == 0  # 1280 px only: searched whole it costs more
 
 
 def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_search(monkeypatch):
