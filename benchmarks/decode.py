@@ -1,7 +1,7 @@
 """The deep detector's decoding (the markers' search and checks, `placement.corners_from_markers`) on real webcam
 frames, next to OpenCV + cornerSubPix in the same interleaved run.
 
-    python benchmarks/decode.py --realdata realdata [--step 4] [--rounds 3] [--plain]
+    python benchmarks/decode.py --realdata realdata [--step 4] [--rounds 3] [--plain] [--network fast]
 
 Frames: every ``--step``-th frame of each video of ``--realdata``/caliscope_calibration (four 1280x720 webcams),
 and every other one of them darkened (k = 7). Each frame is detected once as `Detector.detect` searches a whole frame,
@@ -11,7 +11,8 @@ numpy's BLAS single-threaded, as `Detector.detect` runs it), and `Detector.detec
 (medians over rounds, wall time and the process' CPU time) and each as a multiple of OpenCV's time in the same run
 (x OpenCV: 2.0 = twice as long).
 
-``--plain``: the decoding's numpy paths, not `decode_kernel`'s compiled loops (also what runs without numba).
+``--network``: the point network whose candidates are decoded (`Detector`'s ``network``: "lite", the default, or
+"fast"; a fast network's candidates differ, so do the calls). ``--plain``: the decoding's numpy paths, not `decode_kernel`'s compiled loops (also what runs without numba).
 Run it against another checkout of the package (``PYTHONPATH=other/checkout``) to compare versions: it uses only
 `Detector`, `OpenCVDetector` and `placement.corners_from_markers`.
 """
@@ -32,6 +33,7 @@ import deepcharuco.detection.deep_detector as deep_detector
 from deepcharuco.detection.markers import lattice, marker_reader, placement
 from deepcharuco.detection.markers.placement import corners_from_markers
 from deepcharuco.core.blas import single_threaded_blas
+from deepcharuco.networks.shipped import NETWORKS
 from evaluate.captures.reader import video_frames
 from evaluate.paper.protocols import darken
 from evaluate.speed.machine import cpu_description
@@ -76,6 +78,8 @@ def main() -> None:
     parser.add_argument("--step", type=int, default=4, help="every step-th frame of each video (default: 4)")
     parser.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default: 3)")
     parser.add_argument("--plain", action="store_true", help="the decoding's numpy paths (no numba kernels)")
+    parser.add_argument("--network", choices=NETWORKS, default="lite",
+                        help="the point network whose candidates are decoded (default: lite)")
     args = parser.parse_args()
     folder = args.realdata / "caliscope_calibration"
     if not (folder / "board.yaml").is_file():
@@ -90,11 +94,11 @@ def main() -> None:
         compiled = False
     board = BoardSpec.load(folder / "board.yaml")
     frames = load_frames(folder, args.step)
-    detector = deep_detector.Detector(board)
+    detector = deep_detector.Detector(board, network=args.network)
     opencv = OpenCVDetector(board, refine="subpix")
     calls, found = record_decoding(detector, frames)
     print(f"# {cpu_description()}, OpenCV {cv2.__version__}; deepcharuco from {Path(deep_detector.__file__).parent}; "
-          f"decoding {'compiled (numba)' if compiled else 'numpy'}")
+          f"decoding {'compiled (numba)' if compiled else 'numpy'}; {args.network} network")
     print(f"# {len(frames)} frames {frames[0].shape[1]}x{frames[0].shape[0]} (every {args.step}th of {folder.name}'s "
           f"videos, every other one also darkened k={DARK_K}); the deep detector finds >= 4 corners in {found}; "
           f"{len(calls)} decoding calls ({len(calls) / len(frames):.1f} a frame)")
