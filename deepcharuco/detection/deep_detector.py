@@ -109,10 +109,10 @@ MAX_REFINE_MOVE_PX = TOLERANCE_PX
 # Where the printed-pattern fit follows (`corner_fit`), a level at most this many times smaller than the full image has
 # its corners refined by RefineNet once, at full resolution, from their cell pixels scaled up (a cell pixel within
 # ~1.5 px of its corner at the level lands within ~3 px, inside the central 8x8 of RefineNet's patch), instead of at
-# the level and again at full resolution: half the patches. Validation (`python -m evaluate.calibration.corner_precision
-# --seed 0 --frames 3 --conditions good oblique dark5 dark7 blur9`: 640x480 frames, found at 320 px): the same corners,
-# the detector's median and p90 errors within 1e-3 px of two passes in each condition. A 4x smaller level's cell pixels land up
-# to ~6 px off, beyond the patch's reach: two passes there.
+# the level and again at full resolution: half the patches. Validation (`python -m
+# evaluate.calibration.corner_precision --seed 0 --frames 3 --conditions good oblique dark5 dark7 blur9`: 640x480
+# frames, found at 320 px): the same corners, the detector's median and p90 errors within 1e-3 px of two passes in
+# each condition. A 4x smaller level's cell pixels land up to ~6 px off, beyond the patch's reach: two passes there.
 ONE_PASS_MAX_RATIO = 2.0
 
 
