@@ -1,5 +1,5 @@
-"""RefineNet started on a second thread while a board's markers are read (`levels.EarlyRefinement`), and a level's corners
-refined once, at full resolution, where that is enough (`deep_detector.ONE_PASS_MAX_RATIO`)."""
+"""RefineNet started on a second thread while a board's markers are read (`levels.EarlyRefinement`), and a level's
+corners refined once, at full resolution, where that is enough (`deep_detector.ONE_PASS_MAX_RATIO`)."""
 
 import multiprocessing
 
