@@ -12,7 +12,8 @@ numpy's BLAS single-threaded, as `Detector.detect` runs it), and `Detector.detec
 (x OpenCV: 2.0 = twice as long).
 
 ``--network``: the point network whose candidates are decoded (`Detector`'s ``network``: "lite", the default, or
-"fast"; a fast network's candidates differ, so do the calls). ``--plain``: the decoding's numpy paths, not `decode_kernel`'s compiled loops (also what runs without numba).
+"fast"; a fast network's candidates differ, so do the calls). ``--plain``: the decoding's numpy paths, not
+`decode_kernel`'s compiled loops (also what runs without numba).
 Run it against another checkout of the package (``PYTHONPATH=other/checkout``) to compare versions: it uses only
 `Detector`, `OpenCVDetector` and `placement.corners_from_markers`.
 """

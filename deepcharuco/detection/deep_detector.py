@@ -634,8 +634,8 @@ class Detector:
     def _expected_start(scales: list[float], longest: int, spacing: float | None) -> int:
         """The level (an index of ``scales``) an expected board of corner ``spacing`` px (full image, whose longest
         side is ``longest``) is searched from first: the first where its squares are `MIN_SQUARE_PX` wide (else the
-        finest), or 0 where there is no expectation or that level is longer than
-        `WHOLE_SEARCH_SIZE` (searched whole, it would cost more than the coarse levels save)."""
+        finest), or 0 where there is no expectation or that level is longer than `WHOLE_SEARCH_SIZE` (searched whole,
+        it would cost more than the coarse levels save)."""
         if not spacing or len(scales) < 2:
             return 0
         start = next((level for level, scale in enumerate(scales) if spacing * scale >= MIN_SQUARE_PX),
