@@ -572,8 +572,8 @@ class Detector:
         """``corners`` (N, 2) with the rows ``seen`` refined from their integer ``pixels`` in the level ``gray``,
         then again in ``full`` where the level was reduced by ``ratio``; in ``full`` alone where `_one_pass`."""
         if seen.any() and not preview and self._one_pass(gray, full):
-            start = (pixels[seen].astype(np.float32) + 0.5) * ratio - 0.5
-            corners[seen] = self._refinenet(full, start, MAX_REFINE_MOVE_PX * float(ratio.max()))
+            # ``corners`` hold the cell pixels scaled up to ``full`` as they come in: RefineNet starts from them
+            corners[seen] = self._refinenet(full, corners[seen], MAX_REFINE_MOVE_PX * float(ratio.max()))
         elif seen.any():
             refined = nudged(gray, pixels[seen]) if preview and self.refine == "refinenet" else \
                 self._refine(gray, pixels[seen], early=early)
