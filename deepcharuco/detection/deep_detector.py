@@ -436,7 +436,8 @@ class Detector:
         this call (`BoardTracker` searches a crop at the scale its whole frame was searched at); ``levels``
         searches only the first (coarsest) that many levels (`BoardTracker`'s quick search while it has lost
         the board: a board whose squares are too small there is not found, nor an inverted print that only its
-        local white shows, `print_face.canonical_view_local_white`). ``expected``: where the board's corners
+        local white shows, `print_face.canonical_view_local_white`); in hybrid mode a quick look is the networks'
+        alone: OpenCV on a whole frame without a board costs more than the fast networks' coarse level. ``expected``: where the board's corners
         are expected in ``image`` (`BoardTracker`: the frame before's); a board found by its markers is first looked
         for in that view, moved onto the point head's corners and verified by its markers as any view is
         (`placement.view_near`), and searched for through its cells only where that fails.
@@ -450,7 +451,10 @@ class Detector:
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
                 expected: Detection | None = None) -> Detection:
-        if self._opencv is not None:
+        # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
+        # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
+        # next full search runs OpenCV; a whole video looks back from it (`BoardTracker.push`).
+        if self._opencv is not None and levels is None:
             with stage("opencv"):
                 found = self._opencv.detect(image)
             if self._verified(found):

@@ -13,7 +13,8 @@ view, verified by its markers as any view is.
 While no board is tracked, ``search_every`` N > 1 searches the whole frame at every level only every N-th
 frame, and the frames between at the coarse level alone (`Detector.detect`'s ``levels``): a board large
 enough to be read there (squares of ~12 px or more at 320 px: a 5x5-square board a fifth of a 1280x720
-frame's width) is found at once, a smaller one up to N - 1 frames late. A frame without a board costs
+frame's width) is found at once, a smaller one up to N - 1 frames late. A hybrid `Detector` looks with its networks
+alone there: a board that only OpenCV reads is found by the next search of every level. A frame without a board costs
 most (every level is searched, and twice for an inverted print); in a live camera's stream it is most of the
 frames while the board is away.
 

@@ -256,6 +256,23 @@ def test_the_coarse_level_alone_finds_a_large_board_and_not_a_small_one():
     assert len(detector.detect(far, levels=1)) == 0 and len(detector.detect(far)) == 16
 
 
+def test_a_hybrid_quick_look_runs_the_networks_alone_and_a_full_search_runs_opencv_first():
+    """While the board is away a hybrid detector's quick look (``levels``) is its coarse network level: OpenCV's
+    whole-frame search costs more than that level where there is no board; the full search still asks OpenCV first."""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    detector = Detector(board=board, mode="hybrid")
+    near, _, _, truth = make_view(board, camera, distance=0.4)
+    with StageTimes() as quick:
+        coarse = detector.detect(near, levels=1)
+    assert "opencv" not in quick.counts and quick.counts["network 0"] == 1
+    assert len(coarse) == 16 and np.abs(coarse.corners - truth[coarse.ids]).max() < 0.1
+    with StageTimes() as full:
+        every = detector.detect(near)
+    assert full.counts["opencv"] == 1 and not any(name.startswith("network") for name in full.counts)
+    assert np.array_equal(np.sort(every.ids), np.sort(coarse.ids))
+
+
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
     """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
     away: the same corners as the search through the cells, which does not run."""
