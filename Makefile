@@ -24,9 +24,10 @@ example: $(STAMP)
 		--camera deepcharuco/examples/webcam_320x240.yaml --out demo_out
 
 # DEEPCHARUCO_REQUIRE_ALL=1: a test that would skip for a dependency the dev extra installs (bpy, numba, ...) fails
-# instead (tests/conftest.py); -ra lists every skip, and the summary line counts them.
+# instead (tests/conftest.py); -ra lists every skip, and the summary line counts them. -n auto: one pytest-xdist
+# worker per core (the tests use their own temporary folders; most of a test's time is one core's).
 test: $(STAMP)
-	DEEPCHARUCO_REQUIRE_ALL=1 $(BIN)/python -m pytest -q -ra
+	DEEPCHARUCO_REQUIRE_ALL=1 $(BIN)/python -m pytest -q -ra -n auto
 
 clean:
 	rm -rf $(VENV) demo_out detect_out report .pytest_cache
