@@ -12,8 +12,8 @@ measure). Each video is read by `BoardTracker.push` once per value, as ``detect 
 machine hits all alike; OpenCV (+ cornerSubPix) reads every frame in the same run.
 
 Per value: frames found (>= 4 corners) of the frames that show the board (>= 6 corners in the frame), frames lost and
-gained against value 1, wrong corners (more than 3 px from the truth, or in a frame without the board), ms a frame and
-the speed as a multiple of OpenCV's.
+gained against value 1, wrong corners (more than 3 px from the truth, and half the board's smear, or in a frame
+without the board), ms a frame and the speed as a multiple of OpenCV's.
 """
 
 from __future__ import annotations
@@ -46,13 +46,14 @@ def read(tracker: BoardTracker, video: DrawnVideo) -> tuple[list, float]:
 
 
 def wrong_corners(video: DrawnVideo, detections: list) -> int:
-    """Corners reported more than `WRONG_PX` from their truth, or in frames without the board."""
+    """Corners reported more than `WRONG_PX` from their truth, plus half the frame's smear (a smeared corner is a ramp
+    that long: a wrong ID is a square away), or in frames without the board."""
     wrong = 0
-    for truth, detection in zip(video.corners, detections):
+    for truth, smear, detection in zip(video.corners, video.smear, detections):
         if truth is None:
             wrong += len(detection)
         elif len(detection):
-            wrong += int((np.hypot(*(detection.corners - truth[detection.ids]).T) > WRONG_PX).sum())
+            wrong += int((np.hypot(*(detection.corners - truth[detection.ids]).T) > WRONG_PX + smear / 2).sum())
     return wrong
 
 

@@ -437,10 +437,11 @@ class Detector:
         searches only the first (coarsest) that many levels (`BoardTracker`'s quick search while it has lost
         the board: a board whose squares are too small there is not found, nor an inverted print that only its
         local white shows, `print_face.canonical_view_local_white`); in hybrid mode a quick look is the networks'
-        alone: OpenCV on a whole frame without a board costs more than the fast networks' coarse level. ``expected``: where the board's corners
-        are expected in ``image`` (`BoardTracker`: the frame before's); a board found by its markers is first looked
-        for in that view, moved onto the point head's corners and verified by its markers as any view is
-        (`placement.view_near`), and searched for through its cells only where that fails.
+        alone: OpenCV on a whole frame without a board costs more than the fast networks' coarse level.
+        ``expected``: where the board's corners are expected in ``image`` (`BoardTracker`: the frame before's); a
+        board found by its markers is first looked for in that view, moved onto the point head's corners and verified
+        by its markers as any view is (`placement.view_near`), and searched for through its cells only where that
+        fails.
 
         numpy's BLAS runs single-threaded for the call (`core.blas.single_threaded_blas`) and is restored after."""
         if self._each:

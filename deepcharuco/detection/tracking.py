@@ -18,10 +18,11 @@ alone there: a board that only OpenCV reads is found by the next search of every
 most (every level is searched, and twice for an inverted print); in a live camera's stream it is most of the
 frames while the board is away.
 
-A whole video need not answer frame by frame: `BoardTracker.push` holds back the frames searched at the coarse level
-alone that found nothing, and when a later frame finds the board, looks back through them, newest first, around the
-board as if tracking it backwards, until one shows it no more. A small board is then found in the frames a quicker
-search reached late too.
+A whole video need not answer frame by frame: `BoardTracker.push` holds back the frames that found nothing (up to
+`HOLD_BYTES` of them), and when a later frame finds the board, looks back through them, newest first, around the
+board as if tracking it backwards, until one shows it no more; a frame that had only the coarse look is searched whole
+there before the look back stops, as a search of every level would have. A small board is then found in the frames a
+quicker search reached late, and a board a whole search missed in one frame (blurred) is kept from the frame after it.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ MARGIN = 0.5  # of the corners' bounding box, on each side
 MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
 MIN_CROP = 64  # px: smaller crops are widened to this
 MIN_CORNERS = 4  # a crop's detection with fewer corners falls back to the full frame
+HOLD_BYTES = 256 * 2 ** 20  # `push` holds back at most this many bytes of frames; beyond, the oldest is settled as is
 
 
 def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -71,9 +73,8 @@ class BoardTracker:
         search_every: while no board is tracked, every level of the pyramid is searched every this many
             frames, the coarse level alone in the frames between (1: every level always; module docstring).
             Only for detectors whose ``detect`` takes ``levels`` (`Detector`); others search whole frames.
-        look_back: `push` holds back the frames the coarse level alone found nothing in, and looks back through
-            them when a later frame finds the board (a whole video); False: `push` answers each frame at once
-            (a live camera).
+        look_back: `push` holds back the frames that found nothing, and looks back through them when a later frame
+            finds the board (a whole video); False: `push` answers each frame at once (a live camera).
 
     ``detect(image)`` returns corners in ``image``'s pixels, as the detector would; ``last_search`` says
     whether the last call searched the "crop", the "full" frame or the frame at the "coarse" level alone.
@@ -94,7 +95,8 @@ class BoardTracker:
         self._takes_expected = _takes(detector, "expected")
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
-        self._held: list[tuple[np.ndarray, Detection]] = []  # `push`: coarse-only frames that found nothing
+        # `push`: the frames that found nothing (image, detection, whether it had only the coarse look)
+        self._held: list[tuple[np.ndarray, Detection, bool]] = []
         self.last_search = "full"
         self.looked_back = 0  # frames `push` found the board in by looking back
 
@@ -115,36 +117,49 @@ class BoardTracker:
 
     def push(self, image: np.ndarray) -> list[Detection]:
         """The next frame of a whole video -> the detections it settles, oldest first: none while it is held back,
-        else those of the frames held before it and its own. A frame is held back when it was searched at the
-        coarse level alone (``search_every`` > 1) and found nothing; when a later frame finds the board, the held
-        frames are searched again, newest first, in the region around the board in the frame after each (as
-        `detect` tracks forwards), until one finds it no more; those before it keep their empty detections."""
+        else those of the frames held before it and its own. A frame is held back when it found nothing; when a later
+        frame finds the board, the held frames are searched again, newest first, in the region around the board in
+        the frame after each (as `detect` tracks forwards), and a frame the region does not show it in that had only
+        the coarse look (``search_every`` > 1) is searched whole, until one finds it no more; those before it keep
+        their empty detections. Frames beyond `HOLD_BYTES` are settled oldest first, as they are."""
         detection = self.detect(image)
-        if self.look_back and self.last_search == "coarse" and len(detection) < MIN_CORNERS:
-            self._held.append((image, detection))
-            return []
-        settled = self._looked_back(detection) if len(detection) >= MIN_CORNERS else [d for _, d in self._held]
+        if not self.look_back:
+            return [detection]
+        if len(detection) < MIN_CORNERS:
+            self._held.append((image, detection, self.last_search == "coarse"))
+            return self._over_budget()
+        settled = self._looked_back(detection)
         self._held.clear()
         return [*settled, detection]
 
     def flush(self) -> list[Detection]:
         """The detections of the frames still held back (the video has ended), oldest first."""
-        settled = [detection for _, detection in self._held]
+        settled = [detection for _, detection, _ in self._held]
         self._held.clear()
+        return settled
+
+    def _over_budget(self) -> list[Detection]:
+        """The oldest held frames' detections, settled as they are, until the rest fit `HOLD_BYTES`."""
+        settled = []
+        while len(self._held) > 1 and sum(image.nbytes for image, _, _ in self._held) > HOLD_BYTES:
+            settled.append(self._held.pop(0)[1])
         return settled
 
     def _looked_back(self, found: Detection) -> list[Detection]:
         """The held frames' detections, oldest first, each held frame searched again from the newest back around
-        the board in the frame after it, until one finds too few corners."""
+        the board in the frame after it (whole where that fails and it had only the coarse look), until one finds
+        too few corners."""
         later, revised = found, []
-        for image, _ in reversed(self._held):
+        for image, _, quick in reversed(self._held):
             around = self._around(image, later)
+            if len(around) < MIN_CORNERS and quick:
+                around = self.detector.detect(image)
             if len(around) < MIN_CORNERS:
                 break
             later = around
             revised.append(later)
         self.looked_back += len(revised)
-        kept = [detection for _, detection in self._held[:len(self._held) - len(revised)]]
+        kept = [detection for _, detection, _ in self._held[:len(self._held) - len(revised)]]
         return [*kept, *reversed(revised)]
 
     def detect(self, image: np.ndarray) -> Detection:

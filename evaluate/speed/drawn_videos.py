@@ -45,13 +45,15 @@ MIN_VISIBLE = 6  # corners in the frame for a frame to count as showing the boar
 class DrawnVideo:
     """``frames[n]``: (H, W) uint8; ``corners[n]``: (N, 2) float32 truth of every corner (OpenCV pixel centres, also
     outside the frame); ``visible[n]``: (N,) bool, inside the frame by a pixel; None for both where no board is
-    drawn."""
+    drawn; ``smear[n]``: the length (px) the board is smeared over (0 but in ``shake``): along it a corner is a ramp,
+    and where on it a detector puts the corner is a matter of definition, not an error."""
 
     board: BoardSpec
     condition: str
     frames: list[np.ndarray]
     corners: list[np.ndarray | None]
     visible: list[np.ndarray | None]
+    smear: list[float]
 
     def shows_board(self, index: int) -> bool:
         """Whether frame ``index`` shows at least `MIN_VISIBLE` corners."""
@@ -161,9 +163,10 @@ def drawn_video(board: BoardSpec, *, seed: int, frames: int = 150, condition: st
     background = clutter(rng, size).astype(np.float32)
     places = _trajectory(board, K, size, frames, rng)
     width, height = size
-    video = DrawnVideo(board, condition, [], [], [])
+    video = DrawnVideo(board, condition, [], [], [], [])
     gain = 1.0
     for index, place in enumerate(places):
+        smear = 0.0
         if place is None:
             image = background.copy()
             video.corners.append(None)
@@ -176,8 +179,10 @@ def drawn_video(board: BoardSpec, *, seed: int, frames: int = 150, condition: st
             coverage = render_board_view(board, K, rvec, tvec, size, background=0, supersample=supersample,
                                          paint=lambda texture: np.full_like(texture.image, 255))
             drawn, coverage = drawn.astype(np.float32) * gain, coverage.astype(np.float32) / 255
-            kernel = _smear_kernel(EXPOSURE * _motion(places, index)) if condition == "shake" else None
+            motion = EXPOSURE * _motion(places, index) if condition == "shake" else np.zeros(2)
+            kernel = _smear_kernel(motion)
             if kernel is not None:
+                smear = float(np.hypot(*motion))
                 drawn = cv2.filter2D(drawn, -1, kernel, borderType=cv2.BORDER_CONSTANT)
                 coverage = cv2.filter2D(coverage, -1, kernel, borderType=cv2.BORDER_CONSTANT)
             image = drawn + background * (1 - coverage)
@@ -185,6 +190,7 @@ def drawn_video(board: BoardSpec, *, seed: int, frames: int = 150, condition: st
             video.corners.append(corners)
             video.visible.append((corners[:, 0] >= 1) & (corners[:, 0] <= width - 2) & (corners[:, 1] >= 1)
                                  & (corners[:, 1] <= height - 2))
+        video.smear.append(smear)
         if condition == "dark":
             image = image * DARKNESS_BASE ** 7
         image = image + noise.normal(0, NOISE, image.shape).astype(np.float32)

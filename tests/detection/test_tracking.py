@@ -376,12 +376,15 @@ def test_a_whole_video_looks_back_for_the_board_the_quick_search_reached_late():
     detector = Numbered(present)
     tracker = BoardTracker(detector, search_every=3)
     answers = [len(tracker.push(f)) for f in frames]
-    # frames 1-2 and 4-5 are held back (coarse, nothing); frame 3's full search releases 1-2, frame 6's found
-    # board settles 4-5; frame 9 (coarse, nothing) waits for the end of the video
-    assert answers == [1, 0, 0, 3, 0, 0, 3, 1, 1, 0]
-    assert len(tracker.flush()) == 1 and tracker.flush() == []
-    # looking back: frame 6 found the board, so frame 5 is searched around it, then frame 4; nothing before
-    assert detector.calls[detector.calls.index((6, "full")):][:3] == [(6, "full"), (5, "crop"), (4, "crop")]
+    # frames 0-5 found nothing and are held back; frame 6's found board settles them; frames 8 (crop and full search)
+    # and 9 (coarse) found nothing and wait for the end of the video
+    assert answers == [0, 0, 0, 0, 0, 0, 7, 1, 0, 0]
+    assert len(tracker.flush()) == 2 and tracker.flush() == []
+    # looking back: frame 6 found the board, so frame 5 is searched around it, then 4, then 3, which does not show it
+    # and was searched whole before (no second whole search)
+    assert detector.calls[detector.calls.index((6, "full")):][:4] == [(6, "full"), (5, "crop"), (4, "crop"),
+                                                                     (3, "crop")]
+    assert (3, "full") not in detector.calls[detector.calls.index((6, "full")):]
     assert tracker.looked_back == 2
     tracker = BoardTracker(Numbered(present), search_every=3)
     detections = detect_all(tracker, frames)
@@ -407,9 +410,50 @@ def test_a_live_camera_is_answered_frame_by_frame_without_looking_back():
 
 def test_reset_drops_the_frames_held_back():
     tracker = BoardTracker(Numbered(set()), search_every=3)
-    assert [len(tracker.push(f)) for f in video(3)] == [1, 0, 0]
+    assert [len(tracker.push(f)) for f in video(3)] == [0, 0, 0]
     tracker.reset()
     assert tracker.flush() == []
+
+
+class MissedOnce(Numbered):
+    """`Numbered`, but the whole search of frame ``missed`` does not find the board (a blurred frame) where a crop
+    around the board of the frame after it does."""
+
+    def __init__(self, present, missed):
+        super().__init__(present)
+        self.missed = missed
+
+    def detect(self, image, working_size=None, levels=None):
+        if int(image.flat[0]) == self.missed and image.shape == (720, 1280):
+            self.calls.append((self.missed, "coarse" if levels == 1 else "full"))
+            return Detection.empty()
+        return super().detect(image, working_size, levels)
+
+
+def test_a_frame_a_whole_search_missed_is_found_from_the_frame_after_it():
+    """The board is in frames 3-7; frame 3's whole search misses it (a blurred first frame), so every level of every
+    frame finds it from frame 4. Looking back, frame 3 is found around frame 4's board."""
+    present = {3, 4, 5, 6, 7}
+    found = lambda detections: [n for n, d in enumerate(detections) if len(d) >= 4]  # noqa: E731
+    assert found(detect_all(BoardTracker(MissedOnce(present, 3), look_back=False), video(9))) == [4, 5, 6, 7]
+    assert found(detect_all(BoardTracker(MissedOnce(present, 3)), video(9))) == [3, 4, 5, 6, 7]
+    # search_every 3: frames 0 (full), 1-2 (coarse), 3 (full, missed) and 4-5 (coarse) find nothing, 6 (full) finds
+    # the board; the look back reaches frame 3 through 5 and 4, and frame 2, which had only the coarse look, is
+    # searched whole before it stops
+    detector = MissedOnce(present, 3)
+    assert found(detect_all(BoardTracker(detector, search_every=3), video(9))) == [3, 4, 5, 6, 7]
+    after = detector.calls[detector.calls.index((6, "full")) + 1:]
+    assert after[:5] == [(5, "crop"), (4, "crop"), (3, "crop"), (2, "crop"), (2, "full")]
+    assert (1, "crop") not in after
+
+
+def test_frames_beyond_the_hold_budget_are_settled_oldest_first(monkeypatch):
+    import deepcharuco.detection.tracking as tracking
+
+    monkeypatch.setattr(tracking, "HOLD_BYTES", 3 * 1280 * 720)  # three frames
+    tracker = BoardTracker(Numbered(set()), search_every=3)
+    assert [len(tracker.push(f)) for f in video(6)] == [0, 0, 0, 1, 1, 1]
+    assert len(tracker.flush()) == 3
 
 
 def test_the_real_detector_finds_a_small_board_in_a_whole_video_where_every_frame_searched_finds_it():
