@@ -60,10 +60,12 @@ CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`de
 CAMERA_SEARCH_EVERY = 3
 
 
-# --search-every's default for a video. A video looks back (`BoardTracker.push`): the frames searched at the coarse
-# level alone wait for the next frame that finds the board, which finds it in them, so the quicker search loses no
-# frame. The camera's 3, not tuned again; on the same five videos (docs/detector.md, 2026-11-26), against every level
-# of every frame: 1.2-2.5x the frames a second, lit and dark, every frame found again and 3 more.
+# --search-every's default for a video. A video looks back (`BoardTracker.push`): the frames that found nothing wait
+# for the next frame that finds the board, which looks for it in them. Chosen on drawn validation videos
+# (`python benchmarks/search_every.py`, seed 0: 12 videos, 1,035 frames showing the board; docs/detector.md,
+# 2026-11-28, seventh session), against every level of every frame: 3 lost 8 of 720 frames with the default hybrid
+# detector at 1.8x its speed, and 3 of 679 with the fast networks at 1.4x; 6 lost 24 and 11 (2.3x, 1.6x); 12 lost 31
+# and 11 (2.7x, 1.8x). The frames first, so 3.
 VIDEO_SEARCH_EVERY = 3
 
 
