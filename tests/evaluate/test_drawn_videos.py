@@ -61,3 +61,18 @@ def test_a_smear_is_a_line_along_the_motion_centred_on_the_board(motion):
     spread = np.sqrt((kernel * ((xx - half) ** 2 + (yy - half) ** 2)).sum())
     assert spread == pytest.approx(np.hypot(*motion) / np.sqrt(12), rel=0.1)  # a uniform line's spread
     assert _smear_kernel(np.array([0.3, 0.4])) is None
+
+
+def test_only_a_shaken_board_is_smeared_and_the_video_says_how_far(good):
+    assert set(good.smear) == {0.0}
+    shaken = drawn_video(BOARD, seed=3, frames=60, condition="shake", size=SIZE)
+    moving = [s for s, c in zip(shaken.smear, shaken.corners) if c is not None]
+    assert max(moving) > 5 and all(s == 0 for s, c in zip(shaken.smear, shaken.corners) if c is None)
+    # a smeared frame differs from the sharp one where the board is, not in the still background
+    index = int(np.argmax(shaken.smear))
+    difference = np.abs(shaken.frames[index].astype(int) - good.frames[index].astype(int))
+    inside = np.zeros(difference.shape, bool)
+    x0, y0 = np.floor(good.corners[index].min(axis=0)).astype(int)
+    x1, y1 = np.ceil(good.corners[index].max(axis=0)).astype(int)
+    inside[max(y0, 0):y1, max(x0, 0):x1] = True
+    assert difference[inside].mean() > 5 * difference[~inside].mean()
