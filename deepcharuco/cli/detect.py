@@ -56,7 +56,10 @@ CHUNK_FRAMES = 16  # consecutive video frames a --jobs worker takes at once (`de
 # --search-every's default for a camera (`BoardTracker`'s search_every). Measured on caliscope's four 1280x720 webcam
 # videos and its dim one read as a stream (docs/detector.md, 2026-11-26): 3 gave 1.2-2.3x the frames a second of 1,
 # lit and dark, and found the same frames but 13 of the 684 with a board (cam_1's 5 lit and 5 dark, port_2's 3 dark):
-# boards of small squares (22-34 px on cam_1), found a frame or two later.
+# boards of small squares (22-34 px on cam_1), found a frame or two later. On the drawn validation videos
+# (`python benchmarks/search_every.py --camera --detector hybrid`, 2026-11-28, seventh session), against every level
+# of every frame: 2 lost 17 of 717 frames at 1.6x the speed, 3 lost 30 at 2.0x, 6 lost 57 at 2.7x. A board entering
+# is found a frame or two late; a live stream that outruns the detector loses more than that, so 3 stays.
 CAMERA_SEARCH_EVERY = 3
 
 
