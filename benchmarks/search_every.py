@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from deepcharuco import BoardSpec, OpenCVDetector
 from deepcharuco.detection.deep_detector import Detector
+from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.tracking import MIN_CORNERS, BoardTracker
 from evaluate.paper.unseen_boards import UNSEEN_BOARDS
 from evaluate.speed.drawn_videos import CONDITIONS, DrawnVideo, drawn_video
@@ -35,13 +36,10 @@ WRONG_PX = 3.0
 
 
 def read(tracker: BoardTracker, video: DrawnVideo) -> tuple[list, float]:
-    """``video`` read by ``tracker`` as a whole video (`push`, then `flush`) or frame by frame (``look_back`` False)
-    -> (each frame's detection, seconds)."""
+    """``video`` read by ``tracker`` as ``detect VIDEO`` reads it (`parallel.detect_all`) -> (each frame's detection,
+    seconds)."""
     start = time.perf_counter()
-    found = []
-    for frame in video.frames:
-        found += tracker.push(frame)
-    found += tracker.flush()
+    found = detect_all(tracker, video.frames)
     return found, time.perf_counter() - start
 
 

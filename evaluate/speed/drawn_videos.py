@@ -1,7 +1,7 @@
 """Drawn videos of a board waved in front of a still 1280x720 webcam, with exact truth in every frame: the validation
 videos the tracker's settings are chosen on (`benchmarks/search_every.py`); the real videos in realdata/ measure them.
 
-No renderer: each frame is the board drawn exactly (`deepcharuco.boards.synthetic.render_board_view`) over one still
+No renderer: each frame is the board drawn exactly (`realistic.board_layer`) over one still
 cluttered background (`realistic.clutter`). A video is visits of the board with empty stretches of 5-40 frames
 between them and before the first. A visit enters across an edge of the frame, is waved through two or three places
 and leaves across an edge. At each place its squares are 8-90 px wide (log-uniform: a board across the room or at
@@ -25,10 +25,10 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.boards.synthetic import look_at_pose, render_board_view
+from deepcharuco.boards.synthetic import look_at_pose
 from deepcharuco.geometry.pose import project_corners
 from evaluate.paper.protocols import DARKNESS_BASE
-from evaluate.speed.realistic import clutter
+from evaluate.speed.realistic import board_layer, clutter
 
 CONDITIONS = ("good", "dark", "shake")
 SIZE = (1280, 720)
@@ -175,10 +175,8 @@ def drawn_video(board: BoardSpec, *, seed: int, frames: int = 150, condition: st
             if index == 0 or places[index - 1] is None:
                 gain = rng.uniform(0.6, 1.0)  # each visit lit its own way
             rvec, tvec = _pose(place, board, K)
-            drawn = render_board_view(board, K, rvec, tvec, size, background=0, supersample=supersample)
-            coverage = render_board_view(board, K, rvec, tvec, size, background=0, supersample=supersample,
-                                         paint=lambda texture: np.full_like(texture.image, 255))
-            drawn, coverage = drawn.astype(np.float32) * gain, coverage.astype(np.float32) / 255
+            drawn, coverage = board_layer(board, K, rvec, tvec, size, supersample)
+            drawn *= gain
             motion = EXPOSURE * _motion(places, index) if condition == "shake" else np.zeros(2)
             kernel = _smear_kernel(motion)
             if kernel is not None:

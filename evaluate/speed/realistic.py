@@ -142,15 +142,23 @@ def with_board(board: BoardSpec, background: np.ndarray, rng: np.random.Generato
         raise ValueError(f"a {board.squares_x}x{board.squares_y} board does not fit a {width}x{height} frame at "
                          f"{placement.low:.0%}-{placement.high:.0%} of its width")
     supersample = 4 if width * height <= 1280 * 720 else 2
-    drawn = render_board_view(board, K, rvec, tvec, (width, height), background=0, supersample=supersample)
-    coverage = render_board_view(board, K, rvec, tvec, (width, height), background=0, supersample=supersample,
-                                 paint=lambda texture: np.full_like(texture.image, 255)).astype(np.float32) / 255
+    drawn, coverage = board_layer(board, K, rvec, tvec, (width, height), supersample)
     gain = rng.uniform(0.55, 1.0)
-    image = drawn.astype(np.float32) * gain + background.astype(np.float32) * (1 - coverage)
+    image = drawn * gain + background.astype(np.float32) * (1 - coverage)
     image += rng.normal(0, 2.0, image.shape).astype(np.float32)
     image = np.clip(np.rint(image), 0, 255).astype(np.uint8)
     corners = project_corners(board, rvec, tvec, K).astype(np.float32)
     return TestFrame(image, corners, np.ones(len(corners), bool), K, np.ravel(rvec), np.ravel(tvec), name)
+
+
+def board_layer(board: BoardSpec, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, size: tuple[int, int],
+                supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    """The printed board drawn alone on black, and the share of each pixel its sheet covers: ((H, W) float32 grey
+    levels, (H, W) float32 in [0, 1]). A frame is ``drawn * gain + background * (1 - coverage)``."""
+    drawn = render_board_view(board, K, rvec, tvec, size, background=0, supersample=supersample)
+    coverage = render_board_view(board, K, rvec, tvec, size, background=0, supersample=supersample,
+                                 paint=lambda texture: np.full_like(texture.image, 255))
+    return drawn.astype(np.float32), coverage.astype(np.float32) / 255
 
 
 def _outline(board: BoardSpec, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
