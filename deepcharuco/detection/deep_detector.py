@@ -45,6 +45,7 @@ from deepcharuco.detection.markers.settling import drop_isolated, neighbour_dist
 from deepcharuco.detection.markers.verification import layout_ends_short, marker_view_verified
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
+from deepcharuco.detection.tracking import MIN_CORNERS as MIN_TRACKED_CORNERS
 from deepcharuco.detection.tracking import search_region
 from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
@@ -55,6 +56,7 @@ from deepcharuco.networks.onnx_bundle import (
 )
 from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
+from deepcharuco.networks.shipped import FAST_WEIGHTS_DIR
 from deepcharuco.networks.shipped import network_weights
 
 
@@ -290,7 +292,8 @@ class Detector:
             False: ``refine``'s positions, no covariances.
         network: "lite" (default: the shipped networks, or ``weights``) or "fast": the shipped distilled fast
             ChArUcoNets (`FAST_WEIGHTS_DIR`, ONNX bundles, CPU only; 2-4x less network time, less recall on small
-            and dark boards: docs/detector.md, "The fast networks"). Not with ``weights``.
+            and dark boards: docs/detector.md, "The fast networks"), with the lite networks looking where they lose
+            a tracked board (`backup`). Not with ``weights``.
 
     Every argument after ``weights`` is keyword-only.
 
@@ -309,7 +312,11 @@ class Detector:
                  mode: str = "deep", backend: str = "auto", reader: str | None = None, preview: bool = True,
                  boards: list[BoardSpec] | None = None, corner_fit: bool = True, network: str = "lite"):
         self._each: list[Detector] = []
-        weights = network_weights(network, weights, device)
+        self._backup_options: dict | None = None  # `backup`'s arguments (the fast networks')
+        self._backup: Detector | None = None
+        given_weights, given_geometry, weights = weights, geometry, network_weights(network, weights, device)
+        if network == "lite" and weights is not None and Path(weights).resolve() == FAST_WEIGHTS_DIR.resolve():
+            network = "fast"  # the shipped fast networks named by their folder (the CLI's --network fast)
         self.corner_fit = bool(corner_fit)
         if boards is not None:
             boards = list(boards)
@@ -325,10 +332,11 @@ class Detector:
                                                f"other first_marker_id")
             if len(boards) > 1:
                 self.boards = boards
-                self._each = [Detector(board=b, weights=weights, refine=refine, device=device,
+                self._each = [Detector(board=b, weights=given_weights, refine=refine, device=device,
                                        refine_weights=refine_weights, threshold=threshold, soft_radius=soft_radius,
                                        geometry=geometry, working_size=working_size, mode=mode, backend=backend,
-                                       reader=reader, preview=preview, corner_fit=corner_fit) for b in boards]
+                                       reader=reader, preview=preview, corner_fit=corner_fit, network=network)
+                              for b in boards]
                 self.board = None
                 return
             board = boards[0]
@@ -387,6 +395,15 @@ class Detector:
         self._board_xy = self.board.corner_points()[:, :2]
         if geometry == "markers":  # drawn now, not in the first frame that fills a corner in (~50 ms for 11x8 squares)
             printed_pattern(self.board)
+        self.network = network
+        # The fast networks lose some boards the lite ones read (steep, cut by the frame's edge, dark): where a tracked
+        # board (``expected``) is lost to them, the lite networks look in the same crop (`backup`), built when first
+        # needed (a `BoardTracker` asks at once; a photo never needs it). Deep alone: in hybrid mode OpenCV has just
+        # looked there.
+        self._backup_options = None if network == "lite" else dict(
+            board=self.board, refine=refine, device=device, refine_weights=refine_weights, threshold=threshold,
+            soft_radius=soft_radius, geometry=given_geometry,
+            working_size=working_size, backend=backend, reader=reader, preview=preview, corner_fit=corner_fit)
         self.refinenet = None
         # Boards found by their markers never read the ID head: ChArUcoNet runs without it (~1 ms at 320x240).
         if bundle is None:
@@ -441,14 +458,29 @@ class Detector:
         ``expected``: where the board's corners are expected in ``image`` (`BoardTracker`: the frame before's); a
         board found by its markers is first looked for in that view, moved onto the point head's corners and verified
         by its markers as any view is (`placement.view_near`), and searched for through its cells only where that
-        fails.
+        fails. With ``network="fast"``, where the fast networks find fewer corners than a tracker keeps (4), the lite
+        networks search the image as well (`backup`): on the real videos that kept the frames the lite networks track
+        for ~1 % of the time (docs/detector.md, "The lite networks behind the fast ones").
 
         numpy's BLAS runs single-threaded for the call (`core.blas.single_threaded_blas`) and is restored after."""
         if self._each:
             raise DeepCharucoError(f"this Detector finds {len(self._each)} boards: detect_boards(image) returns one "
                                    f"Detection per board")
         with single_threaded_blas():
-            return self._detect(image, working_size, levels, expected)
+            found = self._detect(image, working_size, levels, expected)
+        if expected is not None and len(found) < MIN_TRACKED_CORNERS and self._backup_options is not None:
+            tally("backup looks")
+            found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
+        return found
+
+    @property
+    def backup(self) -> Detector | None:
+        """With ``network="fast"``: the lite networks' deep detector of the same board and options, which looks where
+        the fast networks lose an expected board (`detect`'s ``expected``: the board a `BoardTracker` follows), built
+        at the first use (`BoardTracker` asks when it is made). None with the lite networks."""
+        if self._backup is None and self._backup_options is not None:
+            self._backup = Detector(**self._backup_options)
+        return self._backup
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
                 expected: Detection | None = None) -> Detection:

@@ -23,6 +23,9 @@ A whole video need not answer frame by frame: `BoardTracker.push` holds back the
 board as if tracking it backwards, until one shows it no more; a frame that had only the coarse look is searched whole
 there before the look back stops, as a search of every level would have. A small board is then found in the frames a
 quicker search reached late, and a board a whole search missed in one frame (blurred) is kept from the frame after it.
+
+A `Detector` with the fast networks (``network="fast"``) hands a crop they lose the board in to its lite networks
+(`Detector.backup`): the tracker asks once, the detector answers with whichever found it.
 """
 
 from __future__ import annotations
@@ -87,6 +90,7 @@ class BoardTracker:
         if search_every < 1:
             raise OptionError(f"search_every must be >= 1 (1: every level of every frame), got {search_every}")
         self.detector = detector
+        getattr(detector, "backup", None)  # built now, not when the board is first lost (~0.6 s: a live camera stalls)
         self.refresh_every = refresh_every
         self.search_every = search_every if _takes(detector, "levels") else 1
         self.look_back = look_back

@@ -273,6 +273,31 @@ def test_a_hybrid_quick_look_runs_the_networks_alone_and_a_full_search_runs_open
     assert np.array_equal(np.sort(every.ids), np.sort(coarse.ids))
 
 
+def test_the_fast_networks_hand_a_tracked_board_they_lose_to_the_lite_ones(monkeypatch):
+    """``network="fast"``: where the fast networks find fewer corners of an expected board (a tracked crop) than a
+    tracker keeps, the lite networks search the same image (`Detector.backup`, deep alone); not a whole frame (nothing
+    expected), and never behind the lite networks themselves."""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    image, _, _, truth = make_view(board, camera, distance=0.4)
+    fast, lite = Detector(board=board, network="fast"), Detector(board=board)
+    assert lite.backup is None and Detector(board=board, network="fast", mode="hybrid").backup.mode == "deep"
+    tracker = BoardTracker(fast)
+    assert fast._backup is not None  # built with the tracker: a live camera does not wait for it when the board is lost
+    before = tracker.detect(image)
+    assert len(before) == 16
+    for detector in (fast, lite):  # their networks now see no board
+        monkeypatch.setattr(detector, "_search", lambda *args, **kwargs: (None, False))
+    with StageTimes() as times:
+        assert len(fast.detect(image)) == 0 and len(lite.detect(image, expected=before)) == 0
+    assert "backup looks" not in times.counts
+    with StageTimes() as times:
+        tracked = tracker.detect(image)
+    assert times.counts["backup looks"] == 1 and tracker.last_search == "crop"
+    assert fast.backup.weights == lite.weights
+    assert len(tracked) == 16 and np.abs(tracked.corners - truth[tracked.ids]).max() < 0.1
+
+
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
     """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
     away: the same corners as the search through the cells, which does not run."""
