@@ -459,8 +459,8 @@ class Detector:
         board found by its markers is first looked for in that view, moved onto the point head's corners and verified
         by its markers as any view is (`placement.view_near`), and searched for through its cells only where that
         fails. With ``network="fast"``, where the fast networks find fewer corners than a tracker keeps (4), the lite
-        networks search the image as well (`backup`): on the real videos that kept the frames the lite networks track
-        for ~1 % of the time (docs/detector.md, "The lite networks behind the fast ones").
+        networks search the image as well (`backup`): on the real videos that found the lite networks' frames on every
+        lit video, for 0-9 % of the fast networks' speed (docs/detector.md, "The lite networks behind the fast ones").
 
         numpy's BLAS runs single-threaded for the call (`core.blas.single_threaded_blas`) and is restored after."""
         if self._each:
