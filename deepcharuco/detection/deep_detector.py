@@ -641,7 +641,8 @@ class Detector:
 
         The preview (``self.preview``, images no longer than ``working_size``) stands when it holds the whole
         board in view. Levels no longer than `WHOLE_SEARCH_SIZE` are searched whole; a finer one only where the
-        level before found the board with squares under `MIN_SQUARE_PX` (around it), or saw board-like cells
+        level before found the board with squares under `MIN_SQUARE_PX` (around it, first in the view its markers
+        verified there, as a tracked board is), or saw board-like cells
         (`search_regions.board_like_boxes`), and not at all where it saw neither: a frame without a board
         stops at the coarse levels. Regions that would cover more than `MAX_REGION_SHARE` of a level make it
         searched whole. ``levels``: at most that many levels, coarse first (None: all). ``prior``: (3, 3) board
@@ -700,6 +701,10 @@ class Detector:
                     boxes = [whole]
             tally("levels")
             level_found, next_boxes = None, []
+            # A board the level before verified by its markers, with squares too narrow there, is looked for in that
+            # view first, as a tracked board is: the same frames and corners on the real videos, 0-5 % less time.
+            level_prior = prior if found is None or found.view is None else \
+                from_level(found.view, found.box, found.gray.shape, found.region.shape)
             for box in boxes:
                 box = on_cell_grid(box, scale, (width, height))
                 x0, y0, x1, y1 = box
@@ -708,7 +713,7 @@ class Detector:
                 if level == first:
                     dim = is_dim(gray)  # the whole frame at the first level searched
                 ids, pixels, scores, early, confidence, view = self._find(gray, region, level,
-                                                                    to_level(prior, box, gray.shape, region.shape))
+                                                                    to_level(level_prior, box, gray.shape, region.shape))
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
                                to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,

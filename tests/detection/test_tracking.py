@@ -346,6 +346,23 @@ def test_an_expected_board_is_searched_first_at_the_level_where_its_squares_are_
     np.testing.assert_allclose(found.corners, searched.corners, atol=0.05)
 
 
+def test_a_board_a_coarse_level_found_with_narrow_squares_is_looked_for_in_that_view_at_the_next(monkeypatch):
+    """Searched whole, the coarse level finds the board with squares too narrow to stop at, and the next level looks
+    for it first in the view the coarse level's markers verified (as a tracked board's): the cells are searched at the
+    coarse level alone, and the corners are the board's."""
+    import deepcharuco.detection.markers.placement as placement
+
+    board, _ = _small_squares_frame()
+    image, _, _, truth = make_view(board, Camera.from_fov(1280, 720, hfov_deg=60.0), distance=1.6, tilt_x_deg=15)
+    searches = []
+    find_cells = placement.find_cells
+    monkeypatch.setattr(placement, "find_cells", lambda *args, **kwargs: searches.append(1) or find_cells(*args, **kwargs))
+    with StageTimes() as times:
+        found = Detector(board=board).detect(image)
+    assert times.counts["network 0"] == 1 and times.counts["network 1"] == 1 and len(searches) == 1
+    assert len(found) == board.num_corners and np.abs(found.corners - truth[found.ids]).max() < 0.1
+
+
 def test_an_expected_board_its_level_does_not_find_is_looked_for_at_the_coarser_levels(monkeypatch):
     """Where the level an expected board's squares call for finds nothing (a blurred board the coarse level still
     reads), the coarser levels are searched after it, and only they: the finer ones were searched."""
