@@ -45,8 +45,7 @@ from deepcharuco.detection.markers.settling import drop_isolated, neighbour_dist
 from deepcharuco.detection.markers.verification import layout_ends_short, marker_view_verified
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
-from deepcharuco.detection.tracking import MIN_CORNERS as MIN_TRACKED_CORNERS
-from deepcharuco.detection.tracking import search_region
+from deepcharuco.detection.tracking import MIN_CORNERS as MIN_TRACKED_CORNERS, search_region
 from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.cells import CELL, best_per_id, cell_candidates, cell_confidence
@@ -395,7 +394,6 @@ class Detector:
         self._board_xy = self.board.corner_points()[:, :2]
         if geometry == "markers":  # drawn now, not in the first frame that fills a corner in (~50 ms for 11x8 squares)
             printed_pattern(self.board)
-        self.network = network
         # The fast networks lose some boards the lite ones read (steep, cut by the frame's edge, dark): where a tracked
         # board (``expected``) is lost to them, the lite networks look in the same crop (`backup`), built when first
         # needed (a `BoardTracker` asks at once; a photo never needs it). Deep alone: in hybrid mode OpenCV has just
@@ -702,7 +700,7 @@ class Detector:
             tally("levels")
             level_found, next_boxes = None, []
             # A board the level before verified by its markers, with squares too narrow there, is looked for in that
-            # view first, as a tracked board is: the same frames and corners on the real videos, 0-5 % less time.
+            # view first, as a tracked board is: the same frames on the real videos, 0-6 % less time.
             level_prior = prior if found is None or found.view is None else \
                 from_level(found.view, found.box, found.gray.shape, found.region.shape)
             for box in boxes:

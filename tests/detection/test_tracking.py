@@ -320,13 +320,19 @@ def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_sear
     np.testing.assert_allclose(found.corners, searched.corners, atol=1e-3)
 
 
-def _small_squares_frame():
-    """A 4x5 inverted board (found by its markers) with squares ~35 px in a 1280x720 frame: ~9 px at the 320-px
-    level, too narrow to stop the search there; ~17 px at 640."""
+def _small_squares_view():
+    """(board, image, true corners): a 4x5 inverted board (found by its markers) with squares ~35 px in a 1280x720
+    frame: ~9 px at the 320-px level, too narrow to stop the search there; ~17 px at 640."""
     board = BoardSpec(squares_x=4, squares_y=5, square_length=0.05, marker_length=0.0375,
                       dictionary="DICT_4X4_1000", inverted=True)
     camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
-    return board, make_view(board, camera, distance=1.6, tilt_x_deg=15)[0]
+    image, _, _, truth = make_view(board, camera, distance=1.6, tilt_x_deg=15)
+    return board, image, truth
+
+
+def _small_squares_frame():
+    board, image, _ = _small_squares_view()
+    return board, image
 
 
 def test_an_expected_board_is_searched_first_at_the_level_where_its_squares_are_wide_enough():
@@ -352,8 +358,7 @@ def test_a_board_a_coarse_level_found_with_narrow_squares_is_looked_for_in_that_
     coarse level alone, and the corners are the board's."""
     import deepcharuco.detection.markers.placement as placement
 
-    board, _ = _small_squares_frame()
-    image, _, _, truth = make_view(board, Camera.from_fov(1280, 720, hfov_deg=60.0), distance=1.6, tilt_x_deg=15)
+    board, image, truth = _small_squares_view()
     searches = []
     find_cells = placement.find_cells
     monkeypatch.setattr(placement, "find_cells", lambda *args, **kwargs: searches.append(1) or find_cells(*args, **kwargs))
