@@ -28,7 +28,7 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.boards.synthetic import look_at_pose
 from deepcharuco.geometry.pose import project_corners
 from evaluate.paper.protocols import DARKNESS_BASE
-from evaluate.speed.realistic import board_layer, clutter
+from evaluate.speed.realistic import board_layer, clutter, webcam_K
 
 CONDITIONS = ("good", "dark", "shake")
 SIZE = (1280, 720)
@@ -70,12 +70,6 @@ class _Place:
     tilt_x: float
     tilt_y: float
     roll: float
-
-
-def _camera(size: tuple[int, int]) -> np.ndarray:
-    width, height = size
-    focal = 0.9 * width
-    return np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1.0]])
 
 
 def _place(board: BoardSpec, K: np.ndarray, size: tuple[int, int], rng: np.random.Generator) -> _Place:
@@ -159,7 +153,7 @@ def drawn_video(board: BoardSpec, *, seed: int, frames: int = 150, condition: st
         raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}, got {condition!r}")
     rng = np.random.default_rng(seed)  # the scene: the same motion under every condition
     noise = np.random.default_rng([seed, CONDITIONS.index(condition)])
-    K = _camera(size)
+    K = webcam_K(size)
     background = clutter(rng, size).astype(np.float32)
     places = _trajectory(board, K, size, frames, rng)
     width, height = size

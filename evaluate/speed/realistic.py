@@ -116,14 +116,22 @@ class Placement:
     roll_deg: float = 30.0
 
 
+def webcam_K(size: tuple[int, int]) -> np.ndarray:
+    """(3, 3) K of the frames drawn here, ``size`` (W, H): a webcam's focal length, 0.9 x the width (~58 degrees
+    across), the principal point at the centre (OpenCV pixel centres)."""
+    width, height = size
+    focal = 0.9 * width
+    return np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1.0]])
+
+
 def with_board(board: BoardSpec, background: np.ndarray, rng: np.random.Generator, placement: Placement,
                name: str = "") -> TestFrame:
     """``background`` (H, W) uint8 with ``board`` drawn into it, wholly inside the frame, its width about a
     ``placement`` share of the frame's (less where a board that wide would not fit), lit by a random gain (a board in the shade of a brighter room), and
     sensor noise over everything. Truth: the projected corners (OpenCV pixel centres), pose and K."""
     height, width = background.shape
-    focal = 0.9 * width
-    K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1.0]])
+    K = webcam_K((width, height))
+    focal = K[0, 0]
     board_width = max(board.size_m)
     share = rng.uniform(placement.low, placement.high)
     for _ in range(200):
@@ -174,8 +182,7 @@ def _outline(board: BoardSpec, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
 def without_board(background: np.ndarray, name: str = "") -> TestFrame:
     """A frame with no board: every corner a detector reports there is wrong."""
     height, width = background.shape
-    K = np.array([[0.9 * width, 0, (width - 1) / 2], [0, 0.9 * width, (height - 1) / 2], [0, 0, 1.0]])
-    return TestFrame(background, np.zeros((0, 2), np.float32), np.zeros(0, bool), K, name=name)
+    return TestFrame(background, np.zeros((0, 2), np.float32), np.zeros(0, bool), webcam_K((width, height)), name=name)
 
 
 def fit(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
