@@ -213,7 +213,8 @@ def main() -> None:
                         help="where the deep detector's networks run: cpu (default), cuda, ... (PyTorch on a GPU)")
     parser.add_argument("--candidate", type=Path, default=None,
                         help="other weights to time and score beside the shipped ones in the same run: a checkpoint, "
-                             "a bundle, or a folder laid out as deepcharuco/weights (e.g. distilled fast networks)")
+                             "a bundle, or a folder laid out as deepcharuco/weights (e.g. distilled fast networks; "
+                             "deepcharuco/weights/fast is network='fast', with the lite networks behind its tracking)")
     args = parser.parse_args()
     if args.count < 1:
         parser.error("--count must be >= 1")
