@@ -126,6 +126,10 @@ SECOND_ID_MIN_PROB = 0.001
 # "hybrid": OpenCV first, kept when the board's geometry verifies it; the networks only where it fails.
 MODES = ("deep", "hybrid")
 
+# Where an inverted print the first search does not find is searched again negated about its local white
+# (`Detector.detect`'s ``local_white``): in every frame, or only in a dim one (a `BoardTracker`'s whole frames).
+LOCAL_WHITE = ("always", "dim")
+
 
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
@@ -313,6 +317,7 @@ class Detector:
         self._each: list[Detector] = []
         self._backup_options: dict | None = None  # `backup`'s arguments (the fast networks')
         self._backup: Detector | None = None
+        self.local_white_skipped = False  # whether the last `detect` left an inverted print's second search out
         given_weights, given_geometry, weights = weights, geometry, network_weights(network, weights, device)
         if network == "lite" and weights is not None and Path(weights).resolve() == FAST_WEIGHTS_DIR.resolve():
             network = "fast"  # the shipped fast networks named by their folder (the CLI's --network fast)
@@ -438,7 +443,7 @@ class Detector:
         return detect_board_result(self.detect(image))
 
     def detect(self, image: np.ndarray, *, working_size: int | None = None, levels: int | None = None,
-               expected: Detection | None = None) -> Detection:
+               expected: Detection | None = None, local_white: str = "always") -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -459,13 +464,19 @@ class Detector:
         fails. With ``network="fast"``, where the fast networks find fewer corners than a tracker keeps (4), the lite
         networks search the image as well (`backup`): on the real videos that found the lite networks' frames on every
         lit video, for 0-9 % of the fast networks' speed (docs/detector.md, "The lite networks behind the fast ones").
+        ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
+        searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
+        only in a dim frame (`search_regions.is_dim` of its coarse level). A `BoardTracker`'s whole-frame searches ask
+        for "dim": in a lit frame without a board the second search doubled the cost, and a tracker's crops and look
+        back keep it. ``local_white_skipped`` then says whether this call left it out.
 
         numpy's BLAS runs single-threaded for the call (`core.blas.single_threaded_blas`) and is restored after."""
         if self._each:
             raise DeepCharucoError(f"this Detector finds {len(self._each)} boards: detect_boards(image) returns one "
                                    f"Detection per board")
+        check_choice("local_white", local_white, LOCAL_WHITE)
         with single_threaded_blas():
-            found = self._detect(image, working_size, levels, expected)
+            found = self._detect(image, working_size, levels, expected, local_white)
         if expected is not None and len(found) < MIN_TRACKED_CORNERS and self._backup_options is not None:
             tally("backup looks")
             found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
@@ -481,7 +492,8 @@ class Detector:
         return self._backup
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
-                expected: Detection | None = None) -> Detection:
+                expected: Detection | None = None, local_white: str = "always") -> Detection:
+        self.local_white_skipped = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
         # next full search runs OpenCV; a whole video looks back from it (`BoardTracker.push`).
@@ -495,16 +507,19 @@ class Detector:
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
         working_size = working_size or self.working_size
         prior = self._expected_view(expected, full.shape[1])
-        found, board_like = self._search(full, working_size, levels, prior,
-                                         None if prior is None else corner_spacing(expected.corners))
-        if found is None and board_like and self.geometry == "markers" and self.board.inverted and levels is None:
+        found, board_like, dim = self._search(full, working_size, levels, prior,
+                                              None if prior is None else corner_spacing(expected.corners))
+        second = found is None and board_like and self.geometry == "markers" and self.board.inverted and levels is None
+        self.local_white_skipped = second and local_white == "dim" and not dim
+        if second and not self.local_white_skipped:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
             # Only where the first search saw board-like cells: a frame without a board was searched twice. Not in a
-            # quick look at the first levels (`BoardTracker` while the board is away): the next full search does it.
+            # quick look at the first levels, nor in a lit frame where the caller asks (``local_white`` "dim": a
+            # `BoardTracker`'s whole frames, which its crops and its look back cover).
             with stage("canonical view"):
                 full = canonical_view_local_white(gray_u8, self.board)
-            found, _ = self._search(full, working_size, levels, prior)
+            found, _, _ = self._search(full, working_size, levels, prior)
         if found is None:
             return Detection.empty()
         region = found.region
@@ -633,9 +648,11 @@ class Detector:
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
     def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None,
-                prior: np.ndarray | None = None, expected_spacing: float | None = None) -> tuple[Found | None, bool]:
+                prior: np.ndarray | None = None, expected_spacing: float | None = None
+                ) -> tuple[Found | None, bool, bool]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
-        that decided found, or None; whether any level saw board-like cells or a board).
+        that decided found, or None; whether any level saw board-like cells or a board; whether the first level searched
+        whole was dim, `search_regions.is_dim`).
 
         The preview (``self.preview``, images no longer than ``working_size``) stands when it holds the whole
         board in view. Levels no longer than `WHOLE_SEARCH_SIZE` are searched whole; a finer one only where the
@@ -654,16 +671,17 @@ class Detector:
             gray = reduced(full, 0.5)
             ids, pixels, scores, early, _, view = self._find(gray, full, "preview")
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
-                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True
+                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True, \
+                    is_dim(gray)
             # part of the board, or squares too small to trust: the full image decides alone
         scales = self._level_scales(max(height, width), working_size)[:levels]
         start = self._expected_start(scales, max(height, width), expected_spacing)
         if start:
-            found, board_like = self._search_levels(full, scales, start, len(scales), prior)
+            found, board_like, dim = self._search_levels(full, scales, start, len(scales), prior)
             if found is not None:
-                return found, board_like
-            found, coarse_like = self._search_levels(full, scales, 0, start, prior)
-            return found, board_like or coarse_like
+                return found, board_like, dim
+            found, coarse_like, dim = self._search_levels(full, scales, 0, start, prior)
+            return found, board_like or coarse_like, dim
         return self._search_levels(full, scales, 0, len(scales), prior)
 
     @staticmethod
@@ -679,9 +697,9 @@ class Detector:
         return start if scales[start] * longest <= WHOLE_SEARCH_SIZE else 0
 
     def _search_levels(self, full: np.ndarray, scales: list[float], first: int, stop: int,
-                       prior: np.ndarray | None) -> tuple[Found | None, bool]:
+                       prior: np.ndarray | None) -> tuple[Found | None, bool, bool]:
         """`_search` through the levels ``scales[first:stop]``, the first of them whole -> (what the level that
-        decided found, or None; whether any of them saw board-like cells or a board)."""
+        decided found, or None; whether any of them saw board-like cells or a board; whether the first was dim)."""
         height, width = full.shape
         whole: Box = (0, 0, width, height)
         found, board_like, boxes, dim = None, False, [whole], False
@@ -724,7 +742,7 @@ class Detector:
                 found = level_found
                 if corner_spacing(found.pixels) >= MIN_SQUARE_PX:
                     break  # squares large enough here: a finer level would cost more and find no more
-        return found, board_like
+        return found, board_like, dim
 
     def _whole_view_found(self, ids: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether (ids, pixels) are every board corner that their view (a homography fitted to them) puts

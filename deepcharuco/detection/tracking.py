@@ -15,14 +15,21 @@ frame, and the frames between at the coarse level alone (`Detector.detect`'s ``l
 enough to be read there (squares of ~12 px or more at 320 px: a 5x5-square board a fifth of a 1280x720
 frame's width) is found at once, a smaller one up to N - 1 frames late. A hybrid `Detector` looks with its networks
 alone there: a board that only OpenCV reads is found by the next search of every level. A frame without a board costs
-most (every level is searched, and twice for an inverted print); in a live camera's stream it is most of the
+most (every level is searched, and twice for an inverted print in a dim frame); in a live camera's stream it is most of the
 frames while the board is away.
+
+An inverted print is searched again negated about its local white where a detector's first search finds nothing
+(`Detector.detect`'s ``local_white``): under a shadow, or dim under a lamp, it shows there alone. The tracker's
+whole-frame searches leave that second search out of lit frames and keep it in dim ones and in its crops: in a lit
+frame without a board it doubled the cost, and in lit frames what it found was found from the neighbouring frames
+(docs/detector.md, "An inverted print's second search left to the crops").
 
 A whole video need not answer frame by frame: `BoardTracker.push` holds back the frames that found nothing (up to
 `HOLD_BYTES` of them), and when a later frame finds the board, looks back through them, newest first, around the
-board as if tracking it backwards, until one shows it no more; a frame that had only the coarse look is searched whole
-there before the look back stops, as a search of every level would have. A small board is then found in the frames a
-quicker search reached late, and a board a whole search missed in one frame (blurred) is kept from the frame after it.
+board as if tracking it backwards, until one shows it no more; a frame whose search left something out (the coarse look
+alone, or an inverted print's second search) is searched whole, with everything, there before the look back stops, as
+a full search would have. A small board is then found in the frames a quicker search reached late, and a board a whole
+search missed in one frame (blurred) is kept from the frame after it.
 
 A `Detector` with the fast networks (``network="fast"``) hands a crop they lose the board in to its lite networks
 (`Detector.backup`): the tracker asks once, the detector answers with whichever found it.
@@ -97,9 +104,14 @@ class BoardTracker:
         self._region: tuple[int, int, int, int] | None = None
         self._last = Detection.empty()  # the board found in the frame before
         self._takes_expected = _takes(detector, "expected")
+        # Whole-frame searches leave an inverted print's second search (about its local white) out of lit frames
+        # (module docstring); a print that is not inverted has none to leave out.
+        inverted = bool(getattr(getattr(detector, "board", None), "inverted", False))
+        self._whole_options = {"local_white": "dim"} if inverted and _takes(detector, "local_white") else {}
+        self._left_out = False  # whether the last whole-frame search left something out
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
-        # `push`: the frames that found nothing (image, detection, whether it had only the coarse look)
+        # `push`: the frames that found nothing (image, detection, whether its search left something out)
         self._held: list[tuple[np.ndarray, Detection, bool]] = []
         self.last_search = "full"
         self.looked_back = 0  # frames `push` found the board in by looking back
@@ -130,7 +142,7 @@ class BoardTracker:
         if not self.look_back:
             return [detection]
         if len(detection) < MIN_CORNERS:
-            self._held.append((image, detection, self.last_search == "coarse"))
+            self._held.append((image, detection, self._left_out))
             return self._over_budget()
         settled = self._looked_back(detection)
         self._held.clear()
@@ -151,12 +163,12 @@ class BoardTracker:
 
     def _looked_back(self, found: Detection) -> list[Detection]:
         """The held frames' detections, oldest first, each held frame searched again from the newest back around
-        the board in the frame after it (whole where that fails and it had only the coarse look), until one finds
-        too few corners."""
+        the board in the frame after it (whole, with everything, where that fails and its search left something out),
+        until one finds too few corners."""
         later, revised = found, []
-        for image, _, quick in reversed(self._held):
+        for image, _, partial in reversed(self._held):
             around = self._around(image, later)
-            if len(around) < MIN_CORNERS and quick:
+            if len(around) < MIN_CORNERS and partial:
                 around = self.detector.detect(image)
             if len(around) < MIN_CORNERS:
                 break
@@ -174,7 +186,7 @@ class BoardTracker:
             detection = self._around(image, self._last)
             if len(detection) >= MIN_CORNERS:
                 self._follow(detection, (width, height))
-                self.last_search = "crop"
+                self.last_search, self._left_out = "crop", False
                 return detection
             self._coarse_left = 0  # the board was just lost: it may have shrunk or left by an edge
         if self._region is None and self._coarse_left > 0:
@@ -183,9 +195,10 @@ class BoardTracker:
             self._follow(detection, (width, height))
             if self._region is not None:
                 self._since_full = 0
-            self.last_search = "coarse"
+            self.last_search, self._left_out = "coarse", True
             return detection
-        detection = self.detector.detect(image)
+        detection = self.detector.detect(image, **self._whole_options)
+        self._left_out = bool(self._whole_options) and bool(getattr(self.detector, "local_white_skipped", False))
         self._since_full = 0
         if refreshing and len(detection) < MIN_CORNERS:
             # A refresh that finds nothing keeps the board the crop still finds: a still board half out of the frame,
@@ -194,7 +207,7 @@ class BoardTracker:
             if len(around) >= MIN_CORNERS:
                 detection = around
                 self._follow(detection, (width, height))
-                self.last_search = "crop"
+                self.last_search, self._left_out = "crop", False
                 return detection
         self._follow(detection, (width, height))
         self._coarse_left = self.search_every - 1 if self._region is None else 0

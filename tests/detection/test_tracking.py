@@ -287,7 +287,7 @@ def test_the_fast_networks_hand_a_tracked_board_they_lose_to_the_lite_ones(monke
     before = tracker.detect(image)
     assert len(before) == 16
     for detector in (fast, lite):  # their networks now see no board
-        monkeypatch.setattr(detector, "_search", lambda *args, **kwargs: (None, False))
+        monkeypatch.setattr(detector, "_search", lambda *args, **kwargs: (None, False, False))
     with StageTimes() as times:
         assert len(fast.detect(image)) == 0 and len(lite.detect(image, expected=before)) == 0
     assert "backup looks" not in times.counts
@@ -379,7 +379,7 @@ def test_an_expected_board_its_level_does_not_find_is_looked_for_at_the_coarser_
 
     def finer_levels_find_nothing(self, full, scales, first, stop, prior):
         searches.append((first, stop, len(scales)))
-        return (None, False) if first > 0 else original(self, full, scales, first, stop, prior)
+        return (None, False, False) if first > 0 else original(self, full, scales, first, stop, prior)
 
     monkeypatch.setattr(Detector, "_search_levels", finer_levels_find_nothing)
     with StageTimes() as times:
@@ -410,6 +410,54 @@ def test_a_quick_look_leaves_the_inverted_prints_second_search_to_the_full_searc
     detector = Detector(board=ours)
     assert len(detector.detect(image)) == 0 and len(calls) == 1
     assert len(detector.detect(image, levels=1)) == 0 and len(calls) == 1
+    # A tracker's whole frames: only in a dim one (the image darkened to a tenth of its light).
+    assert len(detector.detect(image, local_white="dim")) == 0 and len(calls) == 1 and detector.local_white_skipped
+    dim = (image.astype(np.float32) * 0.1).round().astype(np.uint8)
+    assert len(detector.detect(dim, local_white="dim")) == 0 and len(calls) == 2 and not detector.local_white_skipped
+    assert len(detector.detect(dim)) == 0 and len(calls) == 3 and not detector.local_white_skipped
+    with pytest.raises(ValueError, match="local_white"):
+        detector.detect(image, local_white="never")
+
+
+class Shadowed(Numbered):
+    """`Numbered` for an inverted print (``inverted``) in lit frames: in frame ``shadowed`` only a whole-frame search
+    that also looks about the local white (``local_white`` "always") finds the board; records each call's
+    ``local_white``."""
+
+    def __init__(self, present, shadowed, inverted=True):
+        super().__init__(present)
+        self.shadowed, self.board, self.local_white = shadowed, BoardSpec(inverted=inverted), []
+        self.local_white_skipped = False
+
+    def detect(self, image, working_size=None, levels=None, local_white="always"):
+        whole = image.shape == (720, 1280)
+        self.local_white.append((int(image.flat[0]), "crop" if not whole else "coarse" if levels == 1 else "full",
+                                 local_white))
+        self.local_white_skipped = whole and levels is None and local_white == "dim"
+        if int(image.flat[0]) == self.shadowed and not (whole and levels is None and local_white == "always"):
+            self.calls.append((self.shadowed, "crop" if not whole else "full"))
+            return Detection.empty()
+        return super().detect(image, working_size, levels)
+
+
+def test_a_tracker_leaves_an_inverted_prints_second_search_to_its_crops_and_its_look_back():
+    """The board is in frames 3-7 (lit); in frame 3 only the search about the local white finds it. The tracker's
+    whole frames leave that search out of lit frames (frame 3 is then found a frame late); looking back, frame 3's crop
+    misses it and frame 3, whose search left that out, is searched whole with it."""
+    present = {3, 4, 5, 6, 7}
+    found = lambda detections: [n for n, d in enumerate(detections) if len(d) >= 4]  # noqa: E731
+    camera = Shadowed(present, 3)
+    assert found(detect_all(BoardTracker(camera, look_back=False), video(9))) == [4, 5, 6, 7]
+    assert (3, "full", "dim") in camera.local_white and (3, "full", "always") not in camera.local_white
+    detector = Shadowed(present, 3)
+    assert found(detect_all(BoardTracker(detector), video(9))) == [3, 4, 5, 6, 7]
+    after = detector.local_white[detector.local_white.index((4, "full", "dim")) + 1:]
+    assert after[:2] == [(3, "crop", "always"), (3, "full", "always")]
+    assert {call for call in detector.local_white if call[1] == "crop"} <= {(n, "crop", "always") for n in range(9)}
+    # a print that is not inverted has no second search to leave out: every search is whole
+    plain = Shadowed(present, 3, inverted=False)
+    assert found(detect_all(BoardTracker(plain, look_back=False), video(9))) == [3, 4, 5, 6, 7]
+    assert all(local_white == "always" for _, _, local_white in plain.local_white)
 
 
 def test_a_whole_video_looks_back_for_the_board_the_quick_search_reached_late():
