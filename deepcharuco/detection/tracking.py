@@ -15,8 +15,8 @@ frame, and the frames between at the coarse level alone (`Detector.detect`'s ``l
 enough to be read there (squares of ~12 px or more at 320 px: a 5x5-square board a fifth of a 1280x720
 frame's width) is found at once, a smaller one up to N - 1 frames late. A hybrid `Detector` looks with its networks
 alone there: a board that only OpenCV reads is found by the next search of every level. A frame without a board costs
-most (every level is searched, and twice for an inverted print in a dim frame); in a live camera's stream it is most of the
-frames while the board is away.
+most (every level is searched, and twice for an inverted print in a dim frame); in a live camera's stream it is most
+of the frames while the board is away.
 
 An inverted print is searched again negated about its local white where a detector's first search finds nothing
 (`Detector.detect`'s ``local_white``): under a shadow, or dim under a lamp, it shows there alone. The tracker's
