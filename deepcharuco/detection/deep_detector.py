@@ -652,7 +652,7 @@ class Detector:
                 ) -> tuple[Found | None, bool, bool]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
         that decided found, or None; whether any level saw board-like cells or a board; whether the first level searched
-        whole was dim, `search_regions.is_dim`).
+        whole was dim, `search_regions.is_dim`: False where the preview found the board).
 
         The preview (``self.preview``, images no longer than ``working_size``) stands when it holds the whole
         board in view. Levels no longer than `WHOLE_SEARCH_SIZE` are searched whole; a finer one only where the
@@ -671,8 +671,8 @@ class Detector:
             gray = reduced(full, 0.5)
             ids, pixels, scores, early, _, view = self._find(gray, full, "preview")
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
-                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True, \
-                    is_dim(gray)
+                # dim is asked only where nothing is found: not worked out for a board the preview found
+                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True, False
             # part of the board, or squares too small to trust: the full image decides alone
         scales = self._level_scales(max(height, width), working_size)[:levels]
         start = self._expected_start(scales, max(height, width), expected_spacing)

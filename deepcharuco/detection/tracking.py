@@ -198,7 +198,7 @@ class BoardTracker:
             self.last_search, self._left_out = "coarse", True
             return detection
         detection = self.detector.detect(image, **self._whole_options)
-        self._left_out = bool(self._whole_options) and bool(getattr(self.detector, "local_white_skipped", False))
+        self._left_out = bool(getattr(self.detector, "local_white_skipped", False))  # only "dim" leaves anything out
         self._since_full = 0
         if refreshing and len(detection) < MIN_CORNERS:
             # A refresh that finds nothing keeps the board the crop still finds: a still board half out of the frame,
