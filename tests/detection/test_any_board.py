@@ -8,7 +8,7 @@ import pytest
 from deepcharuco import BoardSpec, Camera, Detector, OpenCVDetector, project_corners
 from deepcharuco.boards.synthetic import look_at_pose, render_board_view, texture_homography
 from deepcharuco.detection import deep_detector
-from deepcharuco.detection.markers import placement
+from deepcharuco.detection.markers import lattice as lattice_module, placement
 from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, squarest_cells
 from deepcharuco.detection.markers.marker_reader import board_markers, correlate, read_squares
 from deepcharuco.detection.markers.verification import marker_agreement
@@ -60,6 +60,23 @@ def test_cells_of_a_perspective_lattice_each_once_right_handed():
         ab, ac = points[b] - points[a], points[c] - points[a]
         assert ab[0] * ac[1] - ab[1] * ac[0] > 0
         assert np.allclose(points[b] + points[c] - points[a], points[d], atol=0.25 * min(np.hypot(*ab), np.hypot(*ac)))
+
+
+@pytest.mark.parametrize("count", [40, 300])  # measured against each other, and through the k-d tree
+def test_nearest_candidates_are_nearest_first_and_equal_distances_by_index(count):
+    """`lattice._nearest` gives what measuring every pair and a stable sort give, on whole pixels (many equal
+    distances), and where more points are equally near than its tree was asked for: twenty points 25 px from one."""
+    rng = np.random.default_rng(3)
+    ring = np.array([(x, y) for x in range(-25, 26) for y in range(-25, 26) if x * x + y * y == 625], np.float64)
+    rng.shuffle(ring)
+    points = np.r_[np.rint(rng.uniform(0, 640, (count - 21, 2))), [[700.0, 700.0]], ring + 700]
+    difference = points[:, None] - points[None]
+    squared = (difference ** 2).sum(axis=-1)
+    np.fill_diagonal(squared, np.inf)
+    expected = np.argsort(squared, axis=1, kind="stable")[:, :lattice_module.NEIGHBOURS]
+    near = lattice_module._nearest(points, lattice_module.NEIGHBOURS)
+    assert len(ring) == 20 and np.array_equal(near, expected)
+    assert near[count - 21].tolist() == list(range(count - 20, count - 12))  # the ring's first eight, by index
 
 
 def test_cell_maps_carry_the_unit_square_onto_each_quad_as_opencv_does():

@@ -18,8 +18,9 @@ unit frame differs from the board's square frame by a rotation of 0-3 quarter tu
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from deepcharuco.core.vectors import lengths, pairwise_distances
+from deepcharuco.core.vectors import lengths
 
 try:  # `find_cells`' and `squarest_cells`' loops compiled (pip install deepcharuco[fast]); else numpy's, the same cells
     import deepcharuco.detection.markers.decode_kernel as compiled_kernel
@@ -27,6 +28,10 @@ except ImportError:
     compiled_kernel = None
 
 NEIGHBOURS = 8  # nearest candidates a corner pairs up: its 4 lattice neighbours and 4 diagonals
+NEAREST_EXTRA = 4  # `_nearest` asks its tree for this many more, so that a tie at the k-th rarely needs every point
+# Fewer points are measured against each other: the tree's fixed cost (~0.15 ms) is more than that below ~64-96 points;
+# at 300 (`placement.SEARCH_CANDIDATES`) the tree takes a fifth of the time (this 2-core EPYC, 2026-11-28).
+TREE_FROM_POINTS = 64
 # d may miss b + c - a by this fraction of the shorter side (perspective, lens distortion, jitter).
 CLOSURE_TOLERANCE = 0.25
 MAX_SIDE_RATIO = 2.5  # sides of one cell: foreshortening stretches them, not beyond this
@@ -154,18 +159,43 @@ def quad_areas(corners: np.ndarray) -> np.ndarray:
     return 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
 
 
-def _nearest(points: np.ndarray, k: int, block: int = 1024) -> np.ndarray:
-    """(N, 2) points -> (N, k) indices of each point's k nearest others, in blocks of rows (memory O(block N))."""
-    near = np.empty((len(points), k), np.int64)
-    for start in range(0, len(points), block):
-        rows = np.arange(start, min(start + block, len(points)))
-        distance = pairwise_distances(points[rows], points)
-        distance[np.arange(len(rows)), rows] = np.inf
-        part = np.argpartition(distance, k - 1, axis=1)[:, :k] if k < len(points) - 1 else \
-            np.argsort(distance, axis=1)[:, :k]
-        order = np.argsort(np.take_along_axis(distance, part, axis=1), axis=1, kind="stable")
-        near[rows] = np.take_along_axis(part, order, axis=1)
+def _nearest(points: np.ndarray, k: int) -> np.ndarray:
+    """(N, 2) points -> (N, k) indices of each point's k nearest others, nearest first, equal distances by index.
+
+    Above `TREE_FROM_POINTS` points a k-d tree (scipy's) finds a few more than k of each; where the k-th of them is as
+    far as the farthest found, an equally far point may be among those it left out, and that row is measured against
+    every point (`_nearest_of`). Candidates sit on whole pixels, so many distances are equal: the index settles them,
+    the same way on every machine."""
+    count = len(points)
+    reach = k + 1 + NEAREST_EXTRA  # itself, k others and a few beyond
+    if count <= max(reach, TREE_FROM_POINTS):
+        return _nearest_of(points, k, np.arange(count))
+    rows = np.arange(count)
+    _, found = cKDTree(points).query(points, reach)
+    found = np.asarray(found, np.int64)
+    squared = _squared_distances(points[:, None], points[found])  # exact on whole pixels, unlike the tree's sqrt
+    squared[found == rows[:, None]] = np.inf  # the point itself: last
+    order = np.lexsort((found, squared), axis=1)  # by distance, then by index
+    found, squared = np.take_along_axis(found, order, axis=1), np.take_along_axis(squared, order, axis=1)
+    near = found[:, :k].copy()
+    farthest = np.where(np.isinf(squared), -1.0, squared).max(axis=1)
+    unsure = ~np.isinf(squared[:, -1]) | (squared[:, k - 1] >= farthest)  # itself not found (duplicates), or a tie
+    if unsure.any():
+        near[unsure] = _nearest_of(points, k, rows[unsure])
     return near
+
+
+def _nearest_of(points: np.ndarray, k: int, rows: np.ndarray) -> np.ndarray:
+    """`_nearest` of the points ``rows`` (R,) measured against every point: (R, k), in the same order."""
+    squared = _squared_distances(points[rows][:, None], points[None])
+    squared[np.arange(len(rows)), rows] = np.inf
+    return np.argsort(squared, axis=1, kind="stable")[:, :k]
+
+
+def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared distances between broadcast (..., 2) points ``a`` and ``b``."""
+    d = a - b
+    return d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
 
 
 def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
