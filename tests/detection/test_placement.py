@@ -307,6 +307,28 @@ def test_an_expected_view_names_the_corners_without_the_search_through_the_cells
     assert marker_view is not None and np.array_equal(ids, searched[0]) and np.array_equal(found, searched[1])
 
 
+@pytest.mark.parametrize("second_pass_view, checks", [("the same", 1), ("another", 2)])
+def test_a_view_the_checks_refused_is_not_checked_again_by_the_second_pass(monkeypatch, second_pass_view, checks):
+    """The search's second pass (every cell) finding the view its first (the squarest cells) found and the checks
+    refused: refused again without reading its markers again; another view is checked."""
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    candidates = CellCandidates(np.zeros((8, 2), np.float32), np.full(8, 0.9, np.float32), np.zeros((8, 0), np.float32))
+    monkeypatch.setattr(placement, "find_cells", lambda pixels: np.zeros((2, 4), np.int64))
+    monkeypatch.setattr(placement, "squarest_cells", lambda pixels, quads: quads[:1])
+    first = placement.MarkerView(view=placement.BoardView(homography=np.eye(3), inliers=np.ones(4, bool)),
+                                 marker_ids=np.array([3, 4]), reads=5)
+    again = placement.MarkerView(view=placement.BoardView(homography=np.eye(3), inliers=np.ones(4, bool)),
+                                 marker_ids=np.array([3, 4]), reads=7)  # found again, from more reads
+    other = placement.MarkerView(view=placement.BoardView(homography=np.diag([2.0, 2.0, 1.0]), inliers=np.ones(4, bool)),
+                                 marker_ids=np.array([3, 4]), reads=5)
+    views = iter([first, again if second_pass_view == "the same" else other])
+    monkeypatch.setattr(placement, "find_marker_view", lambda *args, **kwargs: next(views))
+    checked = []
+    monkeypatch.setattr(placement, "_verified_corners", lambda *args, **kwargs: checked.append(args[4]))
+    (ids, _, _), marker_view = placement.corners_from_markers(np.zeros((240, 320), np.uint8), board, candidates)
+    assert len(ids) == 0 and marker_view is None and len(checked) == checks
+
+
 def test_a_wrong_expected_view_is_refused_by_the_markers_and_the_cells_searched():
     """An expected view two squares off (its corners land on other corners of the board, its markers on other
     markers): the markers refuse it, the search through the cells finds the board as without it."""
