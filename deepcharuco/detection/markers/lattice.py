@@ -18,7 +18,6 @@ unit frame differs from the board's square frame by a rotation of 0-3 quarter tu
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from deepcharuco.core.vectors import lengths
 
@@ -171,6 +170,8 @@ def _nearest(points: np.ndarray, k: int) -> np.ndarray:
     if count <= max(reach, TREE_FROM_POINTS):
         return _nearest_of(points, k, np.arange(count))
     rows = np.arange(count)
+    from scipy.spatial import cKDTree  # here: importing scipy.spatial takes ~0.4 s, which a small search never needs
+
     _, found = cKDTree(points).query(points, reach)
     found = np.asarray(found, np.int64)
     squared = _squared_distances(points[:, None], points[found])  # exact on whole pixels, unlike the tree's sqrt
