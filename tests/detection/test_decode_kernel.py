@@ -116,6 +116,26 @@ def test_kernels_compute_the_numpy_paths_values():
         assert compiled.dtype == plain.dtype and np.array_equal(compiled, plain)
 
 
+def test_squares_inside_kernel_decides_as_numpy():
+    """Squares inside a 640x480 image, across its edges, beyond it, behind the camera and degenerate: the same
+    decisions, corners exactly on the image's last pixel among them."""
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    rng = np.random.default_rng(8)
+    width, height = 640, 480
+    squares = random_squares(rng, 400, (width, height)).astype(np.float64)
+    near_edges = rng.uniform(-30, 30, (100, 2)) + rng.choice([0, 1], (100, 2)) * [width, height]
+    squares[100:200, :2] -= squares[100:200, 2:, :] * (squares[100:200, :2, 2:] / squares[100:200, 2:, 2:])
+    squares[100:200, :2] += squares[100:200, 2:, :] * near_edges[:, :, None]  # moved onto the edges
+    squares[200:220] *= -1  # w < 0: behind the camera
+    squares[220:230, 2] = 0  # w = 0: the corners at infinity
+    edge = np.array([[width - 11.0, 0.0, 10.0], [0.0, height - 11.0, 10.0], [0.0, 0.0, 1.0]])  # corners on 0 and W - 1
+    squares = np.concatenate([squares, edge[None], (edge + np.diag([1e-9, 0, 0]))[None]])
+    compiled = kernel.squares_inside(np.ascontiguousarray(squares), width, height)
+    plain = marker_reader._squares_inside(squares, width, height)
+    assert compiled.dtype == plain.dtype == bool and np.array_equal(compiled, plain)
+    assert 100 < plain.sum() < len(squares) - 100 and plain[-2] and not plain[-1]  # ~a third outside
+
+
 def test_squarest_cells_kernel_keeps_the_same_cells(monkeypatch):
     kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
     rng = np.random.default_rng(3)

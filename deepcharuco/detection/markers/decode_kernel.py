@@ -1,8 +1,9 @@
 """The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
-decisions as their numpy paths (`marker_reader._square_maps`, `marker_reader._reduce_reads`, `lattice._cell_quads`,
-`lattice.cell_homographies`, `lattice.squarest_cells`, `placement._square_sides`, `placement._agreement`), in one
-pass over the data instead of numpy's many passes and temporaries, which are most of those paths' time on a frame's
-few thousand square reads (`docs/detector.md`, "A compiled decoder").
+decisions as their numpy paths (`marker_reader._squares_inside`, `marker_reader._square_maps`,
+`marker_reader._reduce_reads`, `lattice._cell_quads`, `lattice.cell_homographies`, `lattice.squarest_cells`,
+`placement._square_sides`, `placement._agreement`), in one pass over the data instead of numpy's many passes and
+temporaries, which are most of those paths' time on a frame's few thousand square reads (`docs/detector.md`, "A
+compiled decoder").
 
 Imported only where numba is installed (``pip install deepcharuco[fast]``); the callers use the numpy paths
 otherwise, and tests/detection/test_decode_kernel.py checks both give the same detections. The first call compiles (a few
@@ -32,6 +33,31 @@ def square_maps(homographies, local):
             x[r, p] = (h[0, 0] * u + h[0, 1] * v + h[0, 2]) / w
             y[r, p] = (h[1, 0] * u + h[1, 1] * v + h[1, 2]) / w
     return x, y
+
+
+@njit(cache=True, error_model="numpy")  # x / 0: inf or nan, as numpy gives it, not an exception
+def squares_inside(homographies, width, height):
+    """(R, 3, 3) float64 unit frames -> image -> (R,) bool: each square's corners (0, 0), (1, 0), (1, 1), (0, 1) in
+    front of the camera (w > 0), finite and inside [0, width - 1] x [0, height - 1]; each coordinate summed
+    h_j0 u + h_j1 v + h_j2 left to right, as `marker_reader._squares_inside`' matrix product gives it."""
+    count = homographies.shape[0]
+    inside = np.empty(count, np.bool_)
+    for r in range(count):
+        h = homographies[r]
+        ok = True
+        for corner in range(4):
+            u = 1.0 if corner == 1 or corner == 2 else 0.0
+            v = 1.0 if corner >= 2 else 0.0
+            x = h[0, 0] * u + h[0, 1] * v + h[0, 2]
+            y = h[1, 0] * u + h[1, 1] * v + h[1, 2]
+            w = h[2, 0] * u + h[2, 1] * v + h[2, 2]
+            px, py = x / w, y / w
+            if not (w > 0 and np.isfinite(px) and np.isfinite(py) and px >= 0 and py >= 0
+                    and px <= width - 1 and py <= height - 1):
+                ok = False
+                break
+        inside[r] = ok
+    return inside
 
 
 @njit(cache=True)

@@ -193,21 +193,15 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     bit_points, ring_points = _sample_grid(size, ratio)
     local = _local_points(size, ratio)  # (P, 2) float32
     homographies = np.asarray(homographies, np.float64)
-    # A square whose four corners lie in front of the camera and inside the image holds all its samples.
-    unit = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], np.float64)
-    corners = unit @ homographies.transpose(0, 2, 1)  # (R, 4, 3)
     height, width = gray.shape
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corner_xy = corners[:, :, :2] / corners[:, :, 2:]
-    inside = (corners[:, :, 2] > 0).all(axis=1) & np.isfinite(corner_xy).all(axis=(1, 2)) \
-        & (corner_xy >= 0).all(axis=(1, 2)) & (corner_xy[:, :, 0] <= width - 1).all(axis=1) \
-        & (corner_xy[:, :, 1] <= height - 1).all(axis=1)
+    compiled = compiled_kernel is not None
+    inside = compiled_kernel.squares_inside(np.ascontiguousarray(homographies), width, height) if compiled else \
+        _squares_inside(homographies, width, height)
     bits = np.zeros((count, grid, grid), np.float32)
     dark = np.zeros(count, np.float32)
     bright = np.zeros(count, np.float32)
     if inside.any():
         inner = np.ascontiguousarray(homographies[inside].astype(np.float32))
-        compiled = compiled_kernel is not None
         x, y = compiled_kernel.square_maps(inner, local) if compiled else _square_maps(inner, local)
         values = sample_maps(gray, x, y)  # (R', P): rows of samples, one remap for all
         reduce = compiled_kernel.reduce_reads if compiled else _reduce_reads
@@ -215,6 +209,19 @@ def _sampled_reads(gray: np.ndarray, homographies: np.ndarray, size: int, ratio:
     contrast = bright - dark
     readable = (contrast >= MIN_CONTRAST) & inside
     return bits[:, 1:-1, 1:-1].astype(np.float32), np.where(readable, contrast, 0.0).astype(np.float32)
+
+
+def _squares_inside(homographies: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(R, 3, 3) float64 unit frames -> image -> (R,) bool: the square's four corners lie in front of the camera and
+    inside a (``width``, ``height``) image, so all its samples do (`decode_kernel.squares_inside` computes exactly
+    this)."""
+    unit = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], np.float64)
+    corners = unit @ homographies.transpose(0, 2, 1)  # (R, 4, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corner_xy = corners[:, :, :2] / corners[:, :, 2:]
+    return (corners[:, :, 2] > 0).all(axis=1) & np.isfinite(corner_xy).all(axis=(1, 2)) \
+        & (corner_xy >= 0).all(axis=(1, 2)) & (corner_xy[:, :, 0] <= width - 1).all(axis=1) \
+        & (corner_xy[:, :, 1] <= height - 1).all(axis=1)
 
 
 @cache
