@@ -128,12 +128,12 @@ def test_squares_inside_kernel_decides_as_numpy():
     squares[100:200, :2] += squares[100:200, 2:, :] * near_edges[:, :, None]  # moved onto the edges
     squares[200:220] *= -1  # w < 0: behind the camera
     squares[220:230, 2] = 0  # w = 0: the corners at infinity
-    edge = np.array([[width - 11.0, 0.0, 10.0], [0.0, height - 11.0, 10.0], [0.0, 0.0, 1.0]])  # corners on 0 and W - 1
+    edge = np.array([[width - 11.0, 0.0, 10.0], [0.0, height - 11.0, 10.0], [0.0, 0.0, 1.0]])  # a corner on (W - 1, H - 1)
     squares = np.concatenate([squares, edge[None], (edge + np.diag([1e-9, 0, 0]))[None]])
     compiled = kernel.squares_inside(np.ascontiguousarray(squares), width, height)
     plain = marker_reader._squares_inside(squares, width, height)
     assert compiled.dtype == plain.dtype == bool and np.array_equal(compiled, plain)
-    assert 100 < plain.sum() < len(squares) - 100 and plain[-2] and not plain[-1]  # ~a third outside
+    assert 100 < plain.sum() < len(squares) - 100 and plain[-2] and not plain[-1]  # 30 % outside
 
 
 def test_squarest_cells_kernel_keeps_the_same_cells(monkeypatch):
