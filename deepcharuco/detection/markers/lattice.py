@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepcharuco.core.vectors import lengths
+from deepcharuco.core.vectors import lengths, pairwise_distances
 
 try:  # `find_cells`' and `squarest_cells`' loops compiled (pip install deepcharuco[fast]); else numpy's, the same cells
     import deepcharuco.detection.markers.decode_kernel as compiled_kernel
@@ -174,13 +174,13 @@ def _nearest(points: np.ndarray, k: int) -> np.ndarray:
 
     _, found = cKDTree(points).query(points, reach)
     found = np.asarray(found, np.int64)
-    squared = _squared_distances(points[:, None], points[found])  # exact on whole pixels, unlike the tree's sqrt
-    squared[found == rows[:, None]] = np.inf  # the point itself: last
-    order = np.lexsort((found, squared), axis=1)  # by distance, then by index
-    found, squared = np.take_along_axis(found, order, axis=1), np.take_along_axis(squared, order, axis=1)
+    distance = lengths(points[:, None] - points[found])  # as `_nearest_of` measures them, not the tree's own
+    distance[found == rows[:, None]] = np.inf  # the point itself: last
+    order = np.lexsort((found, distance), axis=1)  # by distance, then by index
+    found, distance = np.take_along_axis(found, order, axis=1), np.take_along_axis(distance, order, axis=1)
     near = found[:, :k].copy()
-    farthest = np.where(np.isinf(squared), -1.0, squared).max(axis=1)
-    unsure = ~np.isinf(squared[:, -1]) | (squared[:, k - 1] >= farthest)  # itself not found (duplicates), or a tie
+    farthest = np.where(np.isinf(distance), -1.0, distance).max(axis=1)
+    unsure = ~np.isinf(distance[:, -1]) | (distance[:, k - 1] >= farthest)  # itself not found (duplicates), or a tie
     if unsure.any():
         near[unsure] = _nearest_of(points, k, rows[unsure])
     return near
@@ -188,15 +188,9 @@ def _nearest(points: np.ndarray, k: int) -> np.ndarray:
 
 def _nearest_of(points: np.ndarray, k: int, rows: np.ndarray) -> np.ndarray:
     """`_nearest` of the points ``rows`` (R,) measured against every point: (R, k), in the same order."""
-    squared = _squared_distances(points[rows][:, None], points[None])
-    squared[np.arange(len(rows)), rows] = np.inf
-    return np.argsort(squared, axis=1, kind="stable")[:, :k]
-
-
-def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Squared distances between broadcast (..., 2) points ``a`` and ``b``."""
-    d = a - b
-    return d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+    distance = pairwise_distances(points[rows], points)
+    distance[np.arange(len(rows)), rows] = np.inf
+    return np.argsort(distance, axis=1, kind="stable")[:, :k]
 
 
 def cell_homographies(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
