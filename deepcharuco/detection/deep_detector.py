@@ -318,6 +318,7 @@ class Detector:
         self._backup_options: dict | None = None  # `backup`'s arguments (the fast networks')
         self._backup: Detector | None = None
         self.local_white_skipped = False  # whether the last `detect` left an inverted print's second search out
+        self._searched_dim = False  # whether the last `_detect`'s networks searched a dim frame and found nothing
         given_weights, given_geometry, weights = weights, geometry, network_weights(network, weights, device)
         if network == "lite" and weights is not None and Path(weights).resolve() == FAST_WEIGHTS_DIR.resolve():
             network = "fast"  # the shipped fast networks named by their folder (the CLI's --network fast)
@@ -477,9 +478,13 @@ class Detector:
         check_choice("local_white", local_white, LOCAL_WHITE)
         with single_threaded_blas():
             found = self._detect(image, working_size, levels, expected, local_white)
-        if expected is not None and len(found) < MIN_TRACKED_CORNERS and self._backup_options is not None:
-            tally("backup looks")
-            found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
+        if len(found) < MIN_TRACKED_CORNERS and self._backup_options is not None:
+            if expected is not None:
+                tally("backup looks")
+                found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
+            elif levels is None and self._searched_dim:
+                tally("backup searches")
+                found = self.backup.detect(image, working_size=working_size, local_white=local_white)
         return found
 
     @property
@@ -494,6 +499,7 @@ class Detector:
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
                 expected: Detection | None = None, local_white: str = "always") -> Detection:
         self.local_white_skipped = False
+        self._searched_dim = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
         # next full search runs OpenCV; a whole video looks back from it (`BoardTracker.push`).
@@ -521,6 +527,7 @@ class Detector:
                 full = canonical_view_local_white(gray_u8, self.board)
             found, _, _ = self._search(full, working_size, levels, prior)
         if found is None:
+            self._searched_dim = dim
             return Detection.empty()
         region = found.region
         gray, ids, pixels, scores = found.gray, found.ids, found.pixels, found.scores

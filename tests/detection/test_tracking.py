@@ -298,6 +298,32 @@ def test_the_fast_networks_hand_a_tracked_board_they_lose_to_the_lite_ones(monke
     assert len(tracked) == 16 and np.abs(tracked.corners - truth[tracked.ids]).max() < 0.1
 
 
+
+def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_in(monkeypatch):
+    """``network="fast"``: a whole frame (nothing expected) searched at every level in which the fast networks find
+    nothing is searched by the lite networks (`Detector.backup`) where it is dim, not where it is lit, nor in a quick
+    look at the coarse level (``levels``)."""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    lit, _, _, truth = make_view(board, camera, distance=0.4)
+    dark = (lit.astype(np.float32) * 0.12).round().astype(np.uint8)  # white at ~31 of 255
+    fast = Detector(board=board, network="fast")
+    search = fast._search
+
+    def blind(*args, **kwargs):  # the fast networks see nothing; the frame's dimness is still measured
+        _, board_like, dim = search(*args, **kwargs)
+        return None, board_like, dim
+
+    monkeypatch.setattr(fast, "_search", blind)
+    for image, levels in ((lit, None), (dark, 1)):
+        with StageTimes() as times:
+            assert len(fast.detect(image, levels=levels)) == 0
+        assert "backup searches" not in times.counts
+    with StageTimes() as times:
+        found = fast.detect(dark)
+    assert times.counts["backup searches"] == 1 and "backup looks" not in times.counts
+    assert len(found) == 16 and np.abs(found.corners - truth[found.ids]).max() < 0.2
+
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
     """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
     away: the same corners as the search through the cells, which does not run."""
