@@ -444,7 +444,7 @@ class Detector:
         return detect_board_result(self.detect(image))
 
     def detect(self, image: np.ndarray, *, working_size: int | None = None, levels: int | None = None,
-               expected: Detection | None = None, local_white: str = "always") -> Detection:
+               expected: Detection | None = None, local_white: str = "always", dim_backup: bool = True) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -482,7 +482,7 @@ class Detector:
             if expected is not None:
                 tally("backup looks")
                 found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
-            elif levels is None and self._searched_dim:
+            elif levels is None and dim_backup and self._searched_dim:
                 tally("backup searches")
                 found = self.backup.detect(image, working_size=working_size, local_white=local_white)
         return found
