@@ -49,7 +49,6 @@ MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
 MIN_CROP = 64  # px: smaller crops are widened to this
 MIN_CORNERS = 4  # a crop's detection with fewer corners falls back to the full frame
 HOLD_BYTES = 256 * 2 ** 20  # `push` holds back at most this many bytes of frames; beyond, the oldest is settled as is
-DIM_BACKUP_EVERY = 30  # frames: while no board is tracked, a dim whole frame's lite search at most this often
 
 
 def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -92,8 +91,7 @@ class BoardTracker:
     ``push(image)`` / ``flush()`` do the same for a whole video, looking back (module docstring).
     """
 
-    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True,
-                 dim_backup_every: int = DIM_BACKUP_EVERY):
+    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True):
         if refresh_every < 1:
             raise OptionError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
         if search_every < 1:
@@ -103,12 +101,6 @@ class BoardTracker:
         self.refresh_every = refresh_every
         self.search_every = search_every if _takes(detector, "levels") else 1
         self.look_back = look_back
-        if dim_backup_every < 1:
-            raise OptionError(f"dim_backup_every must be >= 1 (1: the lite networks may search every dim whole frame), "
-                              f"got {dim_backup_every}")
-        self.dim_backup_every = dim_backup_every
-        self._takes_dim_backup = _takes(detector, "dim_backup")
-        self._since_dim_backup = dim_backup_every  # frames since the last whole search that let the backup search
         self._region: tuple[int, int, int, int] | None = None
         self._last = Detection.empty()  # the board found in the frame before
         self._takes_expected = _takes(detector, "expected")
@@ -116,6 +108,10 @@ class BoardTracker:
         # (module docstring); a print that is not inverted has none to leave out.
         inverted = bool(getattr(getattr(detector, "board", None), "inverted", False))
         self._whole_options = {"local_white": "dim"} if inverted and _takes(detector, "local_white") else {}
+        # Nor do its whole searches let the fast networks' lite backup search a dim frame they find nothing in: in a
+        # dark video the board is away in most of those frames, and each cost lite's whole search (~0.26 s at 720p);
+        # on the real dark videos, at most every 10 frames halved the speed, for cam_1's frames alone (docs/detector.md).
+        self._no_dim_backup = {"dim_backup": False} if _takes(detector, "dim_backup") else {}
         self._left_out = False  # whether the last whole-frame search left something out
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
@@ -177,7 +173,7 @@ class BoardTracker:
         for image, _, partial in reversed(self._held):
             around = self._around(image, later)
             if len(around) < MIN_CORNERS and partial:
-                around = self.detector.detect(image, **self._dim_backup_option(True))
+                around = self.detector.detect(image, **self._no_dim_backup)
             if len(around) < MIN_CORNERS:
                 break
             later = around
@@ -189,7 +185,6 @@ class BoardTracker:
     def detect(self, image: np.ndarray) -> Detection:
         height, width = image.shape[:2]
         self._since_full += 1
-        self._since_dim_backup += 1
         refreshing = self._region is not None and self._since_full >= self.refresh_every
         if self._region is not None and not refreshing:
             detection = self._around(image, self._last)
@@ -206,7 +201,7 @@ class BoardTracker:
                 self._since_full = 0
             self.last_search, self._left_out = "coarse", True
             return detection
-        detection = self.detector.detect(image, **self._whole_options, **self._dim_backup_option(refreshing))
+        detection = self.detector.detect(image, **self._whole_options, **self._no_dim_backup)
         self._left_out = bool(getattr(self.detector, "local_white_skipped", False))  # only "dim" leaves anything out
         self._since_full = 0
         if refreshing and len(detection) < MIN_CORNERS:
@@ -222,16 +217,6 @@ class BoardTracker:
         self._coarse_left = self.search_every - 1 if self._region is None else 0
         self.last_search = "full"
         return detection
-
-    def _dim_backup_option(self, held: bool) -> dict:
-        """``detect``'s ``dim_backup`` for a whole-frame search: True at most every `dim_backup_every` frames, and
-        never for a refresh or a held frame searched again (``held``): the board is tracked there, or found after."""
-        if not self._takes_dim_backup:
-            return {}
-        allowed = not held and self._since_dim_backup >= self.dim_backup_every
-        if allowed:
-            self._since_dim_backup = 0
-        return {"dim_backup": allowed}
 
     def _around(self, image: np.ndarray, last: Detection) -> Detection:
         """The board in ``image`` (its pixels) found in the region around ``last``, the board in the frame next to it

@@ -6,7 +6,6 @@ import pytest
 from conftest import Numbered, TrackedOnly, make_view, video
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
-from deepcharuco.core.errors import OptionError
 from deepcharuco.core.stage_times import StageTimes
 from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.tracking import BoardTracker, search_region
@@ -326,23 +325,21 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
     assert len(found) == 16 and np.abs(found.corners - truth[found.ids]).max() < 0.2
 
 
-def test_a_tracker_lets_the_lite_networks_search_a_dim_whole_frame_at_most_every_n_frames(monkeypatch):
-    """While no board is tracked, `BoardTracker` asks for the lite networks' search of a dim whole frame
-    (``dim_backup``) at most every ``dim_backup_every`` frames: in a dim video without a board it cost lite's whole
-    search."""
+def test_a_tracker_never_lets_the_lite_networks_search_a_dim_whole_frame(monkeypatch):
+    """`BoardTracker`'s whole searches ask for no search of a dim whole frame by the fast networks'
+    lite backup (``dim_backup``): in a dark video the board is away in most frames the fast networks find nothing in,
+    and each cost lite's whole search (docs/detector.md). A tracked board they lose is still handed to it."""
     rng = np.random.default_rng(0)
     dark = rng.integers(0, 30, (360, 640)).astype(np.uint8)  # no board, white below is_dim's 64
     fast = Detector(board=BoardSpec(), network="fast")
     monkeypatch.setattr(fast.backup, "_search", lambda *args, **kwargs: (None, False, True))
-    tracker = BoardTracker(fast, dim_backup_every=4)
-    asked = []
+    tracker = BoardTracker(fast, search_every=2)
     with StageTimes() as times:
-        for _ in range(9):
-            assert len(tracker.detect(dark)) == 0
-            asked.append(times.counts.get("backup searches", 0))
-    assert asked == [1, 1, 1, 1, 2, 2, 2, 2, 3]
-    with pytest.raises(OptionError, match="dim_backup_every"):
-        BoardTracker(fast, dim_backup_every=0)
+        for _ in range(5):
+            assert tracker.push(dark) == []
+        assert len(fast.detect(dark)) == 0
+    assert times.counts["backup searches"] == 1  # the last, outside the tracker
+
 
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
     """A 4x5 inverted board (found by its markers) in a 1280x720 frame, expected where a frame before put it 3 px
