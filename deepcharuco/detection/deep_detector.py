@@ -296,7 +296,7 @@ class Detector:
         network: "lite" (default: the shipped networks, or ``weights``) or "fast": the shipped distilled fast
             ChArUcoNets (`FAST_WEIGHTS_DIR`, ONNX bundles, CPU only; 2-4x less network time, less recall on small
             and dark boards: docs/detector.md, "The fast networks"), with the lite networks looking where they lose
-            a tracked board (`backup`). Not with ``weights``.
+            a tracked board and searching a dim whole frame they find nothing in (`backup`). Not with ``weights``.
 
     Every argument after ``weights`` is keyword-only.
 
@@ -402,8 +402,8 @@ class Detector:
             printed_pattern(self.board)
         # The fast networks lose some boards the lite ones read (steep, cut by the frame's edge, dark): where a tracked
         # board (``expected``) is lost to them, the lite networks look in the same crop (`backup`), built when first
-        # needed (a `BoardTracker` asks at once; a photo never needs it). Deep alone: in hybrid mode OpenCV has just
-        # looked there.
+        # needed (a `BoardTracker` asks at once), and search a dim whole frame they find nothing in (``dim_backup``).
+        # Deep alone: in hybrid mode OpenCV has just looked there.
         self._backup_options = None if network == "lite" else dict(
             board=self.board, refine=refine, device=device, refine_weights=refine_weights, threshold=threshold,
             soft_radius=soft_radius, geometry=given_geometry,
@@ -465,6 +465,11 @@ class Detector:
         fails. With ``network="fast"``, where the fast networks find fewer corners than a tracker keeps (4), the lite
         networks search the image as well (`backup`): on the real videos that found the lite networks' frames on every
         lit video, for 0-9 % of the fast networks' speed (docs/detector.md, "The lite networks behind the fast ones").
+        ``dim_backup``: with ``network="fast"``, where a whole frame (nothing ``expected``, every level: no ``levels``)
+        is dim (`search_regions.is_dim`) and the fast networks find fewer corners there than a tracker keeps, the lite
+        networks search it whole as well (a photo, a calibration's frames: the fast networks miss dark, steep boards
+        that lite reads). False leaves that out: `BoardTracker` does, since in a dark video it cost lite's whole
+        search in every frame without a board (docs/detector.md, "A dim whole frame searched by the lite networks").
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
         only in a dim frame (`search_regions.is_dim` of its coarse level). A `BoardTracker`'s whole-frame searches ask
@@ -490,8 +495,9 @@ class Detector:
     @property
     def backup(self) -> Detector | None:
         """With ``network="fast"``: the lite networks' deep detector of the same board and options, which looks where
-        the fast networks lose an expected board (`detect`'s ``expected``: the board a `BoardTracker` follows), built
-        at the first use (`BoardTracker` asks when it is made). None with the lite networks."""
+        the fast networks lose an expected board (`detect`'s ``expected``: the board a `BoardTracker` follows) and
+        searches a dim whole frame they find nothing in (`detect`'s ``dim_backup``), built at the first use
+        (`BoardTracker` asks when it is made). None with the lite networks."""
         if self._backup is None and self._backup_options is not None:
             self._backup = Detector(**self._backup_options)
         return self._backup

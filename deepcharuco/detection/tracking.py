@@ -32,7 +32,9 @@ a full search would have. A small board is then found in the frames a quicker se
 search missed in one frame (blurred) is kept from the frame after it.
 
 A `Detector` with the fast networks (``network="fast"``) hands a crop they lose the board in to its lite networks
-(`Detector.backup`): the tracker asks once, the detector answers with whichever found it.
+(`Detector.backup`): the tracker asks once, the detector answers with whichever found it. The tracker's whole-frame
+searches do not let the lite networks search a dim frame the fast ones find nothing in (`Detector.detect`'s
+``dim_backup``), which a photo gets: in a dark video that cost lite's whole search in every frame without the board.
 """
 
 from __future__ import annotations
