@@ -295,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("report/rig_eval.json"))
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    if args.out.is_dir():  # checked before the work: the results are written only at the end
+        parser.error(f"--out {args.out} is a folder: give the JSON file to write, e.g. {args.out / 'rig_eval.json'}")
     if args.realdata is not None and not (args.realdata / "caliscope_calibration").is_dir():
         parser.error(f"--realdata {args.realdata} holds no caliscope_calibration/ folder")
     weigh = not args.rig_corners_alike

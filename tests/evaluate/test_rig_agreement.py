@@ -41,3 +41,14 @@ def test_the_same_rig_in_another_frame_agrees_and_a_moved_camera_is_measured():
     assert agreement["cameras"][2]["rotation_deg"] == pytest.approx(1.0, abs=1e-6)
     assert agreement["cameras"][2]["centre_mm_per_m"] == pytest.approx(10 / np.sqrt(2), rel=1e-6)
     assert agreement["cameras"][1]["rotation_deg"] < 1e-6 and agreement["cameras"][1]["centre_mm_per_m"] < 1e-6
+
+
+def test_rig_eval_refuses_a_folder_as_out_before_it_works(tmp_path, capsys):
+    """``--out`` names the JSON file written at the end: a folder is refused (exit 2, one line) before any rig is
+    solved, not after the work."""
+    from evaluate.calibration.rig_eval import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--seeds", "1", "--out", str(tmp_path)])
+    assert stop.value.code == 2
+    assert f"--out {tmp_path} is a folder" in capsys.readouterr().err
