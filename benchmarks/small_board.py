@@ -4,9 +4,11 @@
 
 A 3x3 DICT_5X5_100 board (4 corners, 4 markers) drawn at 8-15 % of the width of 2592x1944 frames of procedural
 clutter (`evaluate.speed.realistic`, as `benchmarks/detect.py`'s 5 MP row draws them), then the same frames darkened
-(k = 7). For OpenCV + cornerSubPix, the deep detector and hybrid, in one run: frames found, frames whose every corner
-lies within 3 px of the truth, and ms a frame. Seed 0 drew the frames the small-board rules were chosen on
-(`deepcharuco.detection.markers.verification.code_errors`, `deepcharuco.detection.search_regions.board_like_boxes`); other seeds measure.
+(k = 7). For OpenCV + cornerSubPix, the deep detector (the lite networks, and the fast ones with lite behind them:
+``network="fast"``) and hybrid, in one run: frames found, frames whose every corner lies within 3 px of the truth,
+and ms a frame. Seed 0 drew the frames the small-board rules were chosen on
+(`deepcharuco.detection.markers.verification.code_errors`, `deepcharuco.detection.search_regions.board_like_boxes`);
+other seeds measure.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ def main(argv: list[str] | None = None) -> None:
     frames = [with_board(TINY_BOARD, clutter(rng, FIVE_MP), rng, Placement(0.08, 0.15), f"5MP #{i}")
               for i in range(args.frames)]
     detectors = {"opencv": OpenCVDetector(TINY_BOARD), "deep": Detector(TINY_BOARD),
-                 "hybrid": Detector(TINY_BOARD, mode="hybrid")}
+                 "fast": Detector(TINY_BOARD, network="fast"), "hybrid": Detector(TINY_BOARD, mode="hybrid")}
     for light in ("lit", "dark"):
         images = [f.image if light == "lit" else darken(f.image, 7) for f in frames]
         timings = {}
