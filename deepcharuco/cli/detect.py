@@ -345,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "is shipped)")
     parser.add_argument("--network", choices=NETWORKS, default="lite",
                         help="deep/hybrid: lite (default), or fast: the distilled fast networks, 2-4x less network time "
-                             "on a CPU, less recall on small boards in the dark; where they lose a tracked board the "
-                             "lite networks look for it (docs/detector.md); not with --weights")
+                             "on a CPU, less recall on dark, steep boards in a video; the lite networks look where "
+                             "they lose a tracked board, and search a dim photo they find nothing in "
+                             "(docs/detector.md); not with --weights")
     parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
                                                                 "checkpoint when --weights holds only ChArUcoNet")
     parser.add_argument("--out", default="detect_out", help="output folder")
