@@ -346,9 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--network", choices=NETWORKS, default="lite",
                         help="deep/hybrid: lite (default), or fast: the distilled fast networks, 2-4x less network time "
                              "on a CPU, less recall on small or defocused boards and on dark, steep ones in a video; "
-                             "the lite networks look where "
-                             "they lose a tracked board, and search a dim photo they find nothing in "
-                             "(docs/detector.md); not with --weights")
+                             "the lite networks look where they lose a tracked board, and search a dim photo they "
+                             "find nothing in (docs/detector.md); not with --weights")
     parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
                                                                 "checkpoint when --weights holds only ChArUcoNet")
     parser.add_argument("--out", default="detect_out", help="output folder")
