@@ -298,7 +298,6 @@ def test_the_fast_networks_hand_a_tracked_board_they_lose_to_the_lite_ones(monke
     assert len(tracked) == 16 and np.abs(tracked.corners - truth[tracked.ids]).max() < 0.1
 
 
-
 def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_in(monkeypatch):
     """``network="fast"``: a whole frame (nothing expected) searched at every level in which the fast networks find
     nothing is searched by the lite networks (`Detector.backup`) where it is dim, not where it is lit, nor in a quick
@@ -326,9 +325,9 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
 
 
 def test_a_tracker_never_lets_the_lite_networks_search_a_dim_whole_frame(monkeypatch):
-    """`BoardTracker`'s whole searches ask for no search of a dim whole frame by the fast networks'
-    lite backup (``dim_backup``): in a dark video the board is away in most frames the fast networks find nothing in,
-    and each cost lite's whole search (docs/detector.md). A tracked board they lose is still handed to it."""
+    """`BoardTracker`'s whole searches ask for no search of a dim whole frame by the fast networks' lite backup
+    (``dim_backup``): in a dark video the board is away in most frames the fast networks find nothing in, and each
+    cost lite's whole search (docs/detector.md). The same frame given to the detector itself is searched by lite."""
     rng = np.random.default_rng(0)
     dark = rng.integers(0, 30, (360, 640)).astype(np.uint8)  # no board, white below is_dim's 64
     fast = Detector(board=BoardSpec(), network="fast")
