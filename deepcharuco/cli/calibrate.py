@@ -251,7 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
     parser.add_argument("--network", choices=NETWORKS, default="lite",
                         help="deep/hybrid: lite (default), or fast: the distilled fast networks, with the lite "
-                             "networks searching a dim frame they find nothing in (docs/detector.md); not with --weights")
+                             "networks searching a dim frame they find nothing in (docs/detector.md); not with "
+                             "--weights")
     parser.add_argument("--report", default=None, help="HTML report to write (default: <out>_report.html)")
     parser.add_argument("--no-report", action="store_true", help="write the camera file only")
     parser.add_argument("--force", action="store_true",

@@ -112,7 +112,8 @@ class BoardTracker:
         self._whole_options = {"local_white": "dim"} if inverted and _takes(detector, "local_white") else {}
         # Nor do its whole searches let the fast networks' lite backup search a dim frame they find nothing in: in a
         # dark video the board is away in most of those frames, and each cost lite's whole search (~0.26 s at 720p);
-        # on the real dark videos, at most every 10 frames halved the speed, for cam_1's frames alone (docs/detector.md).
+        # on the real dark videos, at most every 10 frames halved the speed, for cam_1's frames alone
+        # (docs/detector.md).
         self._no_dim_backup = {"dim_backup": False} if _takes(detector, "dim_backup") else {}
         self._left_out = False  # whether the last whole-frame search left something out
         self._since_full = 0
