@@ -40,7 +40,7 @@ from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.board_hints import what_matches
 from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.parallel import DetectorPool
-from deepcharuco.detection.tracking import BoardTracker
+from deepcharuco.detection.tracking import BoardTracker, StreamFrames
 from deepcharuco.geometry.camera import Camera, read_camera
 from deepcharuco.geometry.pose import Pose
 from deepcharuco.networks.backends import BACKENDS
@@ -92,11 +92,20 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
 def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights: str | None,
                  refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int,
                  search_every: int = 1, look_back: bool = True) -> list:
-    """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.detection.parallel`): the detector,
-    wrapped in a `BoardTracker` where ``refresh_every`` > 1."""
+    """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.detection.parallel`) for a video
+    or a camera: the detector, wrapped in a `BoardTracker` where ``refresh_every`` > 1, else in `StreamFrames`."""
     detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
                  for board in boards]
-    return [BoardTracker(d, refresh_every, search_every, look_back) if refresh_every > 1 else d for d in detectors]
+    return [stream_finder(d, refresh_every, search_every, look_back) for d in detectors]
+
+
+def stream_finder(detector, refresh_every: int, search_every: int, look_back: bool):
+    """``detector`` for a video's or a camera's frames: a `BoardTracker` where ``refresh_every`` > 1, else each frame
+    searched whole (`StreamFrames`: the fast networks' lite backup, which costs lite's whole search in a dim frame
+    without the board, left out as a tracker leaves it out)."""
+    if refresh_every > 1:
+        return BoardTracker(detector, refresh_every, search_every, look_back)
+    return StreamFrames(detector)
 
 
 def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
@@ -163,7 +172,8 @@ def run(args: argparse.Namespace) -> dict:
     look_back = source.kind == "video"
     out = output_folder(args.out)
     runs = [_BoardRun(path, detector,
-                      BoardTracker(detector, args.refresh_every, search_every, look_back) if tracking else detector,
+                      stream_finder(detector, args.refresh_every if tracking else 1, search_every, look_back)
+                      if source.kind in ("video", "camera") else detector,
                       out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
             for path, detector, suffix in zip(board_files, detectors, suffixes)]
     for board_run in runs:

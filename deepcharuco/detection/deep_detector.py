@@ -468,8 +468,9 @@ class Detector:
         ``dim_backup``: with ``network="fast"``, where a whole frame (nothing ``expected``, every level: no ``levels``)
         is dim (`search_regions.is_dim`) and the fast networks find fewer corners there than a tracker keeps, the lite
         networks search it whole as well (a photo, a calibration's frames: the fast networks miss dark, steep boards
-        that lite reads). False leaves that out: `BoardTracker` does, since in a dark video it cost lite's whole
-        search in every frame without a board (docs/detector.md, "A dim whole frame searched by the lite networks").
+        that lite reads). False leaves that out: `BoardTracker` and `StreamFrames` do, since in a dark video it cost
+        lite's whole search in every frame without a board (docs/detector.md, "A dim whole frame searched by the lite
+        networks").
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
         only in a dim frame (`search_regions.is_dim` of its coarse level). A `BoardTracker`'s whole-frame searches ask

@@ -35,6 +35,7 @@ A `Detector` with the fast networks (``network="fast"``) hands a crop they lose 
 (`Detector.backup`): the tracker asks once, the detector answers with whichever found it. The tracker's whole-frame
 searches do not let the lite networks search a dim frame the fast ones find nothing in (`Detector.detect`'s
 ``dim_backup``), which a photo gets: in a dark video that cost lite's whole search in every frame without the board.
+Nor do a stream's frames searched whole without a tracker (`StreamFrames`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,19 @@ MIN_MARGIN_SQUARES = 2.0  # corner spacings, on each side
 MIN_CROP = 64  # px: smaller crops are widened to this
 MIN_CORNERS = 4  # a crop's detection with fewer corners falls back to the full frame
 HOLD_BYTES = 256 * 2 ** 20  # `push` holds back at most this many bytes of frames; beyond, the oldest is settled as is
+
+
+class StreamFrames:
+    """A detector's frames of a stream searched whole, one by one, without a tracker (a camera's frames on ``--jobs``
+    workers, a video with ``--refresh-every 1``): as in a `BoardTracker`'s whole searches, a `Detector` with the fast
+    networks is told not to have its lite networks search a dim frame they find nothing in (``dim_backup``)."""
+
+    def __init__(self, detector):
+        self.detector = detector
+        self._options = {"dim_backup": False} if _takes(detector, "dim_backup") else {}
+
+    def detect(self, image: np.ndarray) -> Detection:
+        return self.detector.detect(image, **self._options)
 
 
 def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int, int, int, int]:

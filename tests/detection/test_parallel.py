@@ -15,6 +15,7 @@ from deepcharuco.cli.detect import main as detect_main
 from deepcharuco.cli.detect import make_finders
 from deepcharuco.core.opencv_api import fisheye_calibration_flags, undistort_points
 from deepcharuco.detection.parallel import DetectorPool
+from deepcharuco.detection.tracking import StreamFrames
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +55,9 @@ def test_workers_track_with_the_search_they_are_given():
     assert deep.refresh_every == 30 and deep.search_every == 3
     opencv = make_finders("opencv", [BoardSpec()], "subpix", None, None, "auto", True, "cpu", 30, 3)[0]
     assert opencv.search_every == 1  # OpenCV's detector searches whole frames: nothing coarser to fall back on
-    assert not hasattr(make_finders("deep", [BoardSpec()], "refinenet", None, None, "auto", True, "cpu", 1, 3)[0],
-                       "search_every")  # --refresh-every 1: no tracker at all
+    whole = make_finders("deep", [BoardSpec()], "refinenet", None, None, "auto", True, "cpu", 1, 3)[0]
+    assert not hasattr(whole, "search_every")  # --refresh-every 1 (or a camera on --jobs workers): no tracker at all
+    assert isinstance(whole, StreamFrames)  # but a stream's frames: the fast networks' lite backup left out
 
 
 def test_pool_arguments_are_checked():

@@ -8,7 +8,7 @@ from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.stage_times import StageTimes
 from deepcharuco.detection.parallel import detect_all
-from deepcharuco.detection.tracking import BoardTracker, search_region
+from deepcharuco.detection.tracking import BoardTracker, StreamFrames, search_region
 from deepcharuco.geometry.camera import Camera
 
 
@@ -324,20 +324,22 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
     assert len(found) == 16 and np.abs(found.corners - truth[found.ids]).max() < 0.2
 
 
-def test_a_tracker_never_lets_the_lite_networks_search_a_dim_whole_frame(monkeypatch):
-    """`BoardTracker`'s whole searches ask for no search of a dim whole frame by the fast networks' lite backup
-    (``dim_backup``): in a dark video the board is away in most frames the fast networks find nothing in, and each
-    cost lite's whole search (docs/detector.md). The same frame given to the detector itself is searched by lite."""
+def test_a_stream_never_lets_the_lite_networks_search_a_dim_whole_frame(monkeypatch):
+    """`BoardTracker`'s whole searches, and `StreamFrames` (a stream's frames each searched whole), ask for no search
+    of a dim whole frame by the fast networks' lite backup (``dim_backup``): in a dark video the board is away in most
+    frames the fast networks find nothing in, and each cost lite's whole search (docs/detector.md). The same frame
+    given to the detector itself is searched by lite."""
     rng = np.random.default_rng(0)
     dark = rng.integers(0, 30, (360, 640)).astype(np.uint8)  # no board, white below is_dim's 64
     fast = Detector(board=BoardSpec(), network="fast")
     monkeypatch.setattr(fast.backup, "_search", lambda *args, **kwargs: (None, False, True))
-    tracker = BoardTracker(fast, search_every=2)
+    tracker, stream = BoardTracker(fast, search_every=2), StreamFrames(fast)
     with StageTimes() as times:
         for _ in range(5):
-            assert tracker.push(dark) == []
+            assert tracker.push(dark) == [] and len(stream.detect(dark)) == 0
         assert len(fast.detect(dark)) == 0
-    assert times.counts["backup searches"] == 1  # the last, outside the tracker
+    assert times.counts["backup searches"] == 1  # the last, the detector's own
+    assert len(StreamFrames(OpenCVDetector(BoardSpec())).detect(dark)) == 0  # a detector without the option
 
 
 def test_the_detector_finds_a_board_by_markers_where_it_is_expected_without_searching_its_cells(monkeypatch):
