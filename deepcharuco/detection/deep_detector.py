@@ -318,7 +318,6 @@ class Detector:
         self._backup_options: dict | None = None  # `backup`'s arguments (the fast networks')
         self._backup: Detector | None = None
         self.local_white_skipped = False  # whether the last `detect` left an inverted print's second search out
-        self._searched_dim = False  # whether the last `_detect`'s networks searched a dim frame and found nothing
         given_weights, given_geometry, weights = weights, geometry, network_weights(network, weights, device)
         if network == "lite" and weights is not None and Path(weights).resolve() == FAST_WEIGHTS_DIR.resolve():
             network = "fast"  # the shipped fast networks named by their folder (the CLI's --network fast)
@@ -483,12 +482,12 @@ class Detector:
                                    f"Detection per board")
         check_choice("local_white", local_white, LOCAL_WHITE)
         with single_threaded_blas():
-            found = self._detect(image, working_size, levels, expected, local_white)
+            found, searched_dim = self._detect(image, working_size, levels, expected, local_white)
         if len(found) < MIN_TRACKED_CORNERS and self._backup_options is not None:
             if expected is not None:
                 tally("backup looks")
                 found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
-            elif levels is None and dim_backup and self._searched_dim:
+            elif levels is None and dim_backup and searched_dim:
                 tally("backup searches")
                 found = self.backup.detect(image, working_size=working_size, local_white=local_white)
         return found
@@ -504,9 +503,10 @@ class Detector:
         return self._backup
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
-                expected: Detection | None = None, local_white: str = "always") -> Detection:
+                expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, bool]:
+        """`detect` by these networks alone -> (the detection, whether they searched a dim frame and found nothing:
+        `backup`'s cue)."""
         self.local_white_skipped = False
-        self._searched_dim = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
         # next full search runs OpenCV; a whole video looks back from it (`BoardTracker.push`).
@@ -514,7 +514,7 @@ class Detector:
             with stage("opencv"):
                 found = self._opencv.detect(image)
             if self._verified(found):
-                return self._opencv_fitted(image, found) if self.corner_fit else found
+                return (self._opencv_fitted(image, found) if self.corner_fit else found), False
         with stage("canonical view"):
             gray_u8 = to_gray_u8(image)
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
@@ -534,8 +534,7 @@ class Detector:
                 full = canonical_view_local_white(gray_u8, self.board)
             found, _, _ = self._search(full, working_size, levels, prior)
         if found is None:
-            self._searched_dim = dim
-            return Detection.empty()
+            return Detection.empty(), dim
         region = found.region
         gray, ids, pixels, scores = found.gray, found.ids, found.pixels, found.scores
         by_pattern = scores == PATTERN_SCORE if self.geometry == "markers" else np.zeros(len(ids), bool)
@@ -563,9 +562,9 @@ class Detector:
                 corners, covariances = self._fitted(region, ids, corners, keep=scores == PATTERN_SCORE)
         corners = corners + np.array(found.box[:2], np.float32)
         if self._layout_ends_short(full, found, ids, corners):
-            return Detection.empty()
+            return Detection.empty(), False
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
-                         covariances=covariances_from_canonical(covariances, self.board))
+                         covariances=covariances_from_canonical(covariances, self.board)), False
 
     def _layout_ends_short(self, full: np.ndarray, found: Found, ids: np.ndarray, corners: np.ndarray) -> bool:
         """Whether the board's own markers are printed beyond the edge of the view the markers verified, read in

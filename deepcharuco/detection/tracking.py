@@ -61,7 +61,7 @@ class StreamFrames:
 
     def __init__(self, detector):
         self.detector = detector
-        self._options = {"dim_backup": False} if _takes(detector, "dim_backup") else {}
+        self._options = _no_dim_backup(detector)
 
     def detect(self, image: np.ndarray) -> Detection:
         return self.detector.detect(image, **self._options)
@@ -79,6 +79,12 @@ def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int
     x0, y0 = (int(v) for v in start)
     x1, y1 = (int(v) for v in np.minimum(start + np.ceil(size), limits))
     return x0, y0, x1, y1
+
+
+def _no_dim_backup(detector) -> dict:
+    """``detect``'s keywords that leave the fast networks' lite search of a dim whole frame out (``dim_backup``): none
+    for a detector that has no such search."""
+    return {"dim_backup": False} if _takes(detector, "dim_backup") else {}
 
 
 def _takes(detector, option: str) -> bool:
@@ -128,7 +134,7 @@ class BoardTracker:
         # dark video the board is away in most of those frames, and each cost lite's whole search (~0.26 s at 720p);
         # on the real dark videos, at most every 10 frames halved the speed, for cam_1's frames alone
         # (docs/detector.md).
-        self._no_dim_backup = {"dim_backup": False} if _takes(detector, "dim_backup") else {}
+        self._no_dim_backup = _no_dim_backup(detector)
         self._left_out = False  # whether the last whole-frame search left something out
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
