@@ -7,8 +7,10 @@ markers beyond the outermost corners) holds it again; the detector runs on that 
 search runs when the crop finds nothing, when there was no board before, and every ``refresh_every``
 frames (a second board, or the board re-entering elsewhere, is never missed for long); a refresh that finds
 nothing keeps the board the crop still finds. A detector that takes
-``expected`` (`Detector`) is told where the board was: a board read by its markers is looked for first in that
-view, verified by its markers as any view is.
+``expected`` (`Detector`) is told where the board is expected: where the frame before showed it, moved on as it
+moved from the frame before that (`predicted`; a hand-held board moves on: on caliscope's port_2 video a constant
+velocity put the corners a median 0.10 corner spacings from where they were found, the frame before's 0.27). A
+board read by its markers is looked for first in that view, verified by its markers as any view is.
 
 While no board is tracked, ``search_every`` N > 1 searches the whole frame at every level only every N-th
 frame, and the frames between at the coarse level alone (`Detector.detect`'s ``levels``): a board large
@@ -81,6 +83,19 @@ def search_region(corners: np.ndarray, image_size: tuple[int, int]) -> tuple[int
     return x0, y0, x1, y1
 
 
+def predicted(last: Detection, before: Detection) -> Detection:
+    """Where the corners of ``last`` (the board in the frame before) are expected in the next frame: each moved on
+    by its own motion from ``before`` (the frame before that) to ``last``, a corner ``before`` lacks by their median
+    motion; ``last`` itself where the two share fewer than `MIN_CORNERS` corners (no motion to go by)."""
+    shared, in_last, in_before = np.intersect1d(last.ids, before.ids, return_indices=True)
+    if len(shared) < MIN_CORNERS:
+        return last
+    motion = np.empty_like(last.corners)
+    motion[:] = np.median(last.corners[in_last] - before.corners[in_before], axis=0)
+    motion[in_last] = last.corners[in_last] - before.corners[in_before]
+    return Detection(ids=last.ids, corners=last.corners + motion, scores=last.scores)
+
+
 def _no_dim_backup(detector) -> dict:
     """``detect``'s keywords that leave the fast networks' lite search of a dim whole frame out (``dim_backup``): none
     for a detector that has no such search."""
@@ -107,13 +122,16 @@ class BoardTracker:
             Only for detectors whose ``detect`` takes ``levels`` (`Detector`); others search whole frames.
         look_back: `push` holds back the frames that found nothing, and looks back through them when a later frame
             finds the board (a whole video); False: `push` answers each frame at once (a live camera).
+        predict_motion: a detector that takes ``expected`` is told where the board will be if it moves on as it
+            moved between the two frames before (`predicted`); False: where it was in the frame before.
 
     ``detect(image)`` returns corners in ``image``'s pixels, as the detector would; ``last_search`` says
     whether the last call searched the "crop", the "full" frame or the frame at the "coarse" level alone.
     ``push(image)`` / ``flush()`` do the same for a whole video, looking back (module docstring).
     """
 
-    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True):
+    def __init__(self, detector, refresh_every: int = 30, search_every: int = 1, look_back: bool = True,
+                 predict_motion: bool = True):
         if refresh_every < 1:
             raise OptionError(f"refresh_every must be >= 1 (1: a full-frame search every frame), got {refresh_every}")
         if search_every < 1:
@@ -123,8 +141,10 @@ class BoardTracker:
         self.refresh_every = refresh_every
         self.search_every = search_every if _takes(detector, "levels") else 1
         self.look_back = look_back
+        self.predict_motion = predict_motion
         self._region: tuple[int, int, int, int] | None = None
         self._last = Detection.empty()  # the board found in the frame before
+        self._before = Detection.empty()  # ... and in the frame before that
         self._takes_expected = _takes(detector, "expected")
         # Whole-frame searches leave an inverted print's second search (about its local white) out of lit frames
         # (module docstring); a print that is not inverted has none to leave out.
@@ -147,7 +167,7 @@ class BoardTracker:
         """Forget the board (a cut in the video): the next frame is searched whole, at every level. Frames `push`
         holds back are dropped: `flush` them first."""
         self._region = None
-        self._last = Detection.empty()
+        self._last = self._before = Detection.empty()
         self._coarse_left = 0
         self._held.clear()
 
@@ -155,6 +175,7 @@ class BoardTracker:
         """Track on from ``detection``, the board in the frame before the next one given (found by another tracker:
         a worker process's chunk continues the chunk before it) in an image of ``image_size`` (W, H)."""
         self._follow(detection, image_size)
+        self._before = Detection.empty()
         self._since_full = 0
         self._coarse_left = 0
 
@@ -172,6 +193,8 @@ class BoardTracker:
             self._held.append((image, detection, self._left_out))
             return self._over_budget()
         settled = self._looked_back(detection)
+        if settled:  # the frame before this one, as looking back found it: the board's motion into this frame
+            self._before = settled[-1]
         self._held.clear()
         return [*settled, detection]
 
@@ -191,15 +214,16 @@ class BoardTracker:
     def _looked_back(self, found: Detection) -> list[Detection]:
         """The held frames' detections, oldest first, each held frame searched again from the newest back around
         the board in the frame after it (whole, with everything, where that fails and its search left something out),
-        until one finds too few corners."""
-        later, revised = found, []
+        until one finds too few corners. The board is expected to move on backwards as it moved between the two frames
+        after each."""
+        later, after, revised = found, Detection.empty(), []
         for image, _, partial in reversed(self._held):
-            around = self._around(image, later)
+            around = self._around(image, later, after)
             if len(around) < MIN_CORNERS and partial:
                 around = self.detector.detect(image, **self._no_dim_backup)
             if len(around) < MIN_CORNERS:
                 break
-            later = around
+            later, after = around, later
             revised.append(later)
         self.looked_back += len(revised)
         kept = [detection for _, detection, _ in self._held[:len(self._held) - len(revised)]]
@@ -210,7 +234,7 @@ class BoardTracker:
         self._since_full += 1
         refreshing = self._region is not None and self._since_full >= self.refresh_every
         if self._region is not None and not refreshing:
-            detection = self._around(image, self._last)
+            detection = self._around(image, self._last, self._before)
             if len(detection) >= MIN_CORNERS:
                 self._follow(detection, (width, height))
                 self.last_search, self._left_out = "crop", False
@@ -230,7 +254,7 @@ class BoardTracker:
         if refreshing and len(detection) < MIN_CORNERS:
             # A refresh that finds nothing keeps the board the crop still finds: a still board half out of the frame,
             # which only tracking reads (cam_1's, caliscope), was dropped every refresh_every frames.
-            around = self._around(image, self._last)
+            around = self._around(image, self._last, self._before)
             if len(around) >= MIN_CORNERS:
                 detection = around
                 self._follow(detection, (width, height))
@@ -241,17 +265,19 @@ class BoardTracker:
         self.last_search = "full"
         return detection
 
-    def _around(self, image: np.ndarray, last: Detection) -> Detection:
+    def _around(self, image: np.ndarray, last: Detection, before: Detection) -> Detection:
         """The board in ``image`` (its pixels) found in the region around ``last``, the board in the frame next to it
-        (`search_region`)."""
+        (`search_region`); ``before``: the board in the frame next to that one, on the same side (its motion, where
+        `predict_motion`)."""
         height, width = image.shape[:2]
         x0, y0, x1, y1 = search_region(last.corners, (width, height))
-        found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), last)
+        expected = predicted(last, before) if self.predict_motion else last
+        found = self._detect_crop(image[y0:y1, x0:x1], max(height, width), (x0, y0), last, expected)
         return Detection(ids=found.ids, corners=found.corners + np.array([x0, y0], np.float32), scores=found.scores,
                          covariances=found.covariances)
 
-    def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int], last: Detection
-                     ) -> Detection:
+    def _detect_crop(self, crop: np.ndarray, frame_longest: int, origin: tuple[int, int], last: Detection,
+                     expected: Detection) -> Detection:
         """The detector on ``crop``, around ``last`` (the board in the frame next to it, in frame pixels); a
         coarse-to-fine `Detector` searches it from the scale its whole frame is searched at (its own choice, by the
         crop's size alone, would look at a nearly square crop of a board that fills the frame in more pixels than the
@@ -262,11 +288,11 @@ class BoardTracker:
         (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark).
         A `Detector` told where the board was searches that kept level only where the wide-enough one finds nothing
         (`Detector._expected_start`). A detector whose ``detect`` takes ``expected`` is told where the board was (the
-        crop's origin at ``origin`` in the frame)."""
+        crop's origin at ``origin`` in the frame) ``expected`` (frame pixels): ``last``, or where `predicted` puts it."""
         options = {}
         if self._takes_expected:
-            options["expected"] = Detection(ids=last.ids, corners=last.corners - np.array(origin, np.float32),
-                                            scores=last.scores)
+            options["expected"] = Detection(ids=expected.ids, corners=expected.corners - np.array(origin, np.float32),
+                                            scores=expected.scores)
         working_size = getattr(self.detector, "working_size", None)
         if working_size is None:
             return self.detector.detect(crop, **options)
@@ -282,4 +308,4 @@ class BoardTracker:
     def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
         tracked = len(detection) >= MIN_CORNERS
         self._region = search_region(detection.corners, image_size) if tracked else None
-        self._last = detection
+        self._last, self._before = detection, self._last

@@ -8,7 +8,7 @@ from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.stage_times import StageTimes
 from deepcharuco.detection.parallel import detect_all
-from deepcharuco.detection.tracking import BoardTracker, StreamFrames, search_region
+from deepcharuco.detection.tracking import BoardTracker, StreamFrames, predicted, search_region
 from deepcharuco.geometry.camera import Camera
 
 
@@ -624,3 +624,67 @@ def test_a_refresh_that_finds_nothing_keeps_the_board_the_crop_still_finds():
         searches.append(tracker.last_search)
     assert [n for n, f in enumerate(found) if f] == list(range(1, 21))
     assert searches[1:7] == ["full", "crop", "crop", "crop", "crop", "crop"]  # frame 6: the refresh, then the crop
+
+
+def test_predicted_moves_each_corner_on_by_its_own_motion_and_a_new_one_by_their_median():
+    before = Detection(np.array([0, 1, 2, 3]), np.array([[0, 0], [10, 0], [0, 10], [10, 10]], np.float32), np.ones(4))
+    motion = np.array([[2, 1], [3, 1], [2, 2], [4, 0]], np.float32)
+    last = Detection(np.array([0, 1, 2, 3, 5]), np.array([[2, 1], [13, 1], [2, 12], [14, 10], [30, 30]], np.float32),
+                     np.ones(5))
+    expected = predicted(last, before)
+    np.testing.assert_array_equal(expected.ids, last.ids)
+    np.testing.assert_allclose(expected.corners, last.corners + np.vstack([motion, np.median(motion, axis=0)]))
+    few = Detection(last.ids[2:], last.corners[2:], np.ones(3))  # shares corners 2 and 3 alone with before
+    assert predicted(few, before) is few and predicted(last, Detection.empty()) is last
+
+
+class Moving:
+    """A detector that takes ``expected``, for a video whose frame n holds a board moving ``STEP`` px a frame: each
+    pixel of a frame is (n, x, y), so a crop knows its frame and origin. The board is found in crops always, in whole
+    frames from ``whole_from`` on; every call's ``expected`` is kept in frame pixels, by frame."""
+
+    CORNERS = np.array([[300, 200], [340, 200], [300, 240], [340, 240], [380, 240]], np.float32)
+    STEP = np.array([14, -6], np.float32)
+
+    def __init__(self, whole_from=0):
+        self.whole_from, self.expected = whole_from, {}
+
+    def board(self, n):
+        return self.CORNERS + n * self.STEP
+
+    def detect(self, image, expected=None):
+        n, x0, y0 = (int(v) for v in image[0, 0])
+        origin = np.array([x0, y0], np.float32)
+        if expected is not None:
+            self.expected[n] = expected.corners + origin
+        if image.shape[:2] == (720, 1280) and n < self.whole_from:
+            return Detection.empty()
+        return Detection(np.arange(5), self.board(n) - origin, np.ones(5))
+
+
+def moving_video(count):
+    """``count`` frames for `Moving`: pixel (y, x) of frame n is (n, x, y)."""
+    y, x = np.mgrid[0:720, 0:1280].astype(np.uint16)
+    return [np.dstack([np.full_like(x, n), x, y]) for n in range(count)]
+
+
+@pytest.mark.parametrize("predict_motion", [True, False])
+def test_a_tracked_board_is_expected_where_it_moves_on_to(predict_motion):
+    detector = Moving()
+    tracker = BoardTracker(detector, predict_motion=predict_motion)
+    for frame in moving_video(5):
+        tracker.detect(frame)
+    assert tracker.last_search == "crop" and sorted(detector.expected) == [1, 2, 3, 4]
+    np.testing.assert_allclose(detector.expected[1], detector.board(0))  # no motion seen yet
+    for n in (2, 3, 4):
+        np.testing.assert_allclose(detector.expected[n], detector.board(n if predict_motion else n - 1), atol=1e-3)
+
+
+def test_looking_back_expects_the_board_to_move_on_backwards():
+    detector = Moving(whole_from=4)  # frames 0-3 are held back and found by looking back from frame 4
+    detections = detect_all(BoardTracker(detector), moving_video(6))
+    assert all(len(d) == 5 for d in detections)
+    np.testing.assert_allclose(detector.expected[3], detector.board(4))  # no motion after frame 4 seen yet
+    for n in (2, 1, 0):
+        np.testing.assert_allclose(detector.expected[n], detector.board(n), atol=1e-3)
+    np.testing.assert_allclose(detector.expected[5], detector.board(5), atol=1e-3)  # on from frames 3 and 4
