@@ -636,18 +636,24 @@ def test_predicted_moves_each_corner_on_by_its_own_motion_and_a_new_one_by_their
     np.testing.assert_allclose(expected.corners, last.corners + np.vstack([motion, np.median(motion, axis=0)]))
     few = Detection(last.ids[2:], last.corners[2:], np.ones(3))  # shares corners 2 and 3 alone with before
     assert predicted(few, before) is few and predicted(last, Detection.empty()) is last
+    jitter = np.array([[0.4, -0.3], [-0.5, 0.2], [0.3, 0.5], [-0.2, -0.4]], np.float32)  # a still board's
+    still = Detection(before.ids, before.corners + jitter, np.ones(4))
+    assert predicted(still, before) is still
+    moving = Detection(before.ids, before.corners + jitter + np.array([2, 0], np.float32), np.ones(4))
+    np.testing.assert_allclose(predicted(moving, before).corners, moving.corners + jitter + [2, 0])
 
 
 class Moving:
     """A detector that takes ``expected``, for a video whose frame n holds a board moving ``STEP`` px a frame: each
     pixel of a frame is (n, x, y), so a crop knows its frame and origin. The board is found in crops always, in whole
-    frames from ``whole_from`` on; every call's ``expected`` is kept in frame pixels, by frame."""
+    frames from ``whole_from`` on; every call's ``expected`` is kept in frame pixels, and its image's (x0, y0, x1, y1)
+    in the frame, by frame."""
 
     CORNERS = np.array([[300, 200], [340, 200], [300, 240], [340, 240], [380, 240]], np.float32)
     STEP = np.array([14, -6], np.float32)
 
     def __init__(self, whole_from=0):
-        self.whole_from, self.expected = whole_from, {}
+        self.whole_from, self.expected, self.regions = whole_from, {}, {}
 
     def board(self, n):
         return self.CORNERS + n * self.STEP
@@ -655,6 +661,7 @@ class Moving:
     def detect(self, image, expected=None):
         n, x0, y0 = (int(v) for v in image[0, 0])
         origin = np.array([x0, y0], np.float32)
+        self.regions[n] = (x0, y0, x0 + image.shape[1], y0 + image.shape[0])
         if expected is not None:
             self.expected[n] = expected.corners + origin
         if image.shape[:2] == (720, 1280) and n < self.whole_from:
@@ -678,6 +685,7 @@ def test_a_tracked_board_is_expected_where_it_moves_on_to(predict_motion):
     np.testing.assert_allclose(detector.expected[1], detector.board(0))  # no motion seen yet
     for n in (2, 3, 4):
         np.testing.assert_allclose(detector.expected[n], detector.board(n if predict_motion else n - 1), atol=1e-3)
+        assert detector.regions[n] == search_region(detector.board(n if predict_motion else n - 1), (1280, 720))
 
 
 def test_looking_back_expects_the_board_to_move_on_backwards():
