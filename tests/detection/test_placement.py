@@ -121,6 +121,27 @@ def test_weak_candidates_fill_in_corners_of_the_verified_view_only(threshold, we
     assert len(placement.corners_from_markers(image, board, weak_only, threshold=threshold)[0][0]) == 0
 
 
+def test_a_weak_candidate_fills_in_a_corner_only_where_the_view_and_the_neighbours_agree(monkeypatch):
+    # Four found neighbours fit a homography exactly whatever their error: in a motion-blurred frame such a fit put a
+    # corner a square from its place, where another weak candidate lay (a drawn validation video).
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    _, truth, homography = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)
+    board_xy = board.corner_points()[:, :2]
+    missing, next_one = 8, 9
+    found = np.delete(np.arange(board.num_corners), missing)
+    detection = (found, truth[found].astype(np.float32), np.full(len(found), 0.9, np.float32))
+    # weak points at the missing corner and a square along, beside its found neighbour
+    weak = CellCandidates(np.array([truth[missing], truth[next_one] + [1.0, 0.0]], np.float32),
+                          np.full(2, 0.1, np.float32), np.zeros((2, 0), np.float32))
+    board_view = placement.BoardView(homography=homography, inliers=np.ones(len(board_xy), bool))
+    ids, pixels, _ = placement._fill_in(board_view, board_xy, detection, weak, (320, 240))
+    assert missing in ids.tolist() and np.allclose(pixels[ids == missing], truth[missing])  # both agree: filled in
+    monkeypatch.setattr(placement, "_agreed_places", lambda xy, targets, ids, pixels: (
+        targets[targets == missing], truth[[next_one]]))  # the neighbours' fit a square off, onto the other point
+    ids, _, _ = placement._fill_in(board_view, board_xy, detection, weak, (320, 240))
+    assert missing not in ids.tolist()
+
+
 def test_filled_in_corners_refined_away_from_their_neighbours_are_left_out():
     board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
     _, truth, _ = view(board, fill=0.8, tilt_x_deg=20, tilt_y_deg=-15, roll_deg=10)

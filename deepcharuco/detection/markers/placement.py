@@ -403,34 +403,27 @@ def _verified_corners(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray, 
 def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray],
              weak: CellCandidates, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``found`` (ids, pixels, scores) and the corners of the verified ``view`` that no confident candidate
-    took, each taking the weak candidate nearest to where its found neighbours put it (a homography fitted to
-    the found corners within `LOCAL_SQUARES` squares of it on the board: a lens bends the board away from the
-    view's one homography) if that is within `WEAK_REACH_PX`, within `assign_ids`' reach of the view's own
-    prediction, and no other corner's; strongest first. The markers name the corner: the point head need only
-    say that one is there."""
+    took, each taking the weak candidate the view gives it (`assign_ids`: the mutual nearest within reach of the
+    view's own prediction) where that lies within `WEAK_REACH_PX` of where its found neighbours put it (a homography
+    fitted to the found corners within `LOCAL_SQUARES` squares of it on the board: a lens bends the board away from
+    the view's one homography); strongest first. The markers name the corner: the point head need only say that
+    one is there. Both must agree: four neighbours fit a homography exactly, whatever their error, and in a
+    motion-blurred frame such a fit put a corner a square from its place, onto another weak candidate there."""
     ids, pixels, scores = found
     if len(ids) < 4:
         return found
-    candidates, confidence = weak.pixels.astype(np.float64), weak.confidence
-    own_ids, _, _ = assign_ids(view, board_xy, weak, image_size)  # corners the view lets take a weak candidate
-    targets, places = _agreed_places(board_xy, own_ids[~np.isin(own_ids, ids)], ids, pixels)
-    extra: list[tuple[int, int]] = []
-    for corner, place in zip(targets.tolist(), places):
-        gap = lengths(candidates - place)
-        best = int(np.argmin(gap))
-        if gap[best] <= WEAK_REACH_PX:
-            extra.append((corner, best))
-    if not extra:
+    own_ids, own_pixels, own_scores = assign_ids(view, board_xy, weak, image_size)
+    missing = ~np.isin(own_ids, ids)
+    own_ids, own_pixels, own_scores = own_ids[missing], own_pixels[missing], own_scores[missing]
+    targets, places = _agreed_places(board_xy, own_ids, ids, pixels)
+    placed = np.isin(own_ids, targets)  # `_agreed_places` keeps the order of the corners it is given
+    own_ids, own_pixels, own_scores = own_ids[placed], own_pixels[placed], own_scores[placed]
+    agree = lengths(own_pixels.astype(np.float64) - places) <= WEAK_REACH_PX
+    if not agree.any():
         return found
-    chosen: dict[int, int] = {}
-    for corner, candidate in extra:  # one candidate, one corner
-        if candidate not in chosen.values():
-            chosen[corner] = candidate
-    new_ids = np.array(list(chosen), np.int64)
-    cells = np.array(list(chosen.values()), np.int64)
-    ids = np.concatenate([ids, new_ids])
-    pixels = np.concatenate([pixels, weak.pixels[cells]]).astype(np.float32)
-    scores = np.concatenate([scores, confidence[cells]]).astype(np.float32)
+    ids = np.concatenate([ids, own_ids[agree]])
+    pixels = np.concatenate([pixels, own_pixels[agree]]).astype(np.float32)
+    scores = np.concatenate([scores, own_scores[agree]]).astype(np.float32)
     order = np.argsort(-scores, kind="stable")
     return ids[order], pixels[order], scores[order]
 
