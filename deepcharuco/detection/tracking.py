@@ -294,8 +294,8 @@ class BoardTracker:
         enough is kept: caliscope's webcams show blurred boards that it reads (squares ~11 px) and full resolution
         (~22 px) does not (starting at the wide-enough level lost 4 of cam_1's 127 frames with a board, lit and dark).
         A `Detector` told where the board was searches that kept level only where the wide-enough one finds nothing
-        (`Detector._expected_start`). A detector whose ``detect`` takes ``expected`` is told where the board was (the
-        crop's origin at ``origin`` in the frame) ``expected`` (frame pixels): ``last``, or where `predicted` puts it."""
+        (`Detector._expected_start`). A detector whose ``detect`` takes ``expected`` is told ``expected`` (in frame
+        pixels: ``last``, or where `predicted` puts it) in the crop's pixels (its origin at ``origin`` in the frame)."""
         options = {}
         if self._takes_expected:
             options["expected"] = Detection(ids=expected.ids, corners=expected.corners - np.array(origin, np.float32),
