@@ -69,7 +69,7 @@ def _continue_chunk(frames: list[np.ndarray], before: list[Detection]) -> list[l
             columns.append(None)
             continue
         finder.reset()
-        finder.follow_from(last, frames[0].shape[1::-1])
+        finder.follow_from(last)
         columns.append(detect_all(finder, frames))
     return columns
 

@@ -149,7 +149,6 @@ class BoardTracker:
         self.search_every = search_every if _takes(detector, "levels") else 1
         self.look_back = look_back
         self.predict_motion = predict_motion
-        self._region: tuple[int, int, int, int] | None = None
         self._last = Detection.empty()  # the board found in the frame before
         self._before = Detection.empty()  # ... and in the frame before that
         self._takes_expected = _takes(detector, "expected")
@@ -173,15 +172,14 @@ class BoardTracker:
     def reset(self) -> None:
         """Forget the board (a cut in the video): the next frame is searched whole, at every level. Frames `push`
         holds back are dropped: `flush` them first."""
-        self._region = None
         self._last = self._before = Detection.empty()
         self._coarse_left = 0
         self._held.clear()
 
-    def follow_from(self, detection: Detection, image_size: tuple[int, int]) -> None:
+    def follow_from(self, detection: Detection) -> None:
         """Track on from ``detection``, the board in the frame before the next one given (found by another tracker:
-        a worker process's chunk continues the chunk before it) in an image of ``image_size`` (W, H)."""
-        self._follow(detection, image_size)
+        a worker process's chunk continues the chunk before it)."""
+        self._follow(detection)
         self._before = Detection.empty()
         self._since_full = 0
         self._coarse_left = 0
@@ -239,19 +237,19 @@ class BoardTracker:
     def detect(self, image: np.ndarray) -> Detection:
         height, width = image.shape[:2]
         self._since_full += 1
-        refreshing = self._region is not None and self._since_full >= self.refresh_every
-        if self._region is not None and not refreshing:
+        refreshing = self._tracking and self._since_full >= self.refresh_every
+        if self._tracking and not refreshing:
             detection = self._around(image, self._last, self._before)
             if len(detection) >= MIN_CORNERS:
-                self._follow(detection, (width, height))
+                self._follow(detection)
                 self.last_search, self._left_out = "crop", False
                 return detection
             self._coarse_left = 0  # the board was just lost: it may have shrunk or left by an edge
-        if self._region is None and self._coarse_left > 0:
+        if not self._tracking and self._coarse_left > 0:
             self._coarse_left -= 1
             detection = self.detector.detect(image, levels=1)
-            self._follow(detection, (width, height))
-            if self._region is not None:
+            self._follow(detection)
+            if self._tracking:
                 self._since_full = 0
             self.last_search, self._left_out = "coarse", True
             return detection
@@ -264,11 +262,11 @@ class BoardTracker:
             around = self._around(image, self._last, self._before)
             if len(around) >= MIN_CORNERS:
                 detection = around
-                self._follow(detection, (width, height))
+                self._follow(detection)
                 self.last_search, self._left_out = "crop", False
                 return detection
-        self._follow(detection, (width, height))
-        self._coarse_left = self.search_every - 1 if self._region is None else 0
+        self._follow(detection)
+        self._coarse_left = self.search_every - 1 if not self._tracking else 0
         self.last_search = "full"
         return detection
 
@@ -312,7 +310,10 @@ class BoardTracker:
                 size = min(2 * size, longest)
         return self.detector.detect(crop, working_size=size, **options)
 
-    def _follow(self, detection: Detection, image_size: tuple[int, int]) -> None:
-        tracked = len(detection) >= MIN_CORNERS
-        self._region = search_region(detection.corners, image_size) if tracked else None
+    @property
+    def _tracking(self) -> bool:
+        """Whether the frame before found the board (its crop is searched next)."""
+        return len(self._last) >= MIN_CORNERS
+
+    def _follow(self, detection: Detection) -> None:
         self._last, self._before = detection, self._last

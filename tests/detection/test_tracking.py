@@ -106,7 +106,7 @@ def test_a_coarse_to_fine_detector_searches_the_crop_at_the_whole_frames_scale()
             self.calls.append((image.shape, working_size))
             corners = np.array([[500, 200], [540, 200], [500, 240], [540, 240], [580, 240]], np.float32)
             if image.shape != (720, 1280):
-                corners -= np.array([tracker._region[0], tracker._region[1]], np.float32)
+                corners -= np.array(search_region(corners, (1280, 720))[:2], np.float32)
             return Detection(np.arange(5), corners, np.ones(5))
 
     detector = CoarseToFine()
@@ -134,7 +134,7 @@ def test_a_tracked_crop_starts_at_the_level_before_its_squares_are_wide_enough(s
             corners = np.array([[600, 300], [600 + spacing, 300], [600, 300 + spacing], [600 + spacing, 300 + spacing]],
                                np.float32)
             if image.shape != (720, 1280):
-                corners -= np.array(tracker._region[:2], np.float32)
+                corners -= np.array(search_region(corners, (1280, 720))[:2], np.float32)
             return Detection(np.arange(4), corners, np.ones(4))
 
     detector = CoarseToFine()
@@ -173,13 +173,13 @@ def test_a_detector_that_takes_expected_is_told_where_the_board_was_in_the_crop(
             self.expected.append(expected)
             corners = np.array([[500, 200], [540, 200], [500, 240], [540, 240], [580, 240]], np.float32)
             if image.shape != (720, 1280):
-                corners -= np.array(tracker._region[:2], np.float32)
+                corners -= np.array(search_region(corners, (1280, 720))[:2], np.float32)
             return Detection(np.arange(5), corners, np.ones(5))
 
     detector = Expecting()
     tracker = BoardTracker(detector)
     first = tracker.detect(np.zeros((720, 1280), np.uint8))
-    region = tracker._region
+    region = search_region(first.corners, (1280, 720))
     tracker.detect(np.zeros((720, 1280), np.uint8))
     assert detector.expected[0] is None and tracker.last_search == "crop"
     np.testing.assert_array_equal(detector.expected[1].ids, first.ids)
@@ -201,7 +201,7 @@ class Levelled:
         if not self.board_at(self.frame) or (levels == 1 and not self.coarse_sees):
             return Detection(np.zeros(0, int), np.zeros((0, 2), np.float32), np.zeros(0))
         if image.shape != (720, 1280):  # a crop: its own pixels
-            corners -= np.array(self.tracker._region[:2], np.float32)
+            corners -= np.array(search_region(corners, (1280, 720))[:2], np.float32)
         return Detection(np.arange(4), corners, np.ones(4))
 
 
