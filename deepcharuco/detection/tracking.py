@@ -235,7 +235,6 @@ class BoardTracker:
         return [*kept, *reversed(revised)]
 
     def detect(self, image: np.ndarray) -> Detection:
-        height, width = image.shape[:2]
         self._since_full += 1
         refreshing = self._tracking and self._since_full >= self.refresh_every
         if self._tracking and not refreshing:
