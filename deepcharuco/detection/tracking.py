@@ -178,9 +178,8 @@ class BoardTracker:
 
     def follow_from(self, detection: Detection) -> None:
         """Track on from ``detection``, the board in the frame before the next one given (found by another tracker:
-        a worker process's chunk continues the chunk before it)."""
-        self._follow(detection)
-        self._before = Detection.empty()
+        a worker process's chunk continues the chunk before it); its motion into it is not known."""
+        self._last, self._before = detection, Detection.empty()
         self._since_full = 0
         self._coarse_left = 0
 
