@@ -254,3 +254,30 @@ class Numbered:
 def video(count):
     """``count`` 1280x720 frames for `Numbered` and `TrackedOnly`: frame n filled with n."""
     return [np.full((720, 1280), n, np.uint8) for n in range(count)]
+
+
+def moving_video(count):
+    """``count`` 1280x720 frames whose pixel (y, x) of frame n is (n, x, y) (uint16): a crop knows its frame and
+    origin (`Racing`, test_tracking's `Moving`)."""
+    y, x = np.mgrid[0:720, 0:1280].astype(np.uint16)
+    return [np.dstack([np.full_like(x, n), x, y]) for n in range(count)]
+
+
+class Racing:
+    """A detector stand-in for a board that moves farther each frame than a crop's margin (`moving_video`'s frames):
+    found in whole frames 0 and 1 only, and in a crop only where the crop holds all of it, so a tracker keeps it only
+    where it expects the board where it moves on to."""
+
+    CORNERS = np.array([[100, 200], [140, 200], [100, 240], [140, 240], [180, 240]], np.float32)
+    STEP = np.array([90, 20], np.float32)  # a crop's margin is 2 corner spacings (80 px) here
+
+    def board(self, n):
+        return self.CORNERS + n * self.STEP
+
+    def detect(self, image, expected=None):
+        n, x0, y0 = (int(v) for v in image[0, 0])
+        corners = self.board(n) - np.array([x0, y0], np.float32)
+        inside = (corners >= 0).all() and (corners < [image.shape[1], image.shape[0]]).all()
+        if (image.shape[:2] == (720, 1280) and n > 1) or not inside:
+            return Detection.empty()
+        return Detection(np.arange(5), corners, np.ones(5))

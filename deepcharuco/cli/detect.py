@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> dict:
     # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames). A camera's
     # frames go to --jobs workers one at a time, as they come: each is searched whole.
     tracking = source.kind == "video" or (source.kind == "camera" and args.jobs == 1)
-    tracking = tracking and args.refresh_every > 1
+    refresh_every = args.refresh_every if tracking else 1  # 1: every frame searched whole (`stream_finder`)
     # While no board is tracked, every level of the pyramid every --search-every frames, the coarse one between: a
     # live camera's stream outruns the detector, so it gets the quicker search unless told otherwise.
     search_every = args.search_every or (CAMERA_SEARCH_EVERY if source.kind == "camera" else VIDEO_SEARCH_EVERY)
@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> dict:
     look_back = source.kind == "video"
     out = output_folder(args.out)
     runs = [_BoardRun(path, detector,
-                      stream_finder(detector, args.refresh_every if tracking else 1, search_every, look_back)
+                      stream_finder(detector, refresh_every, search_every, look_back)
                       if source.kind in ("video", "camera") else detector,
                       out / f"{source.stem}{suffix}.csv", out / f"{source.stem}{suffix}.json")
             for path, detector, suffix in zip(board_files, detectors, suffixes)]
@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> dict:
             print(f"detecting on {jobs} worker processes", file=sys.stderr)
             pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
                                         args.refine_weights, args.backend, not args.no_corner_fit, args.device,
-                                        args.refresh_every if tracking else 1, search_every, look_back),
+                                        refresh_every, search_every, look_back),
                                 jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
         files.callback(pool.close)
         try:

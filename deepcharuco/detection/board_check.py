@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.core.detection import no_corners
-from deepcharuco.core.vectors import pairwise_distances
+from deepcharuco.core.vectors import homogeneous, pairwise_distances
 from deepcharuco.geometry.pose import MIN_SPREAD_RATIO
 from deepcharuco.networks.cells import CellCandidates
 
@@ -54,7 +54,7 @@ class BoardView:
 
 def apply_homography(homography: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(P, 2) board points -> (P, 2) image points and their (P,) homogeneous w."""
-    mapped = np.c_[xy, np.ones(len(xy))] @ homography.T
+    mapped = homogeneous(xy) @ homography.T
     return mapped[:, :2] / mapped[:, 2:], mapped[:, 2]
 
 

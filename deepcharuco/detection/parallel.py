@@ -60,16 +60,18 @@ def _detect_chunk(frames: list[np.ndarray]) -> list[list[Detection]]:
     return [list(row) for row in zip(*each)]
 
 
-def _continue_chunk(frames: list[np.ndarray], before: list[Detection]) -> list[list[Detection] | None]:
-    """Each finder's detections of ``frames`` tracked on from ``before`` (its board in the frame before the chunk),
-    as one process tracks them; None for a finder that does not track or had no board there."""
+def _continue_chunk(frames: list[np.ndarray], before: list[Detection], earlier: list[Detection]
+                    ) -> list[list[Detection] | None]:
+    """Each finder's detections of ``frames`` tracked on from ``before`` (its board in the frame before the chunk)
+    and ``earlier`` (in the frame before that: the board's motion), as one process tracks them; None for a finder
+    that does not track or had no board there."""
     columns: list[list[Detection] | None] = []
-    for finder, last in zip(_finders, before):
+    for finder, last, older in zip(_finders, before, earlier):
         if not hasattr(finder, "follow_from") or len(last) < MIN_CORNERS:
             columns.append(None)
             continue
         finder.reset()
-        finder.follow_from(last)
+        finder.follow_from(last, older)
         columns.append(detect_all(finder, frames))
     return columns
 
@@ -127,6 +129,7 @@ class DetectorPool:
         pending: deque[tuple[list[Any], list[np.ndarray], Future]] = deque()
         items = iter(items)
         before: list[Detection] | None = None  # each finder's detection in the last frame answered
+        earlier: list[Detection] | None = None  # and in the frame before that
         try:
             while True:
                 while len(pending) < AHEAD_PER_WORKER * self.workers:
@@ -140,22 +143,24 @@ class DetectorPool:
                 keys, images, future = pending.popleft()
                 rows = future.result()
                 if before is not None and self.chunk > 1:  # chunks of one frame (a camera's) are not tracked
-                    rows = self._stitched(images, rows, before)
-                before = rows[-1]
+                    rows = self._stitched(images, rows, before, earlier)
+                earlier, before = (rows[-2] if len(rows) > 1 else before), rows[-1]
                 yield from zip(keys, rows)
         finally:
             for *_, future in pending:
                 future.cancel()
 
-    def _stitched(self, images: list[np.ndarray], rows: list[list[Detection]], before: list[Detection]
-                  ) -> list[list[Detection]]:
+    def _stitched(self, images: list[np.ndarray], rows: list[list[Detection]], before: list[Detection],
+                  earlier: list[Detection] | None) -> list[list[Detection]]:
         """``rows`` (a chunk's detections, frame by frame) with each tracker's tracked again from ``before`` where it
-        had a board in the frame before the chunk and none in the chunk's first frame."""
+        had a board in the frame before the chunk and none in the chunk's first frame, the board's motion from
+        ``earlier`` (the frame before that; None: not known) on."""
         lost = [len(last) >= MIN_CORNERS and len(first) < MIN_CORNERS for last, first in zip(before, rows[0])]
         if not any(lost):
             return rows
         again = [last if redo else Detection.empty() for last, redo in zip(before, lost)]
-        columns = self._executor.submit(_continue_chunk, images, again).result()
+        older = [Detection.empty()] * len(before) if earlier is None else earlier
+        columns = self._executor.submit(_continue_chunk, images, again, older).result()
         return [[row[f] if column is None else column[i] for f, column in enumerate(columns)]
                 for i, row in enumerate(rows)]
 

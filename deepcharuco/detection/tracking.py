@@ -176,10 +176,11 @@ class BoardTracker:
         self._coarse_left = 0
         self._held.clear()
 
-    def follow_from(self, detection: Detection) -> None:
+    def follow_from(self, detection: Detection, before: Detection | None = None) -> None:
         """Track on from ``detection``, the board in the frame before the next one given (found by another tracker:
-        a worker process's chunk continues the chunk before it); its motion into it is not known."""
-        self._last, self._before = detection, Detection.empty()
+        a worker process's chunk continues the chunk before it), and ``before``, the board in the frame before that
+        where known: the motion between the two carries on (`predicted`)."""
+        self._last, self._before = detection, Detection.empty() if before is None else before
         self._since_full = 0
         self._coarse_left = 0
 

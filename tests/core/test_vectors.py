@@ -1,9 +1,9 @@
-"""deepcharuco.core.vectors: the lengths np.linalg.norm gives, bit for bit."""
+"""deepcharuco.core.vectors: the lengths np.linalg.norm gives, and the rows np.c_ makes, bit for bit."""
 
 import numpy as np
 import pytest
 
-from deepcharuco.core.vectors import lengths, pairwise_distances
+from deepcharuco.core.vectors import homogeneous, lengths, pairwise_distances
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -20,3 +20,13 @@ def test_pairwise_distances():
     a, b = np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([[3.0, 4.0], [1.0, 1.0], [0.0, 0.0]])
     np.testing.assert_array_equal(pairwise_distances(a, b), [[5.0, np.sqrt(2.0), 0.0], [np.sqrt(13.0), 0.0, np.sqrt(2.0)]])
     np.testing.assert_array_equal(pairwise_distances(a, b), np.linalg.norm(a[:, None] - b[None], axis=2))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int64])
+def test_homogeneous_rows_are_what_numpy_c_makes(dtype):
+    xy = (np.random.default_rng(1).normal(size=(7, 2)) * 100).astype(dtype)
+    rows = homogeneous(xy[::-1])  # a view with negative strides, as callers pass slices
+    expected = np.c_[xy[::-1], np.ones(len(xy))]
+    assert rows.dtype == expected.dtype == np.float64 and rows.flags.c_contiguous
+    np.testing.assert_array_equal(rows, expected)
+    assert homogeneous(np.zeros((0, 2))).shape == (0, 3)

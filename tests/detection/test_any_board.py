@@ -10,7 +10,7 @@ from deepcharuco.boards.synthetic import look_at_pose, render_board_view, textur
 from deepcharuco.detection import deep_detector
 from deepcharuco.detection.markers import lattice as lattice_module, placement
 from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, squarest_cells
-from deepcharuco.detection.markers.marker_reader import board_markers, correlate, read_squares
+from deepcharuco.detection.markers.marker_reader import MIN_NCC, board_markers, correlate, match_markers, read_squares
 from deepcharuco.detection.markers.verification import marker_agreement
 
 # Boards of other layouts than the shipped weights' 5x5 DICT_5X5_50 (none of them seen in training).
@@ -167,6 +167,28 @@ def test_every_marker_reads_as_itself_through_the_exact_view(board, camera):
     ncc = correlate(bits, markers)
     assert np.all(contrast > 0)
     assert [np.unravel_index(row.argmax(), row.shape) for row in ncc] == [(m, 3) for m in range(len(markers.ids))]
+
+
+def test_marker_matches_are_each_reads_best_pairs_in_order_and_none_below_the_floor():
+    board = UNSEEN[0]
+    markers = board_markers(board)
+    rng = np.random.default_rng(3)
+    exact = markers.bits[[0, 5, 2], [1, 0, 3]].astype(np.float32)  # three markers read in some turn
+    blurred = 0.5 + 0.2 * (exact[:1] - 0.5) + rng.normal(0.0, 0.08, exact[:1].shape).astype(np.float32)
+    clutter = rng.uniform(0.0, 1.0, (20, markers.size, markers.size)).astype(np.float32)  # some pair often >= the floor
+    flat = np.full((5, markers.size, markers.size), 0.6, np.float32)  # correlates with nothing: below the floor
+    bits = np.concatenate([exact, blurred, clutter, flat])
+    contrast = np.ones(len(bits), np.float32)
+    contrast[1] = 0.0  # unreadable: proposes nothing
+    matches = match_markers(bits, contrast, markers, per_read=2)
+    # Reference: every readable read's pairs ranked by score, best first, the first two kept if >= MIN_NCC.
+    ncc = correlate(bits, markers).reshape(len(bits), -1)
+    expected = [(r, int(p)) for r in np.flatnonzero(contrast > 0)
+                for p in np.argsort(-ncc[r], kind="stable")[:2] if ncc[r, p] >= MIN_NCC]
+    assert list(zip(matches.read.tolist(), (4 * matches.marker + matches.turn).tolist())) == expected
+    np.testing.assert_allclose(matches.ncc, [ncc[r, p] for r, p in expected], rtol=1e-12)
+    assert (matches.read[0], matches.marker[0], matches.turn[0]) == (0, 0, 1) and 1 not in matches.read
+    assert set(range(4, 24)) & set(matches.read.tolist()) and not set(range(24, 29)) & set(matches.read.tolist())
 
 
 @pytest.mark.parametrize("board", UNSEEN, ids=lambda b: f"{b.dictionary}-{b.squares_x}x{b.squares_y}")

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import VIEW_POSES, Numbered, TrackedOnly, make_view, video
+from conftest import VIEW_POSES, Numbered, Racing, TrackedOnly, make_view, moving_video, video
 from deepcharuco import BoardSpec
 from deepcharuco.cli.detect import main as detect_main
 from deepcharuco.cli.detect import make_finders
@@ -155,3 +155,22 @@ def test_workers_carry_a_tracked_board_from_one_chunk_into_the_next():
     assert [n for n, (_, whole) in chunked if len(whole) >= 4] == [1]  # a detector that does not track: as it was
     for (_, a), (_, b) in zip(one, chunked):
         np.testing.assert_array_equal(a[0].corners, b[0].corners)
+
+
+def racing_finders():
+    from deepcharuco.detection.tracking import BoardTracker
+
+    return [BoardTracker(Racing())]
+
+
+def test_workers_carry_a_tracked_boards_motion_from_one_chunk_into_the_next():
+    # Found whole in frames 0 and 1 only, and in a crop only where the crop expects it moved on: each chunk of 4 after
+    # the first is tracked again from the two frames before it, as one process tracks it.
+    frames = moving_video(12)
+    with DetectorPool(racing_finders) as pool:
+        one = list(pool.detect(enumerate(frames)))
+    with DetectorPool(racing_finders, workers=2, chunk=4) as pool:
+        chunked = list(pool.detect(enumerate(frames)))
+    assert [len(d) for _, (d,) in one] == [len(d) for _, (d,) in chunked] == [5] * 12
+    for (_, (a,)), (_, (b,)) in zip(one, chunked):
+        np.testing.assert_array_equal(a.corners, b.corners)

@@ -137,7 +137,7 @@ def test_a_weak_candidate_fills_in_a_corner_only_where_the_view_and_the_neighbou
     ids, pixels, _ = placement._fill_in(board_view, board_xy, detection, weak, (320, 240))
     assert missing in ids.tolist() and np.allclose(pixels[ids == missing], truth[missing])  # both agree: filled in
     monkeypatch.setattr(placement, "_agreed_places", lambda xy, targets, ids, pixels: (
-        targets[targets == missing], truth[[next_one]]))  # the neighbours' fit a square off, onto the other point
+        targets == missing, truth[[next_one]]))  # the neighbours' fit a square off, onto the other point
     ids, _, _ = placement._fill_in(board_view, board_xy, detection, weak, (320, 240))
     assert missing not in ids.tolist()
 

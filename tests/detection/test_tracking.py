@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import Numbered, TrackedOnly, make_view, video
+from conftest import Numbered, Racing, TrackedOnly, make_view, moving_video, video
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.stage_times import StageTimes
@@ -669,12 +669,6 @@ class Moving:
         return Detection(np.arange(5), self.board(n) - origin, np.ones(5))
 
 
-def moving_video(count):
-    """``count`` frames for `Moving`: pixel (y, x) of frame n is (n, x, y)."""
-    y, x = np.mgrid[0:720, 0:1280].astype(np.uint16)
-    return [np.dstack([np.full_like(x, n), x, y]) for n in range(count)]
-
-
 @pytest.mark.parametrize("predict_motion", [True, False])
 def test_a_tracked_board_is_expected_where_it_moves_on_to(predict_motion):
     detector = Moving()
@@ -696,3 +690,16 @@ def test_looking_back_expects_the_board_to_move_on_backwards():
     for n in (2, 1, 0):
         np.testing.assert_allclose(detector.expected[n], detector.board(n), atol=1e-3)
     np.testing.assert_allclose(detector.expected[5], detector.board(5), atol=1e-3)  # on from frames 3 and 4
+
+
+def test_a_board_followed_from_two_frames_is_expected_where_it_moves_on_to():
+    # A worker's chunk that continues another's (`parallel._continue_chunk`): the two frames before the chunk.
+    detector = Racing()
+    frames = moving_video(7)
+    board = [Detection(np.arange(5), detector.board(n), np.ones(5)) for n in range(7)]
+    tracker = BoardTracker(detector)
+    tracker.follow_from(board[3], board[2])
+    assert [len(d) for d in detect_all(tracker, frames[4:])] == [5, 5, 5]
+    tracker.reset()
+    tracker.follow_from(board[3])  # no motion known: the crop is where the board was, and misses it
+    assert [len(d) for d in detect_all(tracker, frames[4:])] == [0, 0, 0]

@@ -365,10 +365,15 @@ def match_markers(bits: np.ndarray, contrast: np.ndarray, markers: BoardMarkers,
     pairs scoring >= `MIN_NCC` (`correlate`), best first within a read."""
     readable = np.flatnonzero(contrast > 0)
     ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
+    # A read none of whose pairs reaches MIN_NCC proposes nothing: the ranking below only for the others (in clutter,
+    # most reads); row by row, so the same pairs in the same order.
+    matching = (ncc >= MIN_NCC).any(axis=1)
+    readable, ncc = readable[matching], ncc[matching]
     per_read = min(per_read, ncc.shape[1])
     best = np.argpartition(-ncc, per_read - 1, axis=1)[:, :per_read] if per_read < ncc.shape[1] \
         else np.tile(np.arange(ncc.shape[1]), (len(ncc), 1))
-    best = np.take_along_axis(best, np.argsort(-np.take_along_axis(ncc, best, axis=1), axis=1, kind="stable"), axis=1)
+    first = np.arange(len(ncc))[:, None]
+    best = best[first, np.argsort(-ncc[first, best], axis=1, kind="stable")]
     rows = np.repeat(np.arange(len(readable)), per_read)
     flat = best.ravel()
     score = ncc[rows, flat] if len(rows) else np.zeros(0)

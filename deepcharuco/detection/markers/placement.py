@@ -22,7 +22,7 @@ import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.detection import corner_spacing, no_corners
-from deepcharuco.core.vectors import lengths, pairwise_distances
+from deepcharuco.core.vectors import homogeneous, lengths, pairwise_distances
 from deepcharuco.detection.board_check import BoardView, apply_homography, assign_ids, in_image
 from deepcharuco.detection.junction import pattern_evidence
 from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
@@ -218,12 +218,12 @@ def _agreement(proposals: np.ndarray, square_xy: np.ndarray, hypotheses: np.ndar
     # A far-off proposal may send a point to infinity. The centres first, for every (hypothesis, proposal) pair:
     # (H, K); the first corners then only for the pairs whose centres agree (0.3-5 % of them on the report's boards).
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        centres = np.c_[square_xy + 0.5, np.ones(len(square_xy))]
+        centres = homogeneous(square_xy + 0.5)
         # (H, 3, K): one matrix product for all hypotheses (a stacked matmul of H 3x3s is 2x slower, same numbers).
         mapped = (proposals[hypotheses].reshape(-1, 3) @ centres.T).reshape(len(hypotheses), 3, -1)
         agrees = _lands_within(mapped, _apply_each(proposals, centres[:, :2]), reach)
         pair_h, pair_k = np.nonzero(agrees)
-        firsts = np.c_[square_xy, np.ones(len(square_xy))]
+        firsts = homogeneous(square_xy)
         mapped = np.einsum("nij,nj->ni", proposals[hypotheses[pair_h]], firsts[pair_k])[:, :, None]  # (n, 3, 1)
         observed = _apply_each(proposals, square_xy)[pair_k][:, None]  # (n, 1, 2)
         agrees[pair_h, pair_k] = _lands_within(mapped, observed, reach[pair_k][:, None])[:, 0]
@@ -263,7 +263,7 @@ def _square_sides(squares: np.ndarray) -> np.ndarray:
 
 def _apply_each(homographies: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """(K, 3, 3) homographies, (K, 2) points -> (K, 2): each point through its own homography."""
-    mapped = np.einsum("kij,kj->ki", homographies, np.c_[xy, np.ones(len(xy))])
+    mapped = np.einsum("kij,kj->ki", homographies, homogeneous(xy))
     return mapped[:, :2] / mapped[:, 2:]
 
 
@@ -415,8 +415,7 @@ def _fill_in(view: BoardView, board_xy: np.ndarray, found: tuple[np.ndarray, np.
     own_ids, own_pixels, own_scores = assign_ids(view, board_xy, weak, image_size)
     missing = ~np.isin(own_ids, ids)
     own_ids, own_pixels, own_scores = own_ids[missing], own_pixels[missing], own_scores[missing]
-    targets, places = _agreed_places(board_xy, own_ids, ids, pixels)
-    placed = np.isin(own_ids, targets)  # `_agreed_places` keeps the order of the corners it is given
+    placed, places = _agreed_places(board_xy, own_ids, ids, pixels)
     own_ids, own_pixels, own_scores = own_ids[placed], own_pixels[placed], own_scores[placed]
     agree = lengths(own_pixels.astype(np.float64) - places) <= WEAK_REACH_PX
     if not agree.any():
@@ -432,15 +431,18 @@ def _agreed_places(board_xy: np.ndarray, targets: np.ndarray, ids: np.ndarray, p
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Where the found corners (``ids`` (N,) at ``pixels`` (N, 2)) put each of ``targets`` (T,): a homography fitted
     to those within `LOCAL_SQUARES` squares of it on the board (`local_predictions`; a lens bends the board away
-    from the view's one homography). -> (the targets with a fit that all its corners meet within `LOCAL_FIT_PX`
-    (K,), their places (K, 2) float64 pixels); where the neighbours disagree, no place."""
+    from the view's one homography). -> ((T,) bool: the targets with a fit that all its corners meet within
+    `LOCAL_FIT_PX`, their places (K, 2) float64 pixels in the targets' order); where the neighbours disagree, no
+    place."""
     offsets, weight, slots = _neighbourhoods(board_xy, targets, ids)
     fittable = _fittable(offsets, weight)
     if not fittable.any():
-        return targets[:0], np.zeros((0, 2))
+        return fittable, np.zeros((0, 2))
     places, misfit = local_predictions(offsets[fittable], weight[fittable], pixels.astype(np.float64)[slots[fittable]])
     agree = np.all(misfit <= LOCAL_FIT_PX, axis=1)
-    return targets[fittable][agree], places[agree]
+    agreed = fittable.copy()
+    agreed[fittable] = agree
+    return agreed, places[agree]
 
 
 def _fill_in_by_pattern(gray: np.ndarray, board: BoardSpec, view: BoardView, board_xy: np.ndarray,
@@ -456,8 +458,9 @@ def _fill_in_by_pattern(gray: np.ndarray, board: BoardSpec, view: BoardView, boa
     predicted, w = apply_homography(view.homography, board_xy)
     in_view = (w > 0) & np.all(predicted >= 0, axis=1) & (predicted[:, 0] <= width - 1) \
         & (predicted[:, 1] <= height - 1)
-    targets, places = _agreed_places(board_xy, np.flatnonzero(in_view & ~np.isin(np.arange(len(board_xy)), ids)),
-                                     ids, pixels)
+    targets = np.flatnonzero(in_view & ~np.isin(np.arange(len(board_xy)), ids))
+    agreed, places = _agreed_places(board_xy, targets, ids, pixels)
+    targets = targets[agreed]
     if len(targets) == 0:
         return found
     # A lens bends a board's edge away from a fit carried past its corners, onto the next corner along a diagonal:
