@@ -72,9 +72,33 @@ def _read_image(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise SourceError(f"cannot read image {path}: not an image file OpenCV can decode")
-    if image.dtype == np.uint16:  # 16-bit PNG/TIFF from machine-vision cameras
-        image = (image >> 8).astype(np.uint8)
-    return image
+    return eight_bits(image, path.name)
+
+
+def eight_bits(image: np.ndarray, name: str) -> np.ndarray:
+    """An image file's pixels (as ``cv2.IMREAD_UNCHANGED`` decodes them) at 8 bits a channel, the detectors' input.
+
+    16 bits: shifted right by the fewest bits that bring its brightest colour value within 255 (>> 8 for an image
+    that uses the full range; >> 4 for a 12-bit sensor's data stored as it comes, which >> 8 would leave 16 grey
+    levels: in a dim frame 2-4, where corners lose precision), never clipped. A float image in [0, 1]: scaled by 255.
+    Any other depth, or floats beyond [0, 1], is refused (`SourceError`, with the fix): its scale is not known."""
+    if image.dtype == np.uint8:
+        return image
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = np.ascontiguousarray(image[..., :3])  # alpha says nothing of the scene (and has its own scale)
+    if image.dtype == np.uint16:
+        shift = max(int(image.max()).bit_length() - 8, 0)
+        return (image >> shift).astype(np.uint8)
+    if np.issubdtype(image.dtype, np.floating):
+        if not np.isfinite(image).all():
+            raise SourceError(f"{name} is a {image.dtype} image with values that are not finite (NaN or inf): save it "
+                              f"as an 8- or 16-bit image")
+        low, high = float(image.min()), float(image.max())
+        if low < 0.0 or high > 1.0:
+            raise SourceError(f"{name} is a {image.dtype} image with values in [{low:g}, {high:g}], not [0, 1]: save it "
+                              f"as an 8- or 16-bit image (or scaled to [0, 1])")
+        return np.rint(image * 255.0).astype(np.uint8)
+    raise SourceError(f"{name} is a {image.dtype} image: save it as an 8- or 16-bit (unsigned) image")
 
 
 def _named(frames: VideoFrames) -> Iterator[tuple[str, np.ndarray]]:

@@ -237,3 +237,56 @@ def test_the_fast_networks_find_the_bundled_example(tmp_path, capsys):
     summary = json.loads((tmp_path / "board_320x240.json").read_text())
     assert summary["frames"][0]["num_corners"] >= 14
     assert "weights/fast/detector.onnx" in capsys.readouterr().err
+
+
+def test_image_files_of_other_depths_are_read_at_eight_bits_by_the_range_they_use():
+    from deepcharuco.cli.sources import SourceError, eight_bits
+
+    rng = np.random.default_rng(0)
+    full = rng.integers(0, 65536, (6, 8), dtype=np.uint16)
+    full[0, 0] = 65535
+    np.testing.assert_array_equal(eight_bits(full, "a"), (full >> 8).astype(np.uint8))
+    twelve = rng.integers(0, 4096, (6, 8), dtype=np.uint16)  # a 12-bit sensor's data stored as it comes
+    twelve[0, 0] = 4000
+    np.testing.assert_array_equal(eight_bits(twelve, "a"), (twelve >> 4).astype(np.uint8))
+    assert eight_bits(twelve, "a").max() == 250  # >> 8 would leave 15
+    bgra = np.dstack([twelve, twelve // 2, twelve // 4, np.full_like(twelve, 65535)])  # opaque alpha: not the range
+    np.testing.assert_array_equal(eight_bits(bgra, "a"), (bgra[..., :3] >> 4).astype(np.uint8))
+    unit = rng.uniform(0.0, 1.0, (6, 8)).astype(np.float32)
+    np.testing.assert_array_equal(eight_bits(unit, "a"), np.rint(unit * 255.0).astype(np.uint8))
+    for image, message in [(unit * 300, r"values in \[15.6064, 299.163\], not \[0, 1\]"),
+                           (np.where(unit > 0.5, np.nan, unit), "not finite"), (twelve.astype(np.int16), "int16 image")]:
+        with pytest.raises(SourceError, match=message):
+            eight_bits(image, "a.tif")
+
+
+def test_a_dim_twelve_bit_image_is_read_to_its_full_precision(tmp_path, camera):
+    # A machine-vision camera's 12-bit data in a 16-bit PNG, dim (its brightest value 1,000 of 4,095): read by its own
+    # range, not as a 16-bit range's top 8 bits (grey levels 0-3, where the corners were 0.14 px off).
+    board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
+    image, _, _, truth = make_view(board, camera, **VIEW_POSES[0])
+    noise = np.random.default_rng(0).normal(0.0, 2.0, image.shape)
+    raw = np.clip(np.rint(image / 255.0 * 1000.0 + noise), 0, 4095).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "dim.png"), raw)
+    board_file = tmp_path / "board.yaml"
+    board.save(board_file)
+    assert main([str(tmp_path / "dim.png"), "--board", str(board_file), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    frame = json.loads((tmp_path / "out" / "dim.json").read_text())["frames"][0]
+    assert len(frame["ids"]) == board.num_corners
+    error = np.abs(np.array(frame["corners"]) - truth[frame["ids"]]).max()
+    assert error < 0.08, error
+
+
+def test_a_folder_with_an_image_of_unknown_scale_skips_it_and_a_lone_one_is_refused(tmp_path, capsys, default_views):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), default_views[0][0])
+    cv2.imwrite(str(folder / "b.tiff"), default_views[1][0].astype(np.float32))  # 0-255 in floats: scale unknown
+    assert main([str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "skipping b.tiff: b.tiff is a float32 image with values in [" in captured.err
+    result = json.loads((tmp_path / "out" / "imgs.json").read_text())
+    assert [f["source"] for f in result["frames"]] == ["a.png"] and len(result["frames"][0]["ids"]) == 16
+    assert main([str(folder / "b.tiff"), "--out", str(tmp_path / "lone")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: b.tiff is a float32 image") and "8- or 16-bit" in err[0]
