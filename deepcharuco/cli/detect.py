@@ -3,8 +3,9 @@
 Writes, into --out: an overlay (PNG per image, MP4 for a video or camera) and per-frame
 results as CSV (written as frames arrive) and JSON (written at the end, also on Ctrl-C).
 
-In a folder, an image that cannot be read is skipped with a message and counted in the summary
-(and in the JSON's ``skipped``); the others go on. A folder's overlays are named after the
+In a folder, an image that cannot be read (or whose depth has no known scale) is skipped with a message and
+counted in the summary (and in the JSON's ``skipped``); the others go on. An image the --camera file does not fit
+(another aspect ratio) gets its corners without a pose, and a warning. A folder's overlays are named after the
 images (``a.png`` -> ``a.png``); images that share a name but not the extension (``a.png``,
 ``a.jpg``) get the extension in the overlay's name (``a_png.png``, ``a_jpg.png``), so no overlay
 overwrites another. An overlay that cannot be written (a full disk) is an error, exit code 2.
@@ -32,7 +33,7 @@ from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
 from deepcharuco.cli.sources import Source, open_source
 from deepcharuco.core.detection import Detection
-from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import (
     atomic_file, mp4_mark, png_mark, refuse_foreign, starts_with, write_atomic,
 )
@@ -194,6 +195,7 @@ def run(args: argparse.Namespace) -> dict:
     interrupted = False
     hint_stride = max(1, (source.total or HINT_FRAMES * HINT_STRIDE) // HINT_FRAMES)  # spread over the source
     frames_read = 0
+    unposed: list[str] = []  # a folder's images the camera file does not fit
     # The CSVs are written as frames arrive, under temporary names renamed into place at the end (also after
     # Ctrl-C): a full disk or a kill never leaves a cut-off <stem>.csv in place of a complete one.
     with ExitStack() as files:
@@ -230,7 +232,13 @@ def run(args: argparse.Namespace) -> dict:
                 detect_seconds = elapsed if detect_seconds is None else 0.9 * detect_seconds + 0.1 * elapsed
                 progress.set_postfix_str(f"detect {1.0 / max(detect_seconds, 1e-9):.1f} fps now, "
                                          f"{(index + 1) / max(total_seconds, 1e-9):.1f} mean", refresh=False)
-                frame_camera = _camera_for(camera, frame.shape)
+                try:
+                    frame_camera = _camera_for(camera, frame.shape)
+                except CameraFileError as error:
+                    if source.kind != "images":  # every frame of a video is this size: the run cannot pose any
+                        raise
+                    frame_camera = None  # one image of a folder (a stray screenshot): its corners, without a pose
+                    unposed.append(f"{name}: {error}; its corners are written without a pose")
                 overlay = frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
                 for board_run, rows, detection in zip(runs, writers, detections):
                     pose = estimate_frame_pose(board_run.detector, detection, frame_camera) if frame_camera else None
@@ -259,16 +267,17 @@ def run(args: argparse.Namespace) -> dict:
                                    + (f" ({problems[0]})" if problems else "")
                                    + ": give an image, a folder of images, a video with frames or a camera index "
                                      "that delivers them")
-    summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1)
+    summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1, unposed)
                  for board_run in runs]
     return summaries[0]
 
 
 def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, camera: Camera | None, interrupted: bool,
-            total_seconds: float, several: bool) -> dict:
-    """Write one board's JSON, say what it found, and return its summary."""
+            total_seconds: float, several: bool, unposed: list[str]) -> dict:
+    """Write one board's JSON, say what it found (``unposed``: a folder's images the camera file does not fit),
+    and return its summary."""
     records, board, detector = board_run.records, board_run.detector.board, board_run.detector
-    problems = source.problems()
+    problems = source.problems() + unposed
     if records and not board_run.found:
         problems.append(f"no board corners in any of {len(records)} frames ({args.detector} detector, board "
                         f"{board.squares_x}x{board.squares_y} {board.dictionary}{', inverted' if board.inverted else ''}"

@@ -290,3 +290,28 @@ def test_a_folder_with_an_image_of_unknown_scale_skips_it_and_a_lone_one_is_refu
     assert main([str(folder / "b.tiff"), "--out", str(tmp_path / "lone")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: b.tiff is a float32 image") and "8- or 16-bit" in err[0]
+
+
+def test_an_image_the_camera_file_does_not_fit_keeps_its_corners_without_a_pose(tmp_path, capsys, camera,
+                                                                               default_views):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), default_views[0][0])
+    cv2.imwrite(str(folder / "b.png"), cv2.resize(default_views[1][0], (320, 320)))  # another aspect ratio
+    cv2.imwrite(str(folder / "c.png"), default_views[2][0])
+    write_camera(tmp_path / "cam.yaml", camera)
+    assert main([str(folder), "--camera", str(tmp_path / "cam.yaml"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    result = json.loads((tmp_path / "out" / "imgs.json").read_text())
+    assert [(f["source"], f["pose"] is not None) for f in result["frames"]] == [("a.png", True), ("b.png", False),
+                                                                                  ("c.png", True)]
+    assert len(result["frames"][1]["ids"]) >= 12
+    assert len(result["problems"]) == 1 and result["problems"][0].startswith("b.png: frames are 320x320 but the camera")
+    assert "warning: b.png: frames are 320x320" in capsys.readouterr().err
+    # A video's frames are all one size: that is refused whole, as before (exit 2, one line).
+    video = tmp_path / "v.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (320, 320))
+    for _ in range(3):
+        writer.write(cv2.cvtColor(cv2.resize(default_views[1][0], (320, 320)), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    assert main([str(video), "--camera", str(tmp_path / "cam.yaml"), "--out", str(tmp_path / "v")]) == 2
+    assert "the camera file is for 320x240" in capsys.readouterr().err
