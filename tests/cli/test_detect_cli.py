@@ -262,7 +262,7 @@ def test_image_files_of_other_depths_are_read_at_eight_bits_by_the_range_they_us
 
 def test_a_dim_twelve_bit_image_is_read_to_its_full_precision(tmp_path, camera):
     # A machine-vision camera's 12-bit data in a 16-bit PNG, dim (its brightest value 1,000 of 4,095): read by its own
-    # range, not as a 16-bit range's top 8 bits (grey levels 0-3, where the corners were 0.14 px off).
+    # range, not as a 16-bit range's top 8 bits (grey levels 0-3: corners 0.17 px off, now 0.02).
     board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
     image, _, _, truth = make_view(board, camera, **VIEW_POSES[0])
     noise = np.random.default_rng(0).normal(0.0, 2.0, image.shape)
