@@ -365,10 +365,6 @@ def match_markers(bits: np.ndarray, contrast: np.ndarray, markers: BoardMarkers,
     pairs scoring >= `MIN_NCC` (`correlate`), best first within a read."""
     readable = np.flatnonzero(contrast > 0)
     ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
-    # A read none of whose pairs reaches MIN_NCC proposes nothing: the ranking below only for the others (in clutter,
-    # most reads); row by row, so the same pairs in the same order.
-    matching = (ncc >= MIN_NCC).any(axis=1)
-    readable, ncc = readable[matching], ncc[matching]
     per_read = min(per_read, ncc.shape[1])
     best = np.argpartition(-ncc, per_read - 1, axis=1)[:, :per_read] if per_read < ncc.shape[1] \
         else np.tile(np.arange(ncc.shape[1]), (len(ncc), 1))
