@@ -74,6 +74,23 @@ def output_folder(path: str | Path, option: str = "--out") -> Path:
     return path
 
 
+def missing_folders(path: str | Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first: what making ``path`` would create."""
+    path = Path(path).absolute()
+    return [p for p in [path, *path.parents] if not p.exists()]
+
+
+def remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first, as `missing_folders` lists them) while they are empty: a run that failed
+    before writing anything leaves none of the folders it made behind. A folder holding anything stays, with its
+    parents."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (or already gone, or not ours to remove): it and its parents stay
+            return
+
+
 def check_output_folder(path: str | Path, option: str = "--out") -> Path:
     """What `output_folder` checks, without creating anything (for a dry run): ``path`` is a folder or can be
     made in a writable folder. Raises `DeepCharucoError` naming ``option`` otherwise."""

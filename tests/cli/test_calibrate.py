@@ -226,6 +226,13 @@ def _fail(tmp_path, capsys, images):
 def test_no_board_says_so(tmp_path, capsys):
     message = _fail(tmp_path, capsys, [np.full((240, 320), 90 + i, np.uint8) for i in range(8)])
     assert "no board found in any of 8 frames" in message and "--board" in message
+    # --out in folders that do not exist yet: the failed run leaves none of them behind; a folder it did not make stays
+    video = _video(tmp_path / "blank.avi", [np.full((240, 320), 90, np.uint8)] * 4)
+    assert main([str(video), "--out", str(tmp_path / "new" / "deeper" / "camera.yaml"), "--quiet"]) == 2
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "kept").mkdir()
+    assert main([str(video), "--out", str(tmp_path / "kept" / "camera.yaml"), "--quiet"]) == 2
+    assert (tmp_path / "kept").is_dir()
 
 
 def test_too_few_views_says_what_to_capture(tmp_path, capsys, waved):

@@ -315,3 +315,4 @@ def test_an_image_the_camera_file_does_not_fit_keeps_its_corners_without_a_pose(
     writer.release()
     assert main([str(video), "--camera", str(tmp_path / "cam.yaml"), "--out", str(tmp_path / "v")]) == 2
     assert "the camera file is for 320x240" in capsys.readouterr().err
+    assert not (tmp_path / "v").exists()  # the folder the failed run made is gone again
