@@ -31,7 +31,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
 from deepcharuco.cli.calibration_exports import (add_export_options, export_folder, export_outputs, export_problems,
                                                 refuse_foreign_exports)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
-from deepcharuco.cli.common import check_output_folder, missing_folders, remove_empty, run_command
+from deepcharuco.cli.common import check_output_folder, no_empty_folders_on_failure, run_command
 from deepcharuco.cli.detect import make_detector
 from deepcharuco.cli.sources import open_source
 from deepcharuco.core.errors import DeepCharucoError
@@ -135,9 +135,10 @@ def run(args: argparse.Namespace) -> CalibrationResult:
         refuse_foreign(report, starts_with(REPORT_START), "calibration report", args.force,
                        "--report" if args.report else "--out's report")
     refuse_foreign_exports(args, export_folder(out, False), [out.stem])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with OutputLock(out, "another calibrate"):
-        return _calibrate_into(args, out, report)
+    with no_empty_folders_on_failure(out.parent):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with OutputLock(out, "another calibrate"):
+            return _calibrate_into(args, out, report)
 
 
 def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
@@ -324,7 +325,6 @@ def main(argv: list[str] | None = None) -> int:
     if problems:
         parser.error("; ".join(problems))
     def body() -> None:
-        made = missing_folders(args.out if rig else Path(args.out).parent)  # a failed run leaves none of them behind
         try:
             args.weights = network_weights(args.network, args.weights)
             if rig:
@@ -343,11 +343,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 run(args)
         except KeyboardInterrupt:  # Ctrl-C while detecting or solving: the files are written last, whole or not at all
-            remove_empty(made)
             raise KeyboardInterrupt(f"nothing written ({args.out} is as it was); rerun to calibrate") from None
-        except BaseException:
-            remove_empty(made)
-            raise
 
     return run_command(body)  # Ctrl-C: one line "stopped: ...", exit code 130
 

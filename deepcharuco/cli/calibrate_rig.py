@@ -30,7 +30,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            within_border)
 from deepcharuco.cli.calibration_exports import export_outputs, refuse_foreign_exports
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
-from deepcharuco.cli.common import check_output_folder
+from deepcharuco.cli.common import check_output_folder, no_empty_folders_on_failure
 from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_overlap, check_recorded, describe, disagree,
                                       frame_intervals, instants_by_time, read_timestamps, renumbered, worst_spread)
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
@@ -293,9 +293,10 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
         auto = "--sync auto" if args.sync == "auto" else f"the sources have different lengths: {listed} frames"
     else:
         check_lengths(sources, args.sync_offsets)
-    out.mkdir(parents=True, exist_ok=True)
-    with OutputLock(out / TOML_NAME, "another calibrate"):
-        return _rig_into(args, boards, detectors, out, sources, names, targets, mapping, auto)
+    with no_empty_folders_on_failure(out):
+        out.mkdir(parents=True, exist_ok=True)
+        with OutputLock(out / TOML_NAME, "another calibrate"):
+            return _rig_into(args, boards, detectors, out, sources, names, targets, mapping, auto)
 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],

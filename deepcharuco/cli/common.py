@@ -12,6 +12,8 @@ import signal
 import sys
 import tempfile
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
@@ -74,21 +76,22 @@ def output_folder(path: str | Path, option: str = "--out") -> Path:
     return path
 
 
-def missing_folders(path: str | Path) -> list[Path]:
-    """``path`` and those of its parents that do not exist yet, deepest first: what making ``path`` would create."""
+@contextmanager
+def no_empty_folders_on_failure(path: str | Path) -> Iterator[None]:
+    """A run that makes the folder ``path`` (and its missing parents): where it fails (an exception, Ctrl-C among
+    them), those of the folders it made that are empty are removed again, deepest first, so a failed run leaves
+    none behind. A folder holding anything stays, with its parents; a folder that existed before is never removed."""
     path = Path(path).absolute()
-    return [p for p in [path, *path.parents] if not p.exists()]
-
-
-def remove_empty(folders: list[Path]) -> None:
-    """Remove ``folders`` (deepest first, as `missing_folders` lists them) while they are empty: a run that failed
-    before writing anything leaves none of the folders it made behind. A folder holding anything stays, with its
-    parents."""
-    for folder in folders:
-        try:
-            folder.rmdir()
-        except OSError:  # not empty (or already gone, or not ours to remove): it and its parents stay
-            return
+    made = [p for p in [path, *path.parents] if not p.exists()]  # deepest first
+    try:
+        yield
+    except BaseException:
+        for folder in made:
+            try:
+                folder.rmdir()
+            except OSError:  # not empty (or already gone): it and its parents stay
+                break
+        raise
 
 
 def check_output_folder(path: str | Path, option: str = "--out") -> Path:

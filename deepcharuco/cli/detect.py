@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.cli.common import missing_folders, output_folder, remove_empty, run_command
+from deepcharuco.cli.common import no_empty_folders_on_failure, output_folder, run_command
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
 from deepcharuco.cli.sources import Source, open_source
@@ -392,12 +392,8 @@ def main(argv: list[str] | None = None) -> int:
     args.refine = args.refine or ("subpix" if args.detector == "opencv" else "refinenet")
 
     def body() -> int:
-        made = missing_folders(args.out)
-        try:
+        with no_empty_folders_on_failure(args.out):
             summary = run(args)
-        except BaseException:
-            remove_empty(made)  # a run that failed before writing anything leaves no empty folder behind
-            raise
         return 0 if summary["complete"] else 130  # Ctrl-C: the results so far are written, marked incomplete
 
     return run_command(body)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.cli.sources import IMAGE_SUFFIXES
+from deepcharuco.cli.sources import IMAGE_SUFFIXES, SourceError, eight_bits
 from deepcharuco.cli.video import VideoFrames
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.image import to_gray_u8
@@ -229,8 +229,10 @@ def read_image(path: Path) -> np.ndarray:
     if image is None:
         raise CaptureError(f"cannot read the photo {path}: not an image OpenCV can decode; re-save it as PNG or "
                            f"JPEG, or remove it from the folder")
-    if image.dtype == np.uint16:  # 16-bit PNG/TIFF from machine-vision cameras: scaled, never clipped
-        image = (image >> 8).astype(np.uint8)
+    try:
+        image = eight_bits(image, path.name)  # as `detect` reads the file: 16 bits by the range they use, never clipped
+    except SourceError as error:
+        raise CaptureError(f"{error}, or remove it from the folder") from None
     return to_gray_u8(image)
 
 

@@ -280,3 +280,16 @@ def test_labels_of_frames_that_are_not_in_the_set_are_refused_or_said(capture_fo
     assert truth.notes[0] == "labels.csv: 1 labelled frames" and list(truth.by_frame) == ["view0.png"]
     assert truth.notes[1].startswith("2 labelled frame(s) are not in the set and are ignored")
     assert "warning:" in capsys.readouterr().err
+
+
+def test_a_capture_photo_is_read_as_detect_reads_it(tmp_path):
+    from deepcharuco.cli.sources import eight_bits
+    from evaluate.captures.reader import CaptureError, read_image
+
+    twelve = np.random.default_rng(0).integers(0, 4001, (24, 32), dtype=np.uint16)  # a 12-bit sensor's data as it comes
+    cv2.imwrite(str(tmp_path / "a.png"), twelve)
+    np.testing.assert_array_equal(read_image(tmp_path / "a.png"), eight_bits(twelve, "a.png"))
+    assert read_image(tmp_path / "a.png").max() > 200  # not its top 8 of 16 bits (<= 15)
+    cv2.imwrite(str(tmp_path / "b.tiff"), twelve.astype(np.float32))
+    with pytest.raises(CaptureError, match="b.tiff is a float32 image .* or remove it from the folder"):
+        read_image(tmp_path / "b.tiff")

@@ -36,6 +36,7 @@ import numpy as np
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.checks import check_choice
+from deepcharuco.core.vectors import homogeneous
 from deepcharuco.networks.shipped import WEIGHTS_DIR
 
 try:  # the reads' loops compiled (pip install deepcharuco[fast]); else numpy's, the same values
@@ -269,7 +270,7 @@ def rectify_squares(gray: np.ndarray, homographies: np.ndarray, size: int, ratio
     if len(homographies) == 0:
         return np.zeros((0, side, side), np.float32)
     local = patch_points(size, ratio)
-    mapped = np.c_[local, np.ones(len(local))] @ np.asarray(homographies, np.float64).transpose(0, 2, 1)
+    mapped = homogeneous(local) @ np.asarray(homographies, np.float64).transpose(0, 2, 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         points = mapped[:, :, :2] / mapped[:, :, 2:]
     points = np.nan_to_num(points, nan=-1e4, posinf=-1e4, neginf=-1e4).clip(-1e4, 1e5).astype(np.float32)
