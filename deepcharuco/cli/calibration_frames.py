@@ -3,6 +3,7 @@ with their sharpness, detected in this process or on a `DetectorPool` (``calibra
 
 from __future__ import annotations
 
+import sys
 from functools import partial
 from typing import Iterable
 
@@ -11,6 +12,7 @@ from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.views import FrameDetection, sharpness
+from deepcharuco.cli.common import jobs_warning
 from deepcharuco.cli.detect import CHUNK_FRAMES, make_finders
 from deepcharuco.detection.parallel import DetectorPool
 
@@ -21,6 +23,9 @@ def calibration_pool(name: str, boards: list[BoardSpec], refine: str, weights: s
     them); None for one job (the caller's detectors, in this process)."""
     if jobs == 1:
         return None
+    warning = jobs_warning(jobs)
+    if warning:
+        print(warning, file=sys.stderr)
     return DetectorPool(partial(make_finders, name, boards, refine, weights, None, "auto", True, "cpu", 1), jobs,
                         chunk=CHUNK_FRAMES)
 

@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.cli.common import no_empty_folders_on_failure, output_folder, run_command
+from deepcharuco.cli.common import jobs_warning, no_empty_folders_on_failure, output_folder, run_command
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
 from deepcharuco.cli.sources import Source, open_source
@@ -211,6 +211,9 @@ def run(args: argparse.Namespace) -> dict:
             pool = DetectorPool(lambda: [board_run.finder for board_run in runs])
         else:
             print(f"detecting on {jobs} worker processes", file=sys.stderr)
+            warning = jobs_warning(jobs)
+            if warning:
+                print(warning, file=sys.stderr)
             pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
                                         args.refine_weights, args.backend, not args.no_corner_fit, args.device,
                                         refresh_every, search_every, look_back),

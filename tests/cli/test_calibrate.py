@@ -12,6 +12,7 @@ from deepcharuco.boards.synthetic import render_board_view
 from deepcharuco.calibration.intrinsics import calibrate
 from deepcharuco.calibration.views import CalibrationError, FrameDetection, SelectionOptions, sharpness, usable_reason
 from deepcharuco.cli.calibrate import detect_frames, main
+from deepcharuco.cli.common import jobs_warning
 from evaluate.calibration.calibration_sequences import WavingPath, frame_times, hand_waved_pose, pose_of, true_camera
 
 BOARD = BoardSpec()
@@ -85,18 +86,27 @@ def test_calibration_recovers_the_true_camera(waved, calibrated):
     assert sum(d.status == "kept" for d in result.decisions) == len(result.views)
 
 
-def test_cli_with_jobs_writes_the_same_camera_file(tmp_path, waved):
+def test_cli_with_jobs_writes_the_same_camera_file(tmp_path, waved, capsys, monkeypatch):
     """Frames detected on 2 worker processes (`deepcharuco.detection.parallel`) calibrate the camera one process does (to
-    rounding: `assert_same_but_rounding`)."""
+    rounding: `assert_same_but_rounding`); 2 workers on 2 CPUs are warned of (they share them with the reading)."""
     images, _, _ = waved
     video = _video(tmp_path / "wave.avi", images[:12])
+    monkeypatch.setattr("deepcharuco.cli.common.available_cpus", lambda: 2)
     texts = []
     for jobs in (1, 2):
         out = tmp_path / f"jobs{jobs}.yaml"
         assert main([str(video), "--out", str(out), "--quiet", "--no-report", "--min-views", "4",
                      "--jobs", str(jobs)]) == 0
         texts.append(out.read_text())
+        warned = "warning: --jobs 2 on 2 CPU(s)" in capsys.readouterr().err
+        assert warned == (jobs == 2)
     assert_same_but_rounding(*texts)
+
+
+def test_jobs_at_or_above_the_cpus_are_warned_of():
+    assert jobs_warning(1, cpus=1) is None and jobs_warning(2, cpus=4) is None and jobs_warning(3, cpus=4) is None
+    assert "--jobs 4 on 4 CPU(s)" in jobs_warning(4, cpus=4)
+    assert "--jobs 8 on 2 CPU(s)" in jobs_warning(8, cpus=2)
 
 
 def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
