@@ -21,7 +21,7 @@ from deepcharuco.boards.board import BOARD_FILE_MARK, BoardSpec
 from deepcharuco.boards.printing import (
     PAPERS_MM, SHEET_MARK, board_sheet, check_png_size, check_printable, paper_size, pdf_bytes, png_bytes, svg_text,
 )
-from deepcharuco.cli.common import check_output_folder, run_command
+from deepcharuco.cli.common import check_output_folder, load_board, run_command
 from deepcharuco.core.errors import BoardSpecError, DeepCharucoError
 from deepcharuco.core.files import contains, png_mark, refuse_foreign, starts_with, write_together
 
@@ -49,7 +49,7 @@ def board_from_args(args: argparse.Namespace) -> tuple[BoardSpec, bool]:
         raise DeepCharucoError("give a board file or describe the board with --squares, --dictionary, --square and "
                                "--marker, not both")
     if args.board:
-        return BoardSpec.load(args.board), False
+        return load_board(args.board), False
     missing = [f"--{name}" for name in ("squares", "dictionary", "square", "marker") if getattr(args, name) is None]
     if missing:
         raise DeepCharucoError(f"give a board file, or describe the board: {', '.join(missing)} missing (e.g. "

@@ -31,7 +31,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
 from deepcharuco.cli.calibration_exports import (add_export_options, export_folder, export_outputs, export_problems,
                                                 refuse_foreign_exports)
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
-from deepcharuco.cli.common import check_output_folder, no_empty_folders_on_failure, run_command
+from deepcharuco.cli.common import check_output_folder, load_board, no_empty_folders_on_failure, run_command
 from deepcharuco.cli.detect import make_detector
 from deepcharuco.cli.sources import open_source
 from deepcharuco.core.errors import DeepCharucoError
@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> CalibrationResult:
 
 
 def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
-    board = BoardSpec.load(args.board[0]) if args.board else BoardSpec()
+    board = load_board(args.board[0]) if args.board else BoardSpec()
     detector = make_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source[0], args.max_frames)
     pool = calibration_pool(args.detector, [board], args.refine, args.weights, args.jobs)
@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
             if rig:
                 from deepcharuco.cli.calibrate_rig import run_rig
 
-                boards = [BoardSpec.load(path) for path in args.board] if args.board else [BoardSpec()]
+                boards = [load_board(path) for path in args.board] if args.board else [BoardSpec()]
                 for j, board in enumerate(boards):
                     for i in range(j):
                         if boards[i].same_layout(board):

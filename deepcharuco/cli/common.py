@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
+from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.platform import available_cpus, describe_os_error
 
@@ -116,6 +117,21 @@ def output_file(path: str | Path, option: str = "--out") -> Path:
         raise DeepCharucoError(f"{option} {path} is a folder: give a file path, e.g. {path / 'detector.pt'}")
     output_folder(path.parent, option=f"{option}'s folder")
     return path
+
+
+# A board file's lengths are metres; a square above this many was almost surely written in millimetres or centimetres.
+LARGEST_LIKELY_SQUARE_M = 1.0
+
+
+def load_board(path: str | Path) -> BoardSpec:
+    """The board file ``path`` (`BoardSpec.load`), with a warning line on stderr where its squares are implausibly large
+    for metres (over `LARGEST_LIKELY_SQUARE_M`): a length written in millimetres (54 for 0.054) is read as metres, and
+    poses and rig translations then come out in millimetres, consistently but not in the metres the docs promise."""
+    board = BoardSpec.load(path)
+    if board.square_length > LARGEST_LIKELY_SQUARE_M:
+        print(f"warning: {path}: square_length {board.square_length:g} m: board files give lengths in metres (54 mm is "
+              f"0.054); as written, poses and rig translations come out in the file's own unit", file=sys.stderr)
+    return board
 
 
 def jobs_warning(jobs: int, cpus: int | None = None) -> str | None:

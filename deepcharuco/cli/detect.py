@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec
-from deepcharuco.cli.common import jobs_warning, no_empty_folders_on_failure, output_folder, run_command
+from deepcharuco.cli.common import jobs_warning, load_board, no_empty_folders_on_failure, output_folder, run_command
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
 from deepcharuco.cli.sources import Source, open_source
@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> dict:
     args.weights = network_weights(args.network, args.weights, args.device)
     board_files = args.board or [None]
     suffixes = [""] if len(board_files) == 1 else [f"_{name}" for name in board_names(board_files)]
-    boards = [BoardSpec.load(path) if path else None for path in board_files]  # deep: default to the weights' board
+    boards = [load_board(path) if path else None for path in board_files]  # deep: default to the weights' board
     camera = read_camera(args.camera) if args.camera else None
     detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend,
                                corner_fit=not args.no_corner_fit, device=args.device)
@@ -302,7 +302,7 @@ def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, came
     for line in problems:
         print(f"warning: {line}", file=sys.stderr)
     found = sum(r["num_corners"] > 0 for r in records)
-    lost = [f"{len(source.skipped)} unreadable image(s) skipped"] if source.skipped else []
+    lost = [f"{len(source.skipped)} image(s) skipped (each named above)"] if source.skipped else []
     if source.video is not None and source.video.skipped:
         lost.append(f"{source.video.skipped_frames} undecodable frame(s) skipped")
     which = f" board {Path(board_run.board_file).stem}:" if several else ""

@@ -480,7 +480,7 @@ def test_a_frame_a_reader_skipped_shifts_no_other_frame_of_its_camera(tmp_path, 
     assert main([str(folders[0]), str(video), str(folder), "--board", str(board), "--detector", "opencv", "--out",
                  str(out), "--quiet", "--no-report"]) == 0
     err = capsys.readouterr().err
-    assert "cam1: 1 frame(s) could not be decoded" in err and "cam2: 1 unreadable image(s) skipped" in err
+    assert "cam1: 1 frame(s) could not be decoded" in err and "cam2: 1 image(s) skipped, each named above" in err
     for c in (1, 2):
         storage = cv2.FileStorage(str(out / f"cam{c}.yaml"), cv2.FILE_STORAGE_READ)
         R, t = storage.getNode("rotation_matrix").mat(), storage.getNode("translation_vector").mat().ravel()

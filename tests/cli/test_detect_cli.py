@@ -128,7 +128,7 @@ def test_a_folder_with_an_unreadable_image_and_shared_stems(tmp_path, capsys, de
     cv2.imwrite(str(folder / "c.png"), default_views[2][0])
     assert main([str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     captured = capsys.readouterr()
-    assert "skipping b.png: cannot read image" in captured.err and "1 unreadable image(s) skipped" in captured.out
+    assert "skipping b.png: cannot read image" in captured.err and "1 image(s) skipped (each named above)" in captured.out
     result = json.loads((tmp_path / "out" / "imgs.json").read_text())
     assert [f["source"] for f in result["frames"]] == ["a.jpg", "a.png", "c.png"]
     assert len(result["skipped"]) == 1 and result["skipped"][0].startswith("b.png: ")
@@ -285,6 +285,7 @@ def test_a_folder_with_an_image_of_unknown_scale_skips_it_and_a_lone_one_is_refu
     assert main([str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     captured = capsys.readouterr()
     assert "skipping b.tiff: b.tiff is a float32 image with values in [" in captured.err
+    assert "1 image(s) skipped (each named above)" in captured.out  # not "unreadable": it was read, its scale unknown
     result = json.loads((tmp_path / "out" / "imgs.json").read_text())
     assert [f["source"] for f in result["frames"]] == ["a.png"] and len(result["frames"][0]["ids"]) == 16
     assert main([str(folder / "b.tiff"), "--out", str(tmp_path / "lone")]) == 2
@@ -316,3 +317,20 @@ def test_an_image_the_camera_file_does_not_fit_keeps_its_corners_without_a_pose(
     assert main([str(video), "--camera", str(tmp_path / "cam.yaml"), "--out", str(tmp_path / "v")]) == 2
     assert "the camera file is for 320x240" in capsys.readouterr().err
     assert not (tmp_path / "v").exists()  # the folder the failed run made is gone again
+
+
+def test_a_board_file_in_millimetres_is_warned_of_and_poses_come_out_in_its_unit(tmp_path, capsys):
+    """A board file's lengths are metres: one written in millimetres (40 for 0.04) gets a warning naming the file, and
+    its pose's translation is the metres' one times 1000 (consistent, in the file's own unit)."""
+    example = [str(EXAMPLES / "board_320x240.png"), "--camera", str(EXAMPLES / "webcam_320x240.yaml"), "--detector",
+               "opencv", "--no-overlay"]
+    translations = []
+    for name, board in (("metres", BoardSpec()), ("millimetres", BoardSpec(square_length=40.0, marker_length=30.0))):
+        path = tmp_path / f"{name}.yaml"
+        board.save(path)
+        assert main([*example, "--board", str(path), "--out", str(tmp_path / name)]) == 0
+        warned = f"warning: {path}: square_length 40 m" in capsys.readouterr().err
+        assert warned == (name == "millimetres")
+        frame = json.loads((tmp_path / name / "board_320x240.json").read_text())["frames"][0]
+        translations.append(np.array(frame["pose"]["tvec"], np.float64))
+    np.testing.assert_allclose(translations[1], 1000 * translations[0], rtol=1e-3)
