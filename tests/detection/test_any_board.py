@@ -62,10 +62,15 @@ def test_cells_of_a_perspective_lattice_each_once_right_handed():
         assert np.allclose(points[b] + points[c] - points[a], points[d], atol=0.25 * min(np.hypot(*ab), np.hypot(*ac)))
 
 
-@pytest.mark.parametrize("count", [40, 300])  # measured against each other, and through the k-d tree
-def test_nearest_candidates_are_nearest_first_and_equal_distances_by_index(count):
+@pytest.mark.parametrize("compiled", [True, False])  # numba's every pair, and numpy's
+@pytest.mark.parametrize("count", [40, 300])  # numpy: measured against each other, and through the k-d tree
+def test_nearest_candidates_are_nearest_first_and_equal_distances_by_index(count, compiled, monkeypatch):
     """`lattice._nearest` gives what measuring every pair and a stable sort give, on whole pixels (many equal
     distances), and where more points are equally near than its tree was asked for: twenty points 25 px from one."""
+    if compiled:
+        pytest.importorskip("numba")
+    else:
+        monkeypatch.setattr(lattice_module, "compiled_kernel", None)
     rng = np.random.default_rng(3)
     ring = np.array([(x, y) for x in range(-25, 26) for y in range(-25, 26) if x * x + y * y == 625], np.float64)
     rng.shuffle(ring)

@@ -232,6 +232,22 @@ def test_agreement_kernel_decides_as_numpy():
     assert not plain[:, [7, 11]].any() and not plain[np.isin(hypotheses, [7, 11])].any()
 
 
+@pytest.mark.parametrize("distinct", [5, 40, 200, 300])  # numpy's pairwise sum: in order, 8 running sums, halves
+def test_support_kernel_sums_as_numpy(distinct):
+    """`decode_kernel.support` gives `placement._support`'s evidence to the last bit (so the same hypothesis wins,
+    ties included): proposals of ``distinct`` markers out of 400, with negative correlations (counted as 0)."""
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    rng = np.random.default_rng(distinct)
+    marker = rng.choice(rng.permutation(400)[:distinct], 3 * distinct).astype(np.int64)
+    ncc = rng.uniform(-0.3, 1.0, len(marker))
+    agrees = rng.random((64, len(marker))) < 0.6
+    agrees[5] = agrees[3]  # two hypotheses with one support: the first must win in both
+    compiled = kernel.support(marker, ncc, agrees, 400)
+    plain = placement._support(marker, ncc, agrees)
+    assert np.array_equal(compiled, plain) and np.argmax(compiled) == np.argmax(plain)
+    assert compiled[5] == compiled[3]
+
+
 def test_cell_reads_reuse_reads_and_read_only_new_cells():
     rng = np.random.default_rng(11)
     image, board = drawn("sharp")

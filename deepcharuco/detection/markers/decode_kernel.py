@@ -1,7 +1,7 @@
 """The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
 decisions as their numpy paths (`marker_reader._squares_inside`, `marker_reader._square_maps`,
-`marker_reader._reduce_reads`, `lattice._cell_quads`, `lattice.cell_homographies`, `lattice.squarest_cells`,
-`placement._square_sides`, `placement._agreement`), in one pass over the data instead of numpy's many passes and
+`marker_reader._reduce_reads`, `lattice._nearest`, `lattice._cell_quads`, `lattice.cell_homographies`,
+`lattice.squarest_cells`, `placement._square_sides`, `placement._agreement`, `placement._support`), in one pass over the data instead of numpy's many passes and
 temporaries, which are most of those paths' time on a frame's few thousand square reads (`docs/detector.md`, "A
 compiled decoder").
 
@@ -306,3 +306,100 @@ def square_sides(squares):
             twice_area += xs[i] * ys[j] - xs[j] * ys[i]
         sides[r] = np.sqrt(0.5 * abs(twice_area))
     return sides
+
+
+@njit(cache=True)
+def nearest(points, k):
+    """`lattice._nearest` compiled: (N, 2) float64 points -> (N, k) int64 each point's k nearest others, nearest first,
+    equal distances by index. Every pair measured (N <= `placement.SEARCH_CANDIDATES`, 300) as `lattice._nearest_of`
+    measures it, sqrt(dx * dx + dy * dy), and kept in a sorted list of k: a later index goes after an equal distance."""
+    count = points.shape[0]
+    near = np.empty((count, k), np.int64)
+    kept = np.empty(k)
+    for i in range(count):
+        filled = 0
+        for j in range(count):
+            if j == i:
+                continue
+            dx, dy = points[i, 0] - points[j, 0], points[i, 1] - points[j, 1]
+            distance = np.sqrt(dx * dx + dy * dy)
+            if filled == k and not distance < kept[k - 1]:
+                continue
+            at = min(filled, k - 1)  # the last place, or the first free one; then moved up past every farther one
+            while at > 0 and kept[at - 1] > distance:
+                kept[at], near[i, at] = kept[at - 1], near[i, at - 1]
+                at -= 1
+            kept[at], near[i, at] = distance, j
+            filled = min(filled + 1, k)
+    return near
+
+
+@njit(cache=True)
+def _block_sum(values, start, count):
+    """numpy's pairwise sum of ``values[start:start + count]`` for ``count`` <= 128: in order below 8 values, else eight
+    running sums, combined in pairs, then the rest in order."""
+    if count < 8:
+        total = 0.0
+        for i in range(count):
+            total += values[start + i]
+        return total
+    r = values[start:start + 8].copy()
+    i = 8
+    while i < count - count % 8:
+        for j in range(8):
+            r[j] += values[start + i + j]
+        i += 8
+    total = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < count:
+        total += values[start + i]
+        i += 1
+    return total
+
+
+@njit(cache=True)
+def _half_sum(values, start, count):
+    """One half of `_pairwise_sum`'s: numpy's pairwise sum of up to 256 values (two blocks above 128)."""
+    if count <= 128:
+        return _block_sum(values, start, count)
+    half = count // 2 - (count // 2) % 8
+    return _block_sum(values, start, half) + _block_sum(values, start + half, count - half)
+
+
+@njit(cache=True)
+def _pairwise_sum(values, start, count):
+    """The sum of ``values[start:start + count]`` (float64) as numpy's ``add.reduce`` sums a contiguous row (pairwise:
+    eight running sums in blocks of up to 128, halves above: the first half a multiple of 8), so that it is the same
+    number to the last bit, up to 512 values (the distinct markers of one view; beyond, halves of more than 256 are
+    summed as two blocks: the same to rounding). Written out, not recursive: numba caches no recursive function."""
+    if count <= 128:
+        return _block_sum(values, start, count)
+    half = count // 2 - (count // 2) % 8
+    return _half_sum(values, start, half) + _half_sum(values, start + half, count - half)
+
+
+@njit(cache=True)
+def support(marker, ncc, agrees, markers):
+    """`placement._support` compiled: (K,) int64 ``marker`` (each in 0 .. ``markers`` - 1), (K,) float64 ``ncc``, (H, K)
+    bool ``agrees`` -> (H,) each hypothesis' evidence: the best correlation (at least 0) of each distinct marker among
+    its agreeing proposals, summed over the distinct markers in increasing order (as numpy sums a row)."""
+    rank = np.full(markers, -1, np.int64)
+    for k in range(len(marker)):
+        rank[marker[k]] = 0
+    distinct = 0
+    for m in range(markers):
+        if rank[m] == 0:
+            rank[m] = distinct
+            distinct += 1
+    tried = agrees.shape[0]
+    out = np.empty(tried)
+    best = np.empty(distinct)
+    for h in range(tried):
+        best[:] = 0.0
+        for k in range(len(marker)):
+            if agrees[h, k]:
+                value = max(ncc[k], 0.0)
+                r = rank[marker[k]]
+                if value > best[r]:
+                    best[r] = value
+        out[h] = _pairwise_sum(best, 0, distinct)
+    return out

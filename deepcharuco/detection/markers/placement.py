@@ -98,6 +98,7 @@ AGREEMENT = 0.3  # two markers agree when one's view puts the other's square wit
 
 # A cell's edge neighbours: the markers of a ChArUco board sit in the squares next to the black ones.
 NEIGHBOUR_OFFSETS = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], np.float64)
+NEIGHBOUR_OFFSETS.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -168,11 +169,10 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     if len(quads) > MAX_CELLS:  # pixels come most confident first: keep the cells of the most confident corners
         quads = quads[np.argsort(quads.max(axis=1), kind="stable")[:MAX_CELLS]]
     cells = cell_homographies(pixels, quads)  # (Q, 3, 3) unit square -> image
-    # Every cell and its edge neighbours: (Q * 5) squares, each with its own unit frame.
-    shifts = square_translations(NEIGHBOUR_OFFSETS)
-    # The same square is read from up to five cells: each read is one more vote, and a square badly
-    # extrapolated from one cell is read well from another.
-    squares = np.einsum("qij,sjk->qsik", cells, shifts).reshape(-1, 3, 3)
+    # Every cell and its edge neighbours: (Q * 5) squares, each with its own unit frame. The same square is read from
+    # up to five cells: each read is one more vote, and a square badly extrapolated from one cell is read well from
+    # another.
+    squares = _neighbour_squares(cells).reshape(-1, 3, 3)
     markers = board_markers(board)
     read_gray, to_read = reading_image(gray, read_gray)
     if reads is None:
@@ -182,7 +182,7 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
         bits, contrast = reads.read(quads, len(pixels), lambda rows: read_squares(
             read_gray, to_read @ by_cell[rows].reshape(-1, 3, 3), markers.size, markers.ratio, reader))
     matches = match_markers(bits, contrast, markers, reader=reader)
-    if len(np.unique(matches.marker)) < MIN_MARKERS:
+    if _distinct_count(matches.marker, len(markers.ids)) < MIN_MARKERS:
         return None
     # Each proposal: board square units -> image, via its square's frame and the quarter turn.
     square_xy = markers.squares[matches.marker].astype(np.float64)
@@ -194,9 +194,11 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     reach = AGREEMENT * _square_sides(squares[matches.read])  # (K,)
     agrees = (compiled_kernel.agreement(proposals, square_xy, hypotheses.astype(np.int64), reach)
               if compiled_kernel is not None else _agreement(proposals, square_xy, hypotheses, reach))
-    support = _support(matches.marker, matches.ncc, agrees)
+    support = (compiled_kernel.support(matches.marker.astype(np.int64), matches.ncc.astype(np.float64), agrees,
+                                       len(markers.ids))
+               if compiled_kernel is not None else _support(matches.marker, matches.ncc, agrees))
     best = int(np.argmax(support))
-    if len(np.unique(matches.marker[agrees[best]])) < MIN_MARKERS:
+    if _distinct_count(matches.marker[agrees[best]], len(markers.ids)) < MIN_MARKERS:
         return None
     backing = np.flatnonzero(agrees[best])
     # Refit on the backing squares' four corners each (board square units -> image).
@@ -209,6 +211,26 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     to_metres = np.diag([1.0 / board.square_length, 1.0 / board.square_length, 1.0])
     view = BoardView(homography=homography @ to_metres, inliers=np.ones(len(board_points), bool))
     return MarkerView(view=view, marker_ids=np.unique(markers.ids[matches.marker[backing]]), reads=len(backing))
+
+
+def _neighbour_squares(cells: np.ndarray) -> np.ndarray:
+    """(Q, 3, 3) cell frames (unit square -> image) -> (Q, 5, 3, 3): each cell's frame moved by each of
+    `NEIGHBOUR_OFFSETS` (d) in the unit frame, H @ [[1, 0, dx], [0, 1, dy], [0, 0, 1]]: the first two columns are the
+    cell's, the third h0 dx + h1 dy + h2, summed in the order a matrix product sums it (the offsets are 0 and +-1, so
+    every product is exact). A degenerate cell's frame (not finite) gives NaN squares, which no read takes."""
+    cells = np.where(np.isfinite(cells).all(axis=(1, 2))[:, None, None], cells, np.nan)  # inf x 0 would warn
+    dx, dy = NEIGHBOUR_OFFSETS[:, 0, None], NEIGHBOUR_OFFSETS[:, 1, None]  # (5, 1): broadcast over the rows
+    squares = np.empty((len(cells), len(NEIGHBOUR_OFFSETS), 3, 3))
+    squares[:, :, :, :2] = cells[:, None, :, :2]
+    squares[:, :, :, 2] = cells[:, None, :, 0] * dx + cells[:, None, :, 1] * dy + cells[:, None, :, 2]
+    return squares
+
+
+def _distinct_count(marker: np.ndarray, count: int) -> int:
+    """How many distinct values ``marker`` (K,) int, each in 0 .. ``count`` - 1, holds."""
+    seen = np.zeros(count, bool)
+    seen[marker] = True
+    return int(np.count_nonzero(seen))
 
 
 def _agreement(proposals: np.ndarray, square_xy: np.ndarray, hypotheses: np.ndarray, reach: np.ndarray) -> np.ndarray:
@@ -232,7 +254,8 @@ def _agreement(proposals: np.ndarray, square_xy: np.ndarray, hypotheses: np.ndar
 
 def _support(marker: np.ndarray, ncc: np.ndarray, agrees: np.ndarray) -> np.ndarray:
     """The evidence of each hypothesis' agreeing proposals: ``marker``, ``ncc`` (K,) per proposal, ``agrees``
-    (H, K) bool -> (H,): each distinct marker counts once, by its best correlation (at least 0)."""
+    (H, K) bool -> (H,): each distinct marker counts once, by its best correlation (at least 0)
+    (`decode_kernel.support` computes the same numbers, compiled)."""
     distinct, rank = np.unique(marker, return_inverse=True)
     # Few pairs agree (the centres' test leaves 0.3-5 %): the best per (hypothesis, marker) over those pairs only.
     hypothesis, proposal = np.nonzero(agrees)
