@@ -22,6 +22,7 @@ MAX_BOARD_FILE_BYTES = 64 * 1024
 CALISCOPE_KEYS = {"columns", "rows", "board_height", "board_width", "dictionary", "units", "aruco_scale",
                   "square_size_overide_cm", "square_size_override_cm", "inverted", "legacy_pattern"}
 CM_PER_INCH = 2.54
+CALISCOPE_UNITS = {"inch": CM_PER_INCH / 100.0, "cm": 0.01}  # metres per unit of board_width and board_height
 
 
 def read_toml_board(text: str, path: Path) -> dict:
@@ -55,7 +56,11 @@ def read_toml_board(text: str, path: Path) -> dict:
     else:
         if "board_height" not in data or "board_width" not in data:
             raise BoardSpecError(f"{path}: give square_size_overide_cm or board_width and board_height")
-        to_metres = CM_PER_INCH / 100.0 if data.get("units", "inch") == "inch" else 0.01
+        units = str(data.get("units", "inch")).strip().lower()
+        if units not in CALISCOPE_UNITS:
+            raise BoardSpecError(f"{path}: units {data['units']!r} unknown: caliscope's board_width and board_height "
+                                 f"are in {' or '.join(repr(u) for u in CALISCOPE_UNITS)}")
+        to_metres = CALISCOPE_UNITS[units]
         square = min(float(data["board_height"]) * to_metres / data["rows"],
                      float(data["board_width"]) * to_metres / data["columns"])
     # Lengths to the nanometre: 5.4 cm / 100 is 0.054, not float's 0.054000000000000006.

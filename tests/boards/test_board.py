@@ -263,3 +263,10 @@ def test_caliscope_charuco_toml_reads_as_its_board(tmp_path):
     (tmp_path / "broken.toml").write_text("columns = \n")
     with pytest.raises(BoardSpecError, match="is not valid TOML"):
         BoardSpec.load(tmp_path / "broken.toml")
+    # Units: caliscope's two, in any case; any other is refused, not read as centimetres (units "mm" gave 10x squares).
+    for units, square in (("cm", 8.5 * 0.01 / 4), ("Inch", 8.5 * 0.0254 / 4)):
+        (tmp_path / "u.toml").write_text(fields.replace('units = "inch"', f'units = "{units}"'))
+        assert BoardSpec.load(tmp_path / "u.toml").square_length == pytest.approx(square)
+    (tmp_path / "mm.toml").write_text(fields.replace('units = "inch"', 'units = "mm"'))
+    with pytest.raises(BoardSpecError, match="units 'mm' unknown: .* 'inch' or 'cm'"):
+        BoardSpec.load(tmp_path / "mm.toml")
