@@ -33,7 +33,7 @@ from deepcharuco.cli.calibration_exports import (add_export_options, export_fold
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
 from deepcharuco.cli.common import check_output_folder, load_board, no_empty_folders_on_failure, run_command
 from deepcharuco.cli.detect import make_detector
-from deepcharuco.cli.sources import open_source
+from deepcharuco.cli.sources import frame_numbers, open_source
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, write_together
 from deepcharuco.core.image import to_gray_u8
@@ -46,7 +46,9 @@ DETECTORS = ("opencv", "deep", "hybrid")
 
 def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, quiet: bool = False,
                   pool: DetectorPool | None = None) -> tuple[list[FrameDetection], tuple[int, int] | None]:
-    """Detect the board in every ``step``-th frame of the iterable of (name, image) ``frames``.
+    """Detect the board in every ``step``-th frame of the iterable of (number, name, image) ``frames``: the number is
+    the frame's in its recording (`sources.frame_numbers`: a damaged frame skipped shifts none after it), which each
+    `FrameDetection` keeps and ``step`` counts.
 
     Returns (one `FrameDetection` per frame looked at, (width, height)); each frame is dropped as soon
     as it is detected. Frames of another size than the first raise CalibrationError. ``pool``: worker processes
@@ -55,8 +57,8 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
 
     def wanted():
         nonlocal size
-        for index, (name, frame) in enumerate(frames):
-            if index % step:
+        for number, name, frame in frames:
+            if number % step:
                 continue
             gray = to_gray_u8(frame)
             if size is None:
@@ -64,7 +66,7 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
             elif (gray.shape[1], gray.shape[0]) != size:
                 raise CalibrationError(f"frame {name} is {gray.shape[1]}x{gray.shape[0]} but the first was "
                                        f"{size[0]}x{size[1]}: calibrate frames of one camera at one resolution")
-            yield (0, index, str(name), gray), gray
+            yield (0, number, str(name), gray), gray
 
     detections = detect_views(wanted(), [detector], 1, pool, None if total is None else -(-total // step), quiet)
     return detections[0][0], size
@@ -146,7 +148,7 @@ def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) ->
     detector = make_detector(args.detector, board, args.refine, args.weights)
     source = open_source(args.source[0], args.max_frames)
     pool = calibration_pool(args.detector, [board], args.refine, args.weights, args.jobs)
-    frames, size = detect_frames(source.frames, detector, step=args.step, total=source.total, quiet=args.quiet,
+    frames, size = detect_frames(frame_numbers(source), detector, step=args.step, total=source.total, quiet=args.quiet,
                                  pool=pool)
     for line in source.problems():  # damaged stretches of a video, unreadable images: said, then calibrated without
         print(f"warning: {line}", file=sys.stderr)

@@ -31,7 +31,7 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.cli.common import jobs_warning, load_board, no_empty_folders_on_failure, output_folder, run_command
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
-from deepcharuco.cli.sources import Source, open_source
+from deepcharuco.cli.sources import Source, frame_numbers, open_source
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import (
@@ -220,10 +220,11 @@ def run(args: argparse.Namespace) -> dict:
                                 jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
         files.callback(pool.close)
         try:
-            results = pool.detect(((name, frame), to_gray_u8(frame)) for name, frame in source.frames)
+            results = pool.detect(((number, name, frame), to_gray_u8(frame))
+                                  for number, name, frame in frame_numbers(source))
             progress = tqdm(results, total=source.total, unit="frame", disable=source.kind == "image" or args.quiet)
             mark = time.perf_counter()
-            for index, ((name, frame), detections) in enumerate(progress):
+            for index, ((number, name, frame), detections) in enumerate(progress):
                 # One worker: reading and detecting this frame. Several: the time between results (they detect while
                 # this process writes), what the run delivers.
                 now = time.perf_counter()
@@ -245,7 +246,7 @@ def run(args: argparse.Namespace) -> dict:
                 overlay = frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
                 for board_run, rows, detection in zip(runs, writers, detections):
                     pose = estimate_frame_pose(board_run.detector, detection, frame_camera) if frame_camera else None
-                    record = frame_record(index, name, detection, pose)
+                    record = frame_record(number, name, detection, pose)  # its number in the recording: a skipped frame shifts none
                     board_run.records.append(record)
                     if not board_run.found and len(detection):
                         board_run.found, board_run.samples = True, []  # the board is there: no hint needed

@@ -77,7 +77,7 @@ def calibrate_shard(path: Path, detector, board: BoardSpec, quiet: bool = True, 
     ``select_terms`` False: as with ``--all-terms``; ``weight_views`` False: as with ``--equal-weights``)."""
     reader = ShardReader(path)
     try:
-        frames = ((str(i), reader[i].image) for i in range(len(reader)))
+        frames = ((i, str(i), reader[i].image) for i in range(len(reader)))
         detections, size = detect_frames(frames, detector, total=len(reader), quiet=quiet)
         labels = [(reader[i].corners.astype(np.float64), reader[i].visible) for i in range(len(reader))]
     finally:

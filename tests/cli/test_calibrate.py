@@ -38,7 +38,7 @@ def waved():
 
 @pytest.fixture(scope="module")
 def detections(waved):
-    frames, size = detect_frames(((str(i), image) for i, image in enumerate(waved[0])), OpenCVDetector(BOARD), quiet=True)
+    frames, size = detect_frames(((i, str(i), image) for i, image in enumerate(waved[0])), OpenCVDetector(BOARD), quiet=True)
     assert size == SIZE
     return frames
 
@@ -260,7 +260,7 @@ def test_one_tilt_everywhere_is_refused(tmp_path, capsys):
 
 
 def test_mixed_frame_sizes_are_refused():
-    frames = [("a", np.zeros((240, 320), np.uint8)), ("b", np.zeros((480, 640), np.uint8))]
+    frames = [(0, "a", np.zeros((240, 320), np.uint8)), (1, "b", np.zeros((480, 640), np.uint8))]
     with pytest.raises(CalibrationError, match="one camera at one resolution"):
         detect_frames(iter(frames), OpenCVDetector(BOARD), quiet=True)
 

@@ -186,6 +186,12 @@ def test_calibrate_reads_past_a_damaged_stretch_of_video(tmp_path, wave_video, c
     frames = storage.getNode("view_frames").mat().ravel()
     storage.release()
     assert frames.max() > 45  # views from past the damage (about frames 18-22 of 60)
+    # ... named by their numbers in the recording: none of them is a frame the decoder skipped (they were renumbered
+    # from the results' order, so frames after the damage took the skipped frames' numbers)
+    skipped = VideoFrames(cv2.VideoCapture(str(damaged)))
+    list(skipped)
+    lost = {i for first, last in skipped.skipped for i in range(first, last + 1)}
+    assert lost and not lost & set(frames.astype(int).tolist())
 
 
 @pytest.mark.parametrize("module", ["deepcharuco.cli.detect", "deepcharuco.cli.calibrate"])
@@ -226,6 +232,10 @@ def test_detect_reads_past_a_damaged_stretch_and_says_how_many_frames_it_skipped
     result = json.loads((out / f"{damaged.stem}.json").read_text())
     skipped = 111 - len(result["frames"])
     assert 0 < skipped < 20 and result["frames"][-1]["source"] == "110"
+    # each frame keeps its number in the recording past the damage, in the JSON and the CSV
+    assert [f["frame"] for f in result["frames"]] == [int(f["source"]) for f in result["frames"]]
+    rows = (out / f"{damaged.stem}.csv").read_text().splitlines()[1:]
+    assert [row.split(",")[0] for row in rows] == [f["source"] for f in result["frames"]]
     assert f"{skipped} undecodable frame(s) skipped" in captured.out
     assert "warning:" in captured.err and result["problems"] and result["complete"]
 
