@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.boards.board_files import REQUIRED_FIELDS, read_board_text, read_flat_yaml, read_toml_board
-from deepcharuco.boards.dictionaries import dictionary_id, dictionary_size, more_markers_advice
+from deepcharuco.boards.dictionaries import dictionary_id, dictionary_size, marker_family, more_markers_advice
 from deepcharuco.core.errors import BoardSpecError
 from deepcharuco.core.files import write_atomic
 
@@ -139,6 +139,17 @@ class BoardSpec:
     def same_layout(self, other: "BoardSpec") -> bool:
         """True when ``other`` is this board printed at another size, inverted or mirrored."""
         return self.layout == other.layout
+
+    def shared_markers(self, other: "BoardSpec") -> tuple[int, int] | None:
+        """(first, last) marker IDs that both this board and ``other`` print, or None. Dictionaries of one family share
+        their first markers (DICT_4X4_50's are DICT_4X4_1000's first 50), so boards of DICT_4X4_50 and DICT_4X4_1000
+        from ID 0 share theirs: where those markers show, a view of one reads as the other."""
+        family, other_family = marker_family(self.dictionary), marker_family(other.dictionary)
+        if not (family is not None and family == other_family or self.dictionary.upper() == other.dictionary.upper()):
+            return None
+        first = max(self.first_marker_id, other.first_marker_id)
+        last = min(self.first_marker_id + self.num_markers, other.first_marker_id + other.num_markers) - 1
+        return (first, last) if first <= last else None
 
     def cv_dictionary(self) -> cv2.aruco.Dictionary:
         return cv2.aruco.getPredefinedDictionary(dictionary_id(self.dictionary))
@@ -379,3 +390,18 @@ class BoardTexture:
     def board_to_texture(self, xy: np.ndarray) -> np.ndarray:
         """(..., 2) board metres (X, Y) -> (..., 2) texture pixels."""
         return (np.asarray(xy, dtype=np.float64)[..., :2] + self.margin) * self.px_per_m - 0.5
+
+
+def check_boards_apart(boards: list[BoardSpec], names: list[str]) -> None:
+    """Raises `BoardSpecError` naming the first two of ``boards`` (called ``names``) that print the same markers
+    (`BoardSpec.shared_markers`): searched together, each would be found wherever the other is, with its corners and
+    pose (a phantom board), and a rig would count each view twice."""
+    for i, board in enumerate(boards):
+        for j in range(i):
+            shared = boards[j].shared_markers(board)
+            if shared is not None:
+                family = marker_family(board.dictionary) or board.dictionary
+                raise BoardSpecError(
+                    f"{names[j]} and {names[i]} both print markers {shared[0]}-{shared[1]} of {family}: a view of one "
+                    f"reads as the other (each would be found where the other is); give boards of other dictionaries, "
+                    f"or first_marker_id values that keep their markers apart")

@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.board import BoardSpec, check_boards_apart
 from deepcharuco.calibration.exports import ExportRig
 from deepcharuco.calibration.intrinsics import CalibrationResult, calibrate
 from deepcharuco.calibration.solve import MODELS
@@ -340,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
                                 f"--board {args.board[i]} and --board {args.board[j]} are one board (the same markers "
                                 f"in the same layout): give it once (each view of it would count twice, and the rig "
                                 f"would look more certain than it is)")
+                check_boards_apart(boards, [f"--board {path}" for path in args.board or ["(default)"]])
                 run_rig(args, boards, [make_detector(args.detector, board, args.refine, args.weights)
                                        for board in boards])
             else:

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.board import BoardSpec, check_boards_apart
 from deepcharuco.cli.common import jobs_warning, load_board, no_empty_folders_on_failure, output_folder, run_command
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
@@ -156,6 +156,8 @@ def run(args: argparse.Namespace) -> dict:
     board_files = args.board or [None]
     suffixes = [""] if len(board_files) == 1 else [f"_{name}" for name in board_names(board_files)]
     boards = [load_board(path) if path else None for path in board_files]  # deep: default to the weights' board
+    if len(boards) > 1:  # one detector per board below: Detector(boards=...)'s own check does not run
+        check_boards_apart(boards, board_files)
     camera = read_camera(args.camera) if args.camera else None
     detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend,
                                corner_fit=not args.no_corner_fit, device=args.device)

@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from deepcharuco.boards.board import BoardSpec
+from deepcharuco.boards.board import BoardSpec, check_boards_apart
 from deepcharuco.boards.dictionaries import marker_family
 from deepcharuco.boards.print_face import (canonical_view, canonical_view_local_white, corners_from_canonical,
                                            covariances_from_canonical)
@@ -328,12 +328,7 @@ class Detector:
                 raise OptionError("give board or boards, not both")
             if not boards:
                 raise OptionError("boards is empty: give one board or more")
-            for i, a in enumerate(boards):
-                for j in range(i):
-                    if a.same_layout(boards[j]) and a.first_marker_id == boards[j].first_marker_id:
-                        raise DeepCharucoError(f"boards {j} and {i} print the same markers in the same layout, so no "
-                                               f"detector can tell them apart: give boards of other dictionaries or "
-                                               f"other first_marker_id")
+            check_boards_apart(boards, [f"boards[{i}]" for i in range(len(boards))])
             if len(boards) > 1:
                 self.boards = boards
                 self._each = [Detector(board=b, weights=given_weights, refine=refine, device=device,

@@ -360,8 +360,16 @@ def test_one_detector_finds_each_of_several_boards(tmp_path, capsys):
         assert np.linalg.norm(detection.corners - truth[detection.ids], axis=1).max() < 1.0
     with pytest.raises(Exception, match="detect_boards"):
         detector.detect(image)
-    with pytest.raises(Exception, match="same markers"):
+    with pytest.raises(Exception, match=r"boards\[0\] and boards\[1\] both print markers 0-9 of DICT_4X4"):
         Detector(boards=[a, a])
+    # Boards that share markers (a family's dictionaries share their first markers) are refused: searched together, the
+    # second was found on the first's squares, with a pose (a phantom board).
+    overlapping = BoardSpec(squares_x=4, squares_y=4, square_length=0.04, marker_length=0.03,
+                            dictionary="DICT_4X4_1000", first_marker_id=5)
+    with pytest.raises(Exception, match="both print markers 5-9 of DICT_4X4"):
+        Detector(boards=[a, b, overlapping])
+    assert b.shared_markers(overlapping) == (10, 12) and a.shared_markers(b) is None
+    assert a.shared_markers(BoardSpec(5, 4, 0.04, 0.03, "DICT_5X5_50")) is None  # another family: other codes
     # The command: one CSV and JSON per board, named after the board files.
     cv2.imwrite(str(tmp_path / "two.png"), image)
     a.save(tmp_path / "left.yaml")
@@ -374,6 +382,13 @@ def test_one_detector_finds_each_of_several_boards(tmp_path, capsys):
         frames = json.loads((tmp_path / "out" / f"two_{name}.json").read_text())["frames"]
         assert frames[0]["num_corners"] == 12
     assert (tmp_path / "out" / "two_left.csv").is_file() and (tmp_path / "out" / "two_overlay.png").is_file()
+    overlapping.save(tmp_path / "third.yaml")
+    capsys.readouterr()
+    assert detect_main([str(tmp_path / "two.png"), "--board", str(tmp_path / "left.yaml"), "--board",
+                        str(tmp_path / "third.yaml"), "--out", str(tmp_path / "out3")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "left.yaml and " in err[0] and "third.yaml both print markers 5-9" in err[0]
+    assert not (tmp_path / "out3").exists()
 
 
 @needs_bpy
@@ -502,8 +517,12 @@ def test_one_board_or_one_recording_given_twice_is_refused(tmp_path, drawn, caps
     twin.mkdir()
     for image in folders[1].iterdir():
         (twin / image.name).write_bytes(image.read_bytes())
+    smaller = tmp_path / "smaller.yaml"  # the same dictionary's first markers on a board of one row fewer
+    spec = BoardSpec.load(board)
+    BoardSpec(spec.squares_x, spec.squares_y - 1, spec.square_length, spec.marker_length, spec.dictionary).save(smaller)
     out = tmp_path / "rig"
     cases = [([str(folders[0]), str(folders[1]), "--board", str(board), "--board", str(copy)], "are one board"),
+             ([str(folders[0]), str(folders[1]), "--board", str(board), "--board", str(smaller)], "both print markers"),
              ([str(folders[0]), str(folders[1]), str(link), "--board", str(board)], "are one recording"),
              ([str(folders[0]), str(folders[1]), str(twin), "--board", str(board)], "are one recording")]
     for sources, message in cases:
