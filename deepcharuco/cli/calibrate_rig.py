@@ -203,19 +203,40 @@ def starting_cameras(detections: list[list[list[FrameDetection]]], sizes: list[t
 def check_given_models(given: list[str | None] | None, model: str) -> None:
     """A given camera file's model is its camera's (held as given; the rig may mix models), ``--model`` the model of
     the cameras solved here: where every camera is given, a ``--model`` other than the default that some file
-    disagrees with would change nothing, and is refused (`CameraFileError`) before any frame is read."""
+    disagrees with would change nothing, and is refused (`CameraFileError`) before any frame is read. So is a file
+    the rig's solve cannot hold as it is (`held_as_given`)."""
+    for path in given or []:
+        if path not in (None, "-"):
+            held_as_given(path)
     if not given or any(path in (None, "-") for path in given) or model == "pinhole":
         return
     for path in given:
-        try:
-            camera = read_camera(path)
-        except CameraFileError as error:
-            raise CameraFileError(f"--camera {path}: {error}") from None
+        camera = held_as_given(path)
         kind = "fisheye" if camera.model == "fisheye" else "rational" if camera.dist.size >= 8 else "pinhole"
         if kind != model:
             raise CameraFileError(f"--model {model} is the model of the cameras the rig solves, but every camera is "
                                   f"held at its --camera file and {path} is a {kind} camera: give - for a camera to "
                                   f"solve with --model {model}, or leave --model out")
+
+
+def held_as_given(path: str) -> Camera:
+    """The camera file ``path`` as the rig holds it, or `CameraFileError` where the rig's model (fx, fy, cx, cy and up
+    to 8 distortion terms, `calibration.rig_model.INTRINSICS`) would drop part of it: a skew, or a 12- or
+    14-coefficient model's thin-prism or tilt terms. They were dropped without a word, and the camera solved and
+    written without them."""
+    try:
+        camera = read_camera(path)
+    except CameraFileError as error:
+        raise CameraFileError(f"--camera {path}: {error}") from None
+    if camera.model != "fisheye":
+        beyond = np.flatnonzero(camera.dist[8:]) + 8
+        if camera.K[0, 1] != 0 or len(beyond):
+            what = f"a skew (camera_matrix[0][1] = {camera.K[0, 1]:g})" if camera.K[0, 1] != 0 else \
+                f"distortion terms past the eighth ({len(camera.dist)} coefficients: thin prism or tilt)"
+            raise CameraFileError(f"--camera {path} holds {what}, which a rig's cameras do not model: the camera "
+                                  f"would be held without it; give a file of up to 8 coefficients and no skew, or - to "
+                                  f"solve that camera here")
+    return camera
 
 
 def solve_rig(detections: list[list[list[FrameDetection]]], sizes: list[tuple[int, int]], names: list[str],

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_same_but_rounding, needs_bpy
-from deepcharuco import BoardSpec, Camera, read_camera
+from deepcharuco import BoardSpec, Camera, read_camera, write_camera
 from deepcharuco.calibration.bundle import corner_weights
 from deepcharuco.calibration.rig import calibrate_rig
 from deepcharuco.calibration.rig_model import (RigError, RigView, intrinsic_vector, project, rotation_angle_deg,
@@ -530,6 +530,30 @@ def test_one_board_or_one_recording_given_twice_is_refused(tmp_path, drawn, caps
         error = capsys.readouterr().err.strip().splitlines()
         assert len(error) == 1 and message in error[0], error
         assert not out.exists()
+
+
+def test_a_camera_file_the_rig_cannot_hold_as_it_is_is_refused(tmp_path, drawn, capsys):
+    """A held --camera file with a skew, or with thin-prism / tilt terms (12 or 14 coefficients), was held and written
+    without them (the rig models fx fy cx cy and 8 terms), exit 0; now one line, exit 2, before any frame is read.
+    Terms past the eighth that are all 0 hold nothing and are taken."""
+    _, folders, board = drawn
+    K = np.array([[520.0, 0.0, 322.3], [0.0, 518.0, 236.8], [0.0, 0.0, 1.0]])
+    skewed = K.copy()
+    skewed[0, 1] = 0.8
+    files = {"skew": (skewed, np.zeros(5)), "prism": (K, np.r_[np.zeros(8), 1e-3, 0, 0, 0]),
+             "zeros": (K, np.zeros(14))}
+    for name, (matrix, dist) in files.items():
+        write_camera(tmp_path / f"{name}.yaml", Camera(matrix, dist, (320, 240)))
+    out = tmp_path / "rig"
+    for name, message in (("skew", "holds a skew (camera_matrix[0][1] = 0.8)"),
+                          ("prism", "distortion terms past the eighth (12 coefficients")):
+        assert main([str(folders[0]), str(folders[1]), "--board", str(board), "--camera", str(tmp_path / f"{name}.yaml"),
+                     "--camera", "-", "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and message in error[0] and "or - to solve that camera here" in error[0], error
+        assert not out.exists()
+    from deepcharuco.cli.calibrate_rig import held_as_given
+    assert held_as_given(str(tmp_path / "zeros.yaml")).dist.size == 14
 
 
 def test_a_binary_timestamps_file_is_one_line(tmp_path, drawn, capsys):
