@@ -198,6 +198,7 @@ def run(args: argparse.Namespace) -> dict:
     hint_stride = max(1, (source.total or HINT_FRAMES * HINT_STRIDE) // HINT_FRAMES)  # spread over the source
     frames_read = 0
     unposed: list[str] = []  # a folder's images the camera file does not fit
+    scaled_to: list[tuple[int, int]] = []  # frame sizes the camera file's intrinsics were scaled to
     # The CSVs are written as frames arrive, under temporary names renamed into place at the end (also after
     # Ctrl-C): a full disk or a kill never leaves a cut-off <stem>.csv in place of a complete one.
     with ExitStack() as files:
@@ -240,6 +241,12 @@ def run(args: argparse.Namespace) -> dict:
                                          f"{(index + 1) / max(total_seconds, 1e-9):.1f} mean", refresh=False)
                 try:
                     frame_camera = _camera_for(camera, frame.shape)
+                    if frame_camera is not camera and frame_camera.image_size not in scaled_to:
+                        scaled_to.append(frame_camera.image_size)
+                        print(f"note: {args.camera} is for {camera.image_size[0]}x{camera.image_size[1]} and "
+                              f"{name} is {frame_camera.image_size[0]}x{frame_camera.image_size[1]}: its intrinsics "
+                              f"are scaled to it (right for a resized stream; a cropped or binned sensor mode needs "
+                              f"its own calibration)", file=sys.stderr)
                 except CameraFileError as error:
                     if source.kind != "images":  # every frame of a video is this size: the run cannot pose any
                         raise
@@ -273,14 +280,16 @@ def run(args: argparse.Namespace) -> dict:
                                    + (f" ({problems[0]})" if problems else "")
                                    + ": give an image, a folder of images, a video with frames or a camera index "
                                      "that delivers them")
-    summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1, unposed)
+    summaries = [_finish(board_run, args, source, camera, interrupted, total_seconds, len(runs) > 1, unposed,
+                         scaled_to)
                  for board_run in runs]
     return summaries[0]
 
 
 def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, camera: Camera | None, interrupted: bool,
-            total_seconds: float, several: bool, unposed: list[str]) -> dict:
-    """Write one board's JSON, say what it found (``unposed``: a folder's images the camera file does not fit),
+            total_seconds: float, several: bool, unposed: list[str], scaled_to: list[tuple[int, int]]) -> dict:
+    """Write one board's JSON, say what it found (``unposed``: a folder's images the camera file does not fit;
+    ``scaled_to``: the frame sizes its intrinsics were scaled to),
     and return its summary."""
     records, board, detector = board_run.records, board_run.detector.board, board_run.detector
     problems = source.problems() + unposed
@@ -291,8 +300,10 @@ def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, came
     summary = {
         "board": board.to_dict(),
         "detector": repr(detector),
+        # the file's own intrinsics; a pose of a frame of another size used them scaled to it (``scaled_to``)
         "camera": None if camera is None else {"K": camera.K.tolist(), "dist": camera.dist.tolist(),
-                                               "image_size": list(camera.image_size)},
+                                               "image_size": list(camera.image_size), "model": camera.model,
+                                               "scaled_to": [list(size) for size in scaled_to]},
         # False: stopped by Ctrl-C before the source's end; the frames listed are all that were looked at.
         "complete": not interrupted,
         "frames": records,

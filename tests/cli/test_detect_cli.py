@@ -56,7 +56,7 @@ def test_corner_uncertainties_in_the_csv_and_json(tmp_path, detector):
             assert np.all(np.isnan(sigmas)) and all(c is None for c in covariances)
 
 
-def test_video_and_scaled_camera(tmp_path, camera):
+def test_video_and_scaled_camera(tmp_path, camera, capsys):
     board = BoardSpec()
     video = tmp_path / "clip.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
@@ -72,6 +72,12 @@ def test_video_and_scaled_camera(tmp_path, camera):
     assert all(f["pose"]["reprojection_error"] < 0.5 for f in frames[:3]) and frames[3]["pose"] is None
     assert (out / "clip_overlay.mp4").stat().st_size > 0
     assert len((out / "clip.csv").read_text().splitlines()) == 5
+    # The scaling is said once, and recorded beside the file's own intrinsics.
+    err = capsys.readouterr().err
+    assert err.count("is for 640x480 and 0 is 320x240: its intrinsics are scaled to it") == 1
+    recorded = json.loads((out / "clip.json").read_text())["camera"]
+    assert recorded["image_size"] == [640, 480] and recorded["scaled_to"] == [[320, 240]]
+    assert recorded["model"] == "pinhole"
 
 
 def test_folder_of_images_without_camera(tmp_path, camera, default_views):
