@@ -125,11 +125,13 @@ class Camera:
 
 
 def read_camera(path: str | Path) -> Camera:
-    """Read intrinsics from an OpenCV FileStorage file (YAML/XML/JSON), as calibration writes them.
+    """Read intrinsics from an OpenCV FileStorage file (YAML/XML/JSON), as calibration writes them, or from a ROS
+    ``camera_info`` YAML (as ``calibrate --export ros`` and ROS's camera_calibration write it).
 
     Required nodes: ``camera_matrix``, ``image_width`` and ``image_height``; optional
     ``distortion_coefficients`` (zeros when absent) and ``distortion_model`` ("fisheye" for
-    ``cv2.fisheye``'s model; "pinhole", "rational" or absent for OpenCV's standard one).
+    ``cv2.fisheye``'s model; "pinhole", "rational" or absent for OpenCV's standard one; ROS's plumb_bob,
+    rational_polynomial and equidistant).
 
     Raises:
         CameraFileError: a missing or unreadable file, a file that is not a camera file, or intrinsics that are
@@ -147,11 +149,17 @@ def read_camera(path: str | Path) -> Camera:
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:
+        ros = _ros_camera_info(path)
+        if ros is not None:
+            return ros
         raise not_ours(exc) from exc
     try:
         try:
             K = storage.getNode("camera_matrix").mat()
         except cv2.error as exc:  # OpenCV 5 opens a file without the header, and fails on its first node instead
+            ros = _ros_camera_info(path)
+            if ros is not None:
+                return ros
             raise not_ours(exc) from exc
         if K is None:
             raise CameraFileError(f"{path} has no camera_matrix (an opencv-matrix node)")
@@ -164,6 +172,11 @@ def read_camera(path: str | Path) -> Camera:
         model = "pinhole" if model_node.empty() else model_node.string()
     finally:
         storage.release()
+    return _camera(path, K, dist, size, model)
+
+
+def _camera(path: Path, K: np.ndarray, dist: np.ndarray | None, size: tuple[int, int], model: str) -> Camera:
+    """The `Camera` a file's nodes describe; ``model`` as the file names it."""
     # "rational" (deepcharuco.cli.calibrate's name for the 8-coefficient model) and the names OpenCV's samples and
     # ROS write for the standard model are all the one cv2.projectPoints applies.
     model = "pinhole" if model in ("pinhole", "rational", "plumb_bob", "rational_polynomial") else model
@@ -174,6 +187,44 @@ def read_camera(path: str | Path) -> Camera:
                               f"or fisheye")
     return Camera(K=K, dist=np.zeros(4 if model == "fisheye" else 5) if dist is None else dist, image_size=size,
                   model=model)
+
+
+ROS_MAX_BYTES = 64 * 1024  # a camera_info YAML is well under 2 KiB
+
+
+def _ros_camera_info(path: Path) -> Camera | None:
+    """The camera of a ROS ``camera_info`` YAML (camera_calibration_parsers' layout, as ``calibrate --export ros``
+    writes it: ``camera_matrix`` and ``distortion_coefficients`` as ``{rows, cols, data}``, ``distortion_model``
+    plumb_bob, rational_polynomial or equidistant), read by OpenCV's parser with the header such files lack; None
+    where the file is not one. K and D are the raw camera's: right for the images the camera recorded."""
+    try:
+        if path.stat().st_size > ROS_MAX_BYTES:
+            return None
+        text = path.read_text()
+        storage = cv2.FileStorage("%YAML:1.0\n" + text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (OSError, UnicodeDecodeError, cv2.error, SystemError):
+        return None
+    try:
+        matrix, coefficients = storage.getNode("camera_matrix"), storage.getNode("distortion_coefficients")
+        if not matrix.isMap() or not matrix.getNode("data").isSeq():
+            return None
+        values = [matrix.getNode("data").at(i).real() for i in range(matrix.getNode("data").size())]
+        if len(values) != 9:
+            raise CameraFileError(f"{path}: a ROS camera_info file whose camera_matrix holds {len(values)} values, "
+                                  f"not 9")
+        dist = None
+        if coefficients.isMap() and coefficients.getNode("data").isSeq():
+            data = coefficients.getNode("data")
+            dist = np.array([data.at(i).real() for i in range(data.size())], np.float64)
+        width_node, height_node = storage.getNode("image_width"), storage.getNode("image_height")
+        if width_node.empty() or height_node.empty():
+            raise CameraFileError(f"{path} lacks image_width / image_height: add the calibration resolution")
+        size = (int(width_node.real()), int(height_node.real()))
+        model_node = storage.getNode("distortion_model")
+        model = "pinhole" if model_node.empty() else model_node.string()
+    finally:
+        storage.release()
+    return _camera(path, np.array(values, np.float64).reshape(3, 3), dist, size, model)
 
 
 def write_camera(path: str | Path, camera: Camera,

@@ -181,6 +181,10 @@ def test_ros_camera_info_of_a_rig_is_a_mono_camera_each_projecting_the_board_ont
         flat = in_camera(rig, c, points.reshape(-1, 3))
         exported = project_with(K, info["distortion_coefficients"].ravel(), ros == "equidistant", flat)
         assert worst(exported, opencv_pixels(camera, flat)) < TOLERANCE_PX
+        # ... and it is a camera file for `detect --camera` (read_camera): the same camera, model and all
+        read = read_camera(tmp_path / "ros" / f"cam{c}.yaml")
+        assert read.model == camera.model and read.image_size == camera.image_size
+        assert np.allclose(read.K, camera.K, rtol=1e-12) and np.allclose(read.dist, camera.dist, rtol=1e-12)
 
 
 def bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
