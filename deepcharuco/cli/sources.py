@@ -131,6 +131,9 @@ def open_source(source: str, max_frames: int | None = None) -> Source:
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise SourceError(f"cannot open {path} as a video: unknown format or codec")
+    # Frames as stored, as images are read (no EXIF rotation): a phone video's rotation tag is not applied, on every
+    # OpenCV build alike (some apply it by default), so corners stay in the grid its camera file was calibrated in.
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
     video = VideoFrames(capture, limit=max_frames)
     count = video.count
     total = min(count, max_frames) if count and max_frames else count or max_frames
