@@ -190,11 +190,16 @@ def fisheye_start(object_points: list[np.ndarray], image_points: list[np.ndarray
 
 
 def beyond_fisheye_reach(image_points: list[np.ndarray], solution: Solution) -> list[np.ndarray]:
-    """Per view, (N_v,) bool: the corners more than `FISHEYE_MAX_DEG` off the axis of the fisheye ``solution`` (the
-    distorted angle theta_d against theta_d(`FISHEYE_MAX_DEG`); theta_d grows with the angle there)."""
-    theta = math.radians(FISHEYE_MAX_DEG)
+    """Per view, (N_v,) bool: the corners more than `FISHEYE_MAX_DEG` off the axis of the fisheye ``solution``, or
+    beyond the angle where its distorted angle theta_d stops growing, whichever comes first (a corner's distance
+    from the axis on the normalised image plane against theta_d there). A solve of a narrow lens puts its terms where
+    its corners are: past them theta_d may turn down and go negative by 80 degrees (k4 = -0.6 on a 63 degree lens),
+    which left every corner "beyond" and no view to calibrate."""
     k1, k2, k3, k4 = solution.dist
-    limit = theta * (1 + k1 * theta ** 2 + k2 * theta ** 4 + k3 * theta ** 6 + k4 * theta ** 8)
+    angles = np.linspace(0.0, math.radians(FISHEYE_MAX_DEG), 801)
+    theta_d = angles * (1 + k1 * angles ** 2 + k2 * angles ** 4 + k3 * angles ** 6 + k4 * angles ** 8)
+    growing = np.diff(theta_d) > 0
+    limit = theta_d[len(growing) if growing.all() else int(np.argmin(growing))]  # up to the first step not growing
     K = solution.K
     out = []
     for pixels in image_points:

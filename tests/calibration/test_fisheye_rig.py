@@ -179,3 +179,22 @@ def test_one_fisheye_camera_leaves_out_the_corners_at_its_rim():
     result = calibrate(frames, FISHEYE_BOARD, SIZE, "fisheye")
     assert abs(result.camera.K[0, 0] / camera.K[0, 0] - 1) < 0.004 and result.rms < 0.2
     assert sum("beyond 80 degrees off the lens's axis unused" in d.reason for d in result.decisions) >= 5
+
+
+def test_a_narrow_lens_fisheye_solve_keeps_its_corners():
+    """A first fisheye solve of a ~63 degree lens (k1..k4 as `calibrate --model fisheye` found them on 14 drawn views)
+    turns theta_d down past its corners and below 0 by 80 degrees: every corner counted as beyond the rim, no view
+    left, and OpenCV's assertion as the error. The limit is where theta_d stops growing: the corners stay."""
+    from deepcharuco.calibration.solve import Solution, beyond_fisheye_reach
+
+    K = np.array([[520.0, 0.0, 322.3], [0.0, 518.0, 236.8], [0.0, 0.0, 1.0]])
+    solution = Solution(K=K, dist=np.array([0.2065, 0.1041, 0.1186, -0.5966]), rvecs=np.zeros((0, 3)),
+                        tvecs=np.zeros((0, 3)), std={})
+    corners = np.array([[322.3, 236.8], [0.0, 0.0], [639.0, 479.0], [0.0, 479.0]])  # the axis and the image corners
+    assert not beyond_fisheye_reach([corners], solution)[0].any()
+    far = np.array([[322.3 + 520.0 * 50, 236.8]])  # 50 units off the axis on the image plane: past any turn
+    assert beyond_fisheye_reach([far], solution)[0].all()
+    wide = Solution(K=K, dist=np.zeros(4), rvecs=np.zeros((0, 3)), tvecs=np.zeros((0, 3)), std={})
+    limit = np.radians(80.0)  # an equidistant lens: theta_d = theta grows to 80 degrees, the limit as before
+    at = np.array([[322.3 + 520.0 * limit * 0.999, 236.8], [322.3 + 520.0 * limit * 1.001, 236.8]])
+    assert beyond_fisheye_reach([at], wide)[0].tolist() == [False, True]
