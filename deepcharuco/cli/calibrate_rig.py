@@ -26,6 +26,7 @@ from deepcharuco.calibration.intrinsics import calibrate
 from deepcharuco.calibration.rig import calibrate_rig
 from deepcharuco.calibration.rig_files import is_rig_toml, rig_camera_text, rig_toml
 from deepcharuco.calibration.rig_model import RigError, RigResult, RigView, rotations_from_vectors
+from deepcharuco.calibration.time_sync import SyncError
 from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, border_margin,
                                            within_border)
 from deepcharuco.cli.calibration_exports import export_outputs, refuse_foreign_exports
@@ -358,7 +359,19 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
     if auto is not None:
         starts = starts or starting_cameras(detections, sizes, names, args.camera or [None] * len(names), boards,
                                             args.model, options, args.fix_k3)
-        alignment = align_sources(detections, boards, starts[0], frame_intervals(sources), names, options.min_corners)
+        try:
+            alignment = align_sources(detections, boards, starts[0], frame_intervals(sources), names,
+                                      options.min_corners)
+        except SyncError as error:
+            listed = different_lengths(sources)
+            if listed is None or not all(source.kind == "images" for source in sources):
+                raise
+            # Folders of stills of different lengths: most often an image missing from one of them, which no motion
+            # can line up; say that first.
+            raise SyncError(f"the folders hold different numbers of images ({listed}), so their images cannot be "
+                            f"paired by their places in the sorted listings, and lining them up by the board's motion "
+                            f"failed: {error}. Give each folder the same instants (remove the images of an instant one "
+                            f"camera lacks), or --timestamps") from None
         times = aligned_times(detections, alignment)
         mapping = instants_by_time(times)
         check_overlap(times, mapping, names)

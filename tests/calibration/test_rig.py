@@ -556,6 +556,22 @@ def test_a_camera_file_the_rig_cannot_hold_as_it_is_is_refused(tmp_path, drawn, 
     assert held_as_given(str(tmp_path / "zeros.yaml")).dist.size == 14
 
 
+def test_folders_of_stills_of_different_lengths_say_so_when_no_motion_lines_them_up(tmp_path, drawn, capsys):
+    """One image missing from one camera's folder of stills: the motion alignment tried for sources of other lengths
+    fails, and the error said only that the board was seen in too few consecutive frames; it leads with the counts."""
+    _, folders, board = drawn
+    short = tmp_path / "short"
+    short.mkdir()
+    for image in sorted(folders[1].iterdir())[:-1]:
+        (short / image.name).write_bytes(image.read_bytes())
+    out = tmp_path / "rig"
+    assert main([str(folders[0]), str(short), "--board", str(board), "--detector", "opencv", "--out", str(out),
+                 "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "the folders hold different numbers of images (" in error[0], error
+    assert "remove the images of an instant one camera lacks" in error[0] and not out.exists()
+
+
 def test_a_binary_timestamps_file_is_one_line(tmp_path, drawn, capsys):
     """--timestamps given a binary file (a video by mistake) ended in UnicodeDecodeError's traceback."""
     _, folders, board = drawn
