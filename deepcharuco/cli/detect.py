@@ -19,7 +19,7 @@ import json
 import sys
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -111,11 +111,18 @@ def stream_finder(detector, refresh_every: int, search_every: int, look_back: bo
 
 def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
     """The detector's pose through the camera's own model: a fisheye camera's corners are undistorted first
-    (``solvePnP`` knows only the pinhole model, and would read k1..k4 as k1 k2 p1 p2)."""
-    if camera.model == "fisheye":
-        undistorted = Detection(detection.ids, camera.undistort_points(detection.corners), detection.scores)
-        return detector.estimate_pose(undistorted, camera.K, None)
-    return detector.estimate_pose(detection, camera.K, camera.dist)
+    (``solvePnP`` knows only the pinhole model, and would read k1..k4 as k1 k2 p1 p2), and its reprojection error is
+    then measured again in the frame's pixels, through the fisheye model (conventions.md's eps_re; the undistorted
+    image stretches the rim, where a fisheye frame's error read several times larger there)."""
+    if camera.model != "fisheye":
+        return detector.estimate_pose(detection, camera.K, camera.dist)
+    undistorted = Detection(detection.ids, camera.undistort_points(detection.corners), detection.scores)
+    pose = detector.estimate_pose(undistorted, camera.K, None)
+    if pose is None:
+        return None
+    points = detector.board.object_points()[detection.ids]
+    residuals = np.linalg.norm(camera.project(points, pose.rvec, pose.tvec) - detection.corners, axis=1)
+    return replace(pose, reprojection_error=float(residuals.mean()), residuals=residuals)
 
 
 def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
@@ -263,9 +270,7 @@ def run(args: argparse.Namespace) -> dict:
                         board_run.samples.append(to_gray_u8(frame))
                     rows.writerow(csv_row(record))
                     if not args.no_overlay:
-                        overlay = draw_detection(overlay, detection, pose,
-                                                 *(frame_camera.K, frame_camera.dist) if frame_camera else (None, None),
-                                                 board_run.detector.board)
+                        overlay = draw_detection(overlay, detection, pose, frame_camera, board_run.detector.board)
                 if not args.no_overlay:
                     overlays.add(name, overlay)
                 mark = time.perf_counter() if jobs == 1 else now

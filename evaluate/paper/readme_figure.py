@@ -44,7 +44,7 @@ def figure(seed: int = 0) -> tuple[np.ndarray, dict[str, int]]:
     for name, detector in (("OpenCV + cornerSubPix", OpenCVDetector(BOARD)), ("Deep ChArUco", Detector(board=BOARD))):
         detection = detector.detect(image)
         pose = detector.estimate_pose(detection, camera.K, camera.dist) if len(detection) >= 4 else None
-        panel = draw_detection(shown, detection, pose, camera.K, camera.dist, BOARD)
+        panel = draw_detection(shown, detection, pose, camera, BOARD)
         label = f"{name}: {len(detection)} of {BOARD.num_corners} corners" + ("" if pose else ", no pose")
         cv2.putText(panel, label, (12, 50), cv2.FONT_HERSHEY_SIMPLEX, 0.75, (0, 255, 255), 2, cv2.LINE_AA)
         cv2.putText(panel, f"darkness k = {DARKNESS_K} (~2 % of the light), shown brightened", (12, 465),

@@ -199,6 +199,17 @@ def test_a_fisheye_camera_gives_the_true_pose(camera):
     assert np.linalg.norm(pose.tvec.ravel() - tvec.ravel()) < 0.005 * np.linalg.norm(tvec)
     naive = detector.estimate_pose(detection, fisheye.K, fisheye.dist)  # k1..k4 read as k1 k2 p1 p2
     assert naive is None or np.linalg.norm(naive.tvec.ravel() - tvec.ravel()) > 2 * np.linalg.norm(pose.tvec.ravel() - tvec.ravel())
+    # eps_re in the frame's pixels, through the fisheye model (it was measured in the undistorted image)
+    reprojected = fisheye.project(board.object_points()[detection.ids], pose.rvec, pose.tvec)
+    assert pose.reprojection_error == pytest.approx(np.linalg.norm(reprojected - detection.corners, axis=1).mean())
+    assert pose.reprojection_error < 0.3
+    # the overlay's axes through the fisheye model: the x axis (red) ends where the fisheye projection puts it
+    from deepcharuco.cli.draw import draw_detection
+    end = fisheye.project(np.array([[1.5 * board.square_length, 0.0, 0.0]]), pose.rvec, pose.tvec)[0]
+    canvas = draw_detection(image, detection, pose, fisheye, board).astype(int)
+    x, y = np.rint(end).astype(int)
+    patch = canvas[y - 2:y + 3, x - 2:x + 3]
+    assert (patch[..., 2] - patch[..., 1] > 100).any()  # red drawn at the axis' end
 
 
 def test_no_board_in_any_frame_says_what_the_frames_show(tmp_path, camera, capsys):
