@@ -252,8 +252,6 @@ def test_cell_reads_reuse_reads_and_read_only_new_cells():
     rng = np.random.default_rng(11)
     image, board = drawn("sharp")
     markers = marker_reader.board_markers(board)
-    pixels = rng.uniform(30, 450, (160, 2)).astype(np.float32)
-    quads = rng.permutation(160).reshape(40, 4)  # 40 distinct cells
     squares = random_squares(rng, 40 * 5, (640, 480)).astype(np.float64).reshape(40, 5, 3, 3)
 
     read_rows = []
@@ -264,11 +262,13 @@ def test_cell_reads_reuse_reads_and_read_only_new_cells():
 
     direct = marker_reader.read_squares(image, squares.reshape(-1, 3, 3), markers.size, markers.ratio)
     assert (direct[1] > 0).sum() >= 10  # readable squares among them (19): the reads compared are not all zero
-    reads = placement.CellReads()
+    reads = placement.CellReads(40)
     first = rng.permutation(40)[:25]
-    bits, contrast = reads.read(quads[first], len(pixels), lambda rows: marker_reader.read_squares(
-        image, squares[first][rows].reshape(-1, 3, 3), markers.size, markers.ratio))
+    bits, contrast = reads.read(first, lambda new: marker_reader.read_squares(
+        image, squares[first][new].reshape(-1, 3, 3), markers.size, markers.ratio))
     assert np.array_equal(bits, direct[0].reshape(40, 5, *bits.shape[1:])[first].reshape(bits.shape))
-    bits, contrast = reads.read(quads, len(pixels), read)
+    bits, contrast = reads.read(np.arange(40), read)
     assert read_rows == [15]  # only the cells the first call did not read
     assert np.array_equal(bits, direct[0]) and np.array_equal(contrast, direct[1])
+    bits, contrast = reads.read(first[::-1], read)  # all kept: nothing read, in the rows' order
+    assert read_rows == [15] and np.array_equal(bits, direct[0].reshape(40, 5, -1)[first[::-1]].reshape(bits.shape))

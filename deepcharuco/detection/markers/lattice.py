@@ -100,7 +100,13 @@ def _cell_quads(points: np.ndarray, near: np.ndarray) -> np.ndarray:
 
 def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     """(N, 2) candidate pixels, (Q, 4) quads (a, b, d, c) of `find_cells` -> those without a clearly squarer rival
-    of about their size, order kept.
+    of about their size, order kept (`squarest_rows`' rows of ``quads``)."""
+    return quads[squarest_rows(pixels, quads)]
+
+
+def squarest_rows(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(N, 2) candidate pixels, (Q, 4) quads (a, b, d, c) of `find_cells` -> (Q',) int64 rows of the quads without a
+    clearly squarer rival of about their size, ascending.
 
     Walked a -> b -> d -> c -> a, right-handed quads that lie on the same side of a side walk it the same way: two
     quads that share a directed side overlap. A lattice's corners close sheared quads too (a, a + x, a + y,
@@ -112,11 +118,11 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     side with one at most `CONTAINED_AREA` its area and not less square by `SQUARER_BY` is dropped (two cells, or
     four: it holds a real cell)."""
     if len(quads) < 2:
-        return quads
+        return np.arange(len(quads))
     points = np.asarray(pixels, np.float64).reshape(-1, 2)
     if compiled_kernel is not None:
-        return quads[compiled_kernel.squarest_cells_keep(points, np.ascontiguousarray(quads, np.int64), SQUARER_BY,
-                                                         SAME_AREA, CONTAINED_AREA)]
+        return np.flatnonzero(compiled_kernel.squarest_cells_keep(
+            points, np.ascontiguousarray(quads, np.int64), SQUARER_BY, SAME_AREA, CONTAINED_AREA))
     corners = points[quads]  # (Q, 4, 2), around the quad
     ahead, behind = np.roll(corners, -1, axis=1) - corners, np.roll(corners, 1, axis=1) - corners
     cosine = (np.abs(np.sum(ahead * behind, axis=2)) / np.maximum(
@@ -125,7 +131,7 @@ def squarest_cells(pixels: np.ndarray, quads: np.ndarray) -> np.ndarray:
     # Each quad's four directed sides a -> b as integers a * n + b (n: one more than the largest index): (Q, 4).
     sides = quads * (int(quads.max()) + 1) + np.roll(quads, -1, axis=1)
     order = np.argsort(cosine, kind="stable")
-    return quads[_squarest_keep(sides, cosine, area, order)]
+    return np.flatnonzero(_squarest_keep(sides, cosine, area, order))
 
 
 def _squarest_keep(sides: np.ndarray, cosine: np.ndarray, area: np.ndarray, order: np.ndarray) -> np.ndarray:

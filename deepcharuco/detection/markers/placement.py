@@ -25,7 +25,7 @@ from deepcharuco.core.detection import corner_spacing, no_corners
 from deepcharuco.core.vectors import homogeneous, lengths, pairwise_distances
 from deepcharuco.detection.board_check import BoardView, apply_homography, assign_ids, in_image
 from deepcharuco.detection.junction import pattern_evidence
-from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, quad_areas, squarest_cells
+from deepcharuco.detection.markers.lattice import cell_homographies, find_cells, quad_areas, squarest_rows
 from deepcharuco.detection.markers.marker_reader import (QUARTER_TURNS, board_markers, match_markers,
                                                          read_squares)
 from deepcharuco.detection.markers.settling import _fittable, _neighbourhoods, local_predictions
@@ -113,61 +113,47 @@ class MarkerView:
 
 class CellReads:
     """The marker reads of each cell's five squares (the cell and its edge neighbours, `NEIGHBOUR_OFFSETS`), kept by
-    cell: `corners_from_markers`' second pass through the cells (every one) reads only those its first (the squarest)
-    did not. A square's read depends on its cell's corners alone, so a kept read is the read it would make again.
-    For one image, one reader and one set of candidate ``pixels``."""
+    the cell's row in one list of ``cells`` cells (`lattice.find_cells`' list of a search): `corners_from_markers`'
+    second pass through the cells (every one) reads only those its first (the squarest, rows of the same list) did
+    not. A square's read depends on its cell's corners alone, so a kept read is the read it would make again. For one
+    image, one reader and one set of candidate pixels."""
 
-    def __init__(self):
-        self.keys = np.zeros(0, np.int64)  # sorted cell keys (`_cell_keys`)
-        self.bits: np.ndarray | None = None  # (K, 5, n, n) float32, in the keys' order
-        self.contrast = np.zeros((0, len(NEIGHBOUR_OFFSETS)), np.float32)
+    def __init__(self, cells: int):
+        self.have = np.zeros(cells, bool)
+        self.bits: np.ndarray | None = None  # (cells, 5, n, n) float32, allocated at the first read
+        self.contrast = np.zeros((cells, len(NEIGHBOUR_OFFSETS)), np.float32)
 
-    def read(self, quads: np.ndarray, count: int, read: callable) -> tuple[np.ndarray, np.ndarray]:
-        """(Q, 4) cells among ``count`` candidates -> (bits (Q * 5, n, n), contrast (Q * 5,)) as `read_squares` gives
-        them, rows cell by cell; ``read(rows)`` reads the squares of the cells ``rows`` (Q,) bool not kept yet."""
-        keys = _cell_keys(quads, count)
-        at = np.searchsorted(self.keys, keys).clip(max=max(len(self.keys) - 1, 0))
-        kept = (self.keys[at] == keys) if len(self.keys) else np.zeros(len(keys), bool)
-        new_bits, new_contrast = read(~kept)
-        side = len(NEIGHBOUR_OFFSETS)
-        new_bits = new_bits.reshape(-1, side, *new_bits.shape[1:])
-        new_contrast = new_contrast.reshape(-1, side)
-        if self.bits is None:
-            self.bits = np.zeros((0, *new_bits.shape[1:]), np.float32)
-        bits = np.empty((len(keys), *new_bits.shape[1:]), np.float32)
-        contrast = np.empty((len(keys), side), np.float32)
-        bits[kept], contrast[kept] = self.bits[at[kept]], self.contrast[at[kept]]
-        bits[~kept], contrast[~kept] = new_bits, new_contrast
-        order = np.argsort(np.concatenate([self.keys, keys[~kept]]), kind="stable")
-        self.keys = np.concatenate([self.keys, keys[~kept]])[order]
-        self.bits = np.concatenate([self.bits, new_bits])[order]
-        self.contrast = np.concatenate([self.contrast, new_contrast])[order]
-        return bits.reshape(-1, *bits.shape[2:]), contrast.reshape(-1)
-
-
-def _cell_keys(quads: np.ndarray, count: int) -> np.ndarray:
-    """(Q, 4) cells (ordered corners a, b, d, c among ``count`` candidates) -> (Q,) int64 one key each."""
-    quads = np.asarray(quads, np.int64)
-    if count ** 4 >= 2 ** 63:
-        raise ValueError(f"{count} candidates: too many for int64 cell keys")
-    return ((quads[:, 0] * count + quads[:, 1]) * count + quads[:, 2]) * count + quads[:, 3]
+    def read(self, rows: np.ndarray, read: callable) -> tuple[np.ndarray, np.ndarray]:
+        """(Q,) rows of cells -> (bits (Q * 5, n, n), contrast (Q * 5,)) as `read_squares` gives them, cell by cell;
+        ``read(new)`` reads the squares of the cells ``new`` (Q,) bool among ``rows`` not read before."""
+        new = ~self.have[rows]
+        if new.any():
+            bits, contrast = read(new)
+            side = len(NEIGHBOUR_OFFSETS)
+            if self.bits is None:
+                self.bits = np.empty((len(self.have), side, *bits.shape[1:]), np.float32)
+            self.bits[rows[new]] = bits.reshape(-1, side, *bits.shape[1:])
+            self.contrast[rows[new]] = contrast.reshape(-1, side)
+            self.have[rows[new]] = True
+        return self.bits[rows].reshape(-1, *self.bits.shape[2:]), self.contrast[rows].reshape(-1)
 
 
 def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, quads: np.ndarray,
-                     read_gray: np.ndarray | None = None, reader: str | None = None, reads: CellReads | None = None
-                     ) -> MarkerView | None:
+                     read_gray: np.ndarray | None = None, reader: str | None = None, reads: CellReads | None = None,
+                     rows: np.ndarray | None = None) -> MarkerView | None:
     """The view of ``board`` that the markers in the cells ``quads`` (Q, 4) (`lattice.find_cells`) between
     ``pixels`` (N, 2) corner candidates agree on, or None.
 
     ``gray``: (H, W) uint8 in the board's canonical appearance (`print_face.canonical_view`), the image
     ``pixels`` (most confident first) were found in; ``read_gray``: the same image at a higher resolution to read the markers in
     (default ``gray``); ``reader``: `marker_reader.READERS` (default theirs); ``reads``: reads of cells made before in
-    the same image by the same reader among the same ``pixels``, reused and added to. The view returned maps to
-    ``gray``'s pixels."""
+    the same image by the same reader among the same ``pixels``, reused and added to, with ``rows`` (Q,) the cells'
+    rows in the list ``reads`` keeps them by. The view returned maps to ``gray``'s pixels."""
     if len(quads) == 0:
         return None
     if len(quads) > MAX_CELLS:  # pixels come most confident first: keep the cells of the most confident corners
-        quads = quads[np.argsort(quads.max(axis=1), kind="stable")[:MAX_CELLS]]
+        kept = np.argsort(quads.max(axis=1), kind="stable")[:MAX_CELLS]
+        quads, rows = quads[kept], None if rows is None else rows[kept]
     cells = cell_homographies(pixels, quads)  # (Q, 3, 3) unit square -> image
     # Every cell and its edge neighbours: (Q * 5) squares, each with its own unit frame. The same square is read from
     # up to five cells: each read is one more vote, and a square badly extrapolated from one cell is read well from
@@ -179,8 +165,8 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
         bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio, reader)
     else:
         by_cell = squares.reshape(len(quads), len(NEIGHBOUR_OFFSETS), 3, 3)
-        bits, contrast = reads.read(quads, len(pixels), lambda rows: read_squares(
-            read_gray, to_read @ by_cell[rows].reshape(-1, 3, 3), markers.size, markers.ratio, reader))
+        bits, contrast = reads.read(rows, lambda new: read_squares(
+            read_gray, to_read @ by_cell[new].reshape(-1, 3, 3), markers.size, markers.ratio, reader))
     matches = match_markers(bits, contrast, markers, reader=reader)
     if _distinct_count(matches.marker, len(markers.ids)) < MIN_MARKERS:
         return None
@@ -360,11 +346,11 @@ def _searched(gray: np.ndarray, board: BoardSpec, board_xy: np.ndarray, candidat
     # The squarest cells first: about a quarter of the reads where the view is not steep (`lattice.squarest_cells`); every
     # cell where those find no verified view.
     every = find_cells(strongest)
-    squarest = squarest_cells(strongest, every)
-    reads = CellReads()  # the squarest cells' reads, reused when every cell is read
+    squarest = squarest_rows(strongest, every)
+    reads = CellReads(len(every))  # the squarest cells' reads, reused when every cell is read
     refused = None
-    for quads in (squarest, every) if len(squarest) < len(every) else (every,):
-        found = find_marker_view(gray, board, strongest, quads, read_gray, reader, reads)
+    for rows in (squarest, np.arange(len(every))) if len(squarest) < len(every) else (np.arange(len(every)),):
+        found = find_marker_view(gray, board, strongest, every[rows], read_gray, reader, reads, rows)
         # Every cell's pass often settles on the view the squarest cells' pass found and the checks refused (45 of 79
         # such calls on caliscope's webcams, fast networks): the same view and markers, refused again unchecked.
         verified = None if found is None or _same_view(found, refused) else \
