@@ -174,7 +174,12 @@ def test_every_marker_reads_as_itself_through_the_exact_view(board, camera):
     assert [np.unravel_index(row.argmax(), row.shape) for row in ncc] == [(m, 3) for m in range(len(markers.ids))]
 
 
-def test_marker_matches_are_each_reads_best_pairs_in_order_and_none_below_the_floor():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_marker_matches_are_each_reads_best_pairs_in_order_and_none_below_the_floor(compiled, monkeypatch):
+    if compiled:
+        pytest.importorskip("numba")
+    else:
+        monkeypatch.setattr("deepcharuco.detection.markers.marker_reader.compiled_kernel", None)
     board = UNSEEN[0]
     markers = board_markers(board)
     rng = np.random.default_rng(3)

@@ -248,6 +248,26 @@ def test_support_kernel_sums_as_numpy(distinct):
     assert compiled[5] == compiled[3]
 
 
+def test_best_pairs_kernel_ranks_as_a_stable_sort():
+    """`decode_kernel.best_pairs` keeps each read's best (marker, turn) columns as a stable sort of the scores ranks
+    them (equal scores: the lower column first), those at or above the floor: ties at every place, and reads whose
+    second best is below it."""
+    kernel = pytest.importorskip("deepcharuco.detection.markers.decode_kernel")
+    rng = np.random.default_rng(9)
+    ncc = np.round(rng.uniform(-1, 1, (300, 48)), 1)  # one decimal: many equal scores in a row
+    ncc[0] = 0.9  # all equal
+    ncc[1, [3, 7, 40]] = 0.95  # three equal bests
+    for per_read in (1, 2, 3):
+        rows, columns, scores = kernel.best_pairs(ncc, per_read, 0.3)
+        order = np.argsort(-ncc, axis=1, kind="stable")[:, :per_read]
+        expected = [(r, int(c)) for r in range(len(ncc)) for c in order[r] if ncc[r, c] >= 0.3]
+        assert list(zip(rows.tolist(), columns.tolist())) == expected
+        assert np.array_equal(scores, ncc[rows, columns])
+    rows, columns, _ = kernel.best_pairs(ncc, 2, 0.3)
+    assert columns[rows == 0].tolist() == [0, 1] and columns[rows == 1].tolist() == [3, 7]
+    assert len(kernel.best_pairs(np.zeros((0, 48)), 2, 0.3)[0]) == 0
+
+
 def test_cell_reads_reuse_reads_and_read_only_new_cells():
     rng = np.random.default_rng(11)
     image, board = drawn("sharp")

@@ -1,9 +1,9 @@
 """The marker reads', the cells' and the hypotheses' per-element loops compiled by numba: the same arithmetic and
 decisions as their numpy paths (`marker_reader._squares_inside`, `marker_reader._square_maps`,
-`marker_reader._reduce_reads`, `lattice._nearest`, `lattice._cell_quads`, `lattice.cell_homographies`,
-`lattice.squarest_cells`, `placement._square_sides`, `placement._agreement`, `placement._support`), in one pass over the data instead of numpy's many passes and
-temporaries, which are most of those paths' time on a frame's few thousand square reads (`docs/detector.md`, "A
-compiled decoder").
+`marker_reader._reduce_reads`, `marker_reader.match_markers`, `lattice._nearest`, `lattice._cell_quads`,
+`lattice.cell_homographies`, `lattice.squarest_cells`, `placement._square_sides`, `placement._agreement`,
+`placement._support`), in one pass over the data instead of numpy's many passes and temporaries, which are most of
+those paths' time on a frame's few thousand square reads (`docs/detector.md`, "A compiled decoder").
 
 Imported only where numba is installed (``pip install deepcharuco[fast]``); the callers use the numpy paths
 otherwise, and tests/detection/test_decode_kernel.py checks both give the same detections. The first call compiles (a few
@@ -403,3 +403,35 @@ def support(marker, ncc, agrees, markers):
                     best[r] = value
         out[h] = _pairwise_sum(best, 0, distinct)
     return out
+
+
+@njit(cache=True)
+def best_pairs(ncc, per_read, floor):
+    """`marker_reader.match_markers`' choice compiled: (R, C) float64 scores of each read against each (marker, turn)
+    -> (read (K,), column (K,), score (K,)): each read's ``per_read`` best columns, best first, equal scores by the
+    lower column, those scoring >= ``floor``; reads in order."""
+    reads, columns = ncc.shape
+    per_read = min(per_read, columns)
+    out_read = np.empty(reads * per_read, np.int64)
+    out_column = np.empty(reads * per_read, np.int64)
+    out_score = np.empty(reads * per_read)
+    best = np.empty(per_read, np.int64)
+    found = 0
+    for r in range(reads):
+        filled = 0
+        for c in range(columns):
+            value = ncc[r, c]
+            if filled == per_read and not value > ncc[r, best[per_read - 1]]:
+                continue
+            at = min(filled, per_read - 1)  # the last place, or the first free one; then up past every lower score
+            while at > 0 and ncc[r, best[at - 1]] < value:
+                best[at] = best[at - 1]
+                at -= 1
+            best[at] = c
+            filled = min(filled + 1, per_read)
+        for i in range(filled):
+            score = ncc[r, best[i]]
+            if score >= floor:
+                out_read[found], out_column[found], out_score[found] = r, best[i], score
+                found += 1
+    return out_read[:found], out_column[:found], out_score[:found]

@@ -364,14 +364,15 @@ class MarkerMatches:
 def match_markers(bits: np.ndarray, contrast: np.ndarray, markers: BoardMarkers,
                   per_read: int = PROPOSALS_PER_READ, reader: str | None = None) -> MarkerMatches:
     """(R, n, n) reads of ``reader`` and (R,) contrasts -> each readable read's ``per_read`` best (marker, turn)
-    pairs scoring >= `MIN_NCC` (`correlate`), best first within a read."""
+    pairs scoring >= `MIN_NCC` (`correlate`), best first within a read, equal scores by the lower (marker, turn)
+    (`decode_kernel.best_pairs` chooses the same, compiled)."""
     readable = np.flatnonzero(contrast > 0)
     ncc = correlate(bits[readable], markers, reader).reshape(len(readable), len(markers.ids) * 4)
+    if compiled_kernel is not None:
+        rows, flat, score = compiled_kernel.best_pairs(np.ascontiguousarray(ncc, np.float64), per_read, MIN_NCC)
+        return MarkerMatches(read=readable[rows], marker=flat // 4, turn=flat % 4, ncc=score)
     per_read = min(per_read, ncc.shape[1])
-    best = np.argpartition(-ncc, per_read - 1, axis=1)[:, :per_read] if per_read < ncc.shape[1] \
-        else np.tile(np.arange(ncc.shape[1]), (len(ncc), 1))
-    first = np.arange(len(ncc))[:, None]
-    best = best[first, np.argsort(-ncc[first, best], axis=1, kind="stable")]
+    best = np.argsort(-ncc, axis=1, kind="stable")[:, :per_read]
     rows = np.repeat(np.arange(len(readable)), per_read)
     flat = best.ravel()
     score = ncc[rows, flat] if len(rows) else np.zeros(0)
