@@ -335,7 +335,7 @@ def test_a_view_the_checks_refused_is_not_checked_again_by_the_second_pass(monke
     board = BoardSpec(squares_x=7, squares_y=5, square_length=0.04, marker_length=0.03, dictionary="DICT_6X6_250")
     candidates = CellCandidates(np.zeros((8, 2), np.float32), np.full(8, 0.9, np.float32), np.zeros((8, 0), np.float32))
     monkeypatch.setattr(placement, "find_cells", lambda pixels: np.zeros((2, 4), np.int64))
-    monkeypatch.setattr(placement, "squarest_cells", lambda pixels, quads: quads[:1])
+    monkeypatch.setattr(placement, "squarest_rows", lambda pixels, quads: np.arange(1))
     first = placement.MarkerView(view=placement.BoardView(homography=np.eye(3), inliers=np.ones(4, bool)),
                                  marker_ids=np.array([3, 4]), reads=5)
     again = placement.MarkerView(view=placement.BoardView(homography=np.eye(3), inliers=np.ones(4, bool)),
