@@ -262,7 +262,8 @@ def run(args: argparse.Namespace) -> dict:
                 overlay = frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
                 for board_run, rows, detection in zip(runs, writers, detections):
                     pose = estimate_frame_pose(board_run.detector, detection, frame_camera) if frame_camera else None
-                    record = frame_record(number, name, detection, pose)  # its number in the recording: a skipped frame shifts none
+                    record = frame_record(number, name, detection, pose,  # its number in the recording
+                                          None if source.video is None else source.video.times.get(number))
                     board_run.records.append(record)
                     if not board_run.found and len(detection):
                         board_run.found, board_run.samples = True, []  # the board is there: no hint needed
@@ -315,6 +316,8 @@ def _finish(board_run: _BoardRun, args: argparse.Namespace, source: Source, came
         "skipped": source.skipped,
         "problems": problems,
         "detect_fps": len(records) / total_seconds if total_seconds > 0 else None,
+        # the video's frame rate as its container gives it (frames' own times: each record's time_s); None for images
+        "video_fps": source.fps if source.kind in ("video", "camera") else None,
     }
     write_atomic(board_run.json_path, json.dumps(summary))
     with_pose = sum(r["pose"] is not None for r in records)

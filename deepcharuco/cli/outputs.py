@@ -22,15 +22,17 @@ from deepcharuco.geometry.pose import Pose
 
 
 CSV_FIELDS = ["frame", "source", "num_corners", "ids", "corners", "scores",
-              "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas"]
+              "rvec", "tvec", "reprojection_error", "num_inliers", "sigmas", "time_s"]
 
 
 # What a CSV of this command begins with, in this version and those before the sigmas column: safe to overwrite.
 CSV_SIGNATURE = ",".join(CSV_FIELDS[:6])
 
 
-def frame_record(index: int, name: str, detection: Detection, pose: Pose | None) -> dict:
-    record = {"frame": index, "source": name, "num_corners": len(detection), **detection.to_dict()}
+def frame_record(index: int, name: str, detection: Detection, pose: Pose | None, time_s: float | None = None) -> dict:
+    """One frame's JSON record: ``index`` its number in the recording, ``time_s`` its time (a video's or a camera's
+    frames: `video.VideoFrames.times`; None for images)."""
+    record = {"frame": index, "source": name, "time_s": time_s, "num_corners": len(detection), **detection.to_dict()}
     record["pose"] = None if pose is None else pose.to_dict()
     return record
 
@@ -52,6 +54,7 @@ def csv_row(record: dict) -> dict:
         # each corner's standard deviation along its least certain direction (px); nan where none is given
         "sigmas": joined(largest_sigmas([[[c[0], c[1]], [c[1], c[2]]] if c else [[math.nan] * 2] * 2
                                         for c in record["covariances"]])),
+        "time_s": "" if record.get("time_s") is None else f"{record['time_s']:.6f}",
     }
 
 

@@ -10,6 +10,7 @@ skipped. A live camera that stops delivering ends the stream at once.
 
 from __future__ import annotations
 
+import time
 from typing import Iterator
 
 import cv2
@@ -27,7 +28,9 @@ class VideoFrames:
     Frames between the ``step``-th are grabbed, not decoded. After iterating, ``skipped`` holds the
     (first, last) frame numbers of each stretch that could not be decoded, ``read`` the frames
     yielded, and `describe_skipped` a line for the user (empty when nothing was skipped). The capture
-    is released when the iteration ends.
+    is released when the iteration ends. ``times`` holds each yielded frame's time in seconds: a file's
+    presentation time (``CAP_PROP_POS_MSEC`` after the read: a variable frame rate's own), a live camera's
+    seconds since its first frame arrived (this process' clock).
     """
 
     def __init__(self, capture: cv2.VideoCapture, *, step: int = 1, limit: int | None = None, live: bool = False):
@@ -39,6 +42,7 @@ class VideoFrames:
         self.skipped: list[tuple[int, int]] = []
         self.read = 0
         self.stopped_at: int | None = None  # a live camera: the frame at which it stopped delivering
+        self.times: dict[int, float] = {}  # frame number -> seconds (class docstring)
 
     def __iter__(self) -> Iterator[tuple[int, np.ndarray]]:
         index, bad_from = 0, None
@@ -65,10 +69,19 @@ class VideoFrames:
                     bad_from = None
                 if wanted:
                     self.read += 1
+                    self.times[index] = self._time()
                     yield index, frame
                 index += 1
         finally:
             self.capture.release()
+
+    def _time(self) -> float:
+        """The frame just read's time in seconds (``times``)."""
+        if self.live:
+            now = time.perf_counter()
+            self._start = getattr(self, "_start", now)
+            return now - self._start
+        return self.capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
 
     @property
     def skipped_frames(self) -> int:

@@ -29,6 +29,7 @@ def test_image_with_pose(tmp_path):
     result = json.loads((tmp_path / "board_320x240.json").read_text())
     frame = result["frames"][0]
     assert frame["ids"] == list(range(16)) and len(frame["corners"]) == 16
+    assert frame["time_s"] is None and result["video_fps"] is None  # an image has no time
     assert frame["pose"]["reprojection_error"] < 0.3
     assert (tmp_path / "board_320x240_overlay.png").is_file()
     rows = (tmp_path / "board_320x240.csv").read_text().splitlines()
@@ -72,6 +73,12 @@ def test_video_and_scaled_camera(tmp_path, camera, capsys):
     assert all(f["pose"]["reprojection_error"] < 0.5 for f in frames[:3]) and frames[3]["pose"] is None
     assert (out / "clip_overlay.mp4").stat().st_size > 0
     assert len((out / "clip.csv").read_text().splitlines()) == 5
+    # Each frame's time in the recording (30 fps as written), in the JSON and the CSV; the container's frame rate.
+    result = json.loads((out / "clip.json").read_text())
+    assert [f["time_s"] for f in result["frames"]] == pytest.approx([0, 1 / 30, 2 / 30, 3 / 30], abs=1e-6)
+    assert result["video_fps"] == pytest.approx(30.0)
+    rows = (out / "clip.csv").read_text().splitlines()
+    assert rows[0].endswith(",sigmas,time_s") and rows[2].endswith(",0.033333")
     # The scaling is said once, and recorded beside the file's own intrinsics.
     err = capsys.readouterr().err
     assert err.count("is for 640x480 and 0 is 320x240: its intrinsics are scaled to it") == 1
