@@ -91,9 +91,10 @@ class Camera:
             return self
         cw, ch = self.image_size
         if abs(width / height - cw / ch) > 0.01:
+            why = "rotated (portrait against landscape?)" if abs(width / height - ch / cw) <= 0.01 else "cropped?"
             raise CameraFileError(
                 f"frames are {width}x{height} but the camera file is for {cw}x{ch}, a different aspect "
-                "ratio (cropped?): calibrate at this resolution"
+                f"ratio ({why}): calibrate at this resolution"
             )
         return self.scaled(width, height)
 

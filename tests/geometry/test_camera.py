@@ -49,8 +49,10 @@ def test_scaling_follows_resized_images():
     # For frames of another size: the same camera, scaled, or refused when the frames are cropped.
     assert big.for_image_size(640, 480) is big
     np.testing.assert_allclose(big.for_image_size(320, 240).K, scaled.K)
-    with pytest.raises(CameraFileError, match="different aspect ratio"):
+    with pytest.raises(CameraFileError, match=r"different aspect ratio \(cropped\?\)"):
         big.for_image_size(640, 360)
+    with pytest.raises(CameraFileError, match=r"different aspect ratio \(rotated \(portrait against landscape"):
+        big.for_image_size(480, 640)
 
 
 def test_missing_and_malformed_files(tmp_path):
