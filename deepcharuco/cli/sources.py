@@ -40,8 +40,8 @@ class Source:
     video: VideoFrames | None = None  # a video or camera: what was read, skipped as undecodable, or stopped
 
     def problems(self) -> list[str]:
-        """What could not be read, one line each: a folder's images that could not be read at 8 bits (counted), a video's damaged
-        stretches, a camera that stopped delivering frames."""
+        """What could not be read, one line each: a folder's images that could not be read at 8 bits (counted), a
+        video's damaged stretches, a camera that stopped delivering frames."""
         lines = [f"{self.stem}: {len(self.skipped)} image(s) skipped, each named above"] if self.skipped else []
         if self.video is not None and self.video.skipped:
             lines.append(self.video.describe_skipped(self.stem))

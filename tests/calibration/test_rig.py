@@ -547,8 +547,9 @@ def test_a_camera_file_the_rig_cannot_hold_as_it_is_is_refused(tmp_path, drawn, 
     out = tmp_path / "rig"
     for name, message in (("skew", "holds a skew (camera_matrix[0][1] = 0.8)"),
                           ("prism", "distortion terms past the eighth (12 coefficients")):
-        assert main([str(folders[0]), str(folders[1]), "--board", str(board), "--camera", str(tmp_path / f"{name}.yaml"),
-                     "--camera", "-", "--detector", "opencv", "--out", str(out), "--quiet"]) == 2
+        assert main([str(folders[0]), str(folders[1]), "--board", str(board), "--camera",
+                     str(tmp_path / f"{name}.yaml"), "--camera", "-", "--detector", "opencv", "--out", str(out),
+                     "--quiet"]) == 2
         error = capsys.readouterr().err.strip().splitlines()
         assert len(error) == 1 and message in error[0] and "or - to solve that camera here" in error[0], error
         assert not out.exists()

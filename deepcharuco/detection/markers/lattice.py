@@ -167,8 +167,8 @@ def quad_areas(corners: np.ndarray) -> np.ndarray:
 def _nearest(points: np.ndarray, k: int) -> np.ndarray:
     """(N, 2) points -> (N, k) indices of each point's k nearest others, nearest first, equal distances by index.
 
-    Where numba is installed every pair is measured, compiled (`decode_kernel.nearest`: ~0.15 ms at 300 points, no
-    tree to build). Else, above `TREE_FROM_POINTS` points a k-d tree (scipy's) finds a few more than k of each; where the k-th of them is as
+    Where numba is installed every pair is measured, compiled (`decode_kernel.nearest`: no tree to build). Else,
+    above `TREE_FROM_POINTS` points a k-d tree (scipy's) finds a few more than k of each; where the k-th of them is as
     far as the farthest found, an equally far point may be among those it left out, and that row is measured against
     every point (`_nearest_of`). Candidates sit on whole pixels, so many distances are equal: the index settles them,
     the same way on every machine."""

@@ -325,8 +325,9 @@ def sample_maps(gray: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _normalised(values: np.ndarray) -> np.ndarray:
-    """(..., P) -> zero mean, unit norm along the last axis (all-equal rows stay zero). The mean and the norm summed as
-    ``np.mean`` and ``np.linalg.norm`` sum them (the same values), without their wrappers' cost on thousands of calls."""
+    """(..., P) -> zero mean, unit norm along the last axis (all-equal rows stay zero). The mean and the norm summed
+    as ``np.mean`` and ``np.linalg.norm`` sum them (the same values), without their wrappers' cost on thousands of
+    calls."""
     centred = values - np.add.reduce(values, axis=-1, keepdims=True) / values.shape[-1]
     norm = np.sqrt(np.add.reduce(centred * centred, axis=-1, keepdims=True))
     return centred / np.where(norm > 1e-9, norm, 1.0)
