@@ -41,6 +41,7 @@ import csv
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -55,9 +56,10 @@ from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.detection.metrics import match_corners
 from deepcharuco.networks.cells import decode_cells, encode_cells, point_candidates
-from deepcharuco.networks.charuconet import WIDTH_NAMES, ChArUcoNet, named_config
+from deepcharuco.networks.charuconet import WIDTH_NAMES, ChArUcoNet, ChArUcoNetConfig, named_config
 from deepcharuco.networks.checkpoint import (CheckpointError, id_head_trained, load_charuconet, read_checkpoint,
                                              save_checkpoint)
+from deepcharuco.networks.onnx_bundle import is_bundle, read_bundle
 from deepcharuco.networks.onnx_runner import _session
 from deepcharuco.networks.runtime import float_onnx
 from train.charuconet import POINT_CONFIDENCE, match_points
@@ -136,7 +138,7 @@ class Distiller:
         self.val_size = parse_size(args.val_size, "--val-size")
         self.drawer = FrameDrawer(boards, draw_config(args, self.size), device)
         torch.manual_seed(args.seed)
-        self.student = ChArUcoNet(named_config(args.arch, stored.num_corners)).to(device)
+        self.student = ChArUcoNet(student_config(args, stored.num_corners)).to(device)
         self.id_weights = torch.full((stored.num_corners + 1,), float(args.id_positive_weight), device=device)
         self.id_weights[-1] = 1.0  # the dustbin
         self.val_frames = [self.drawer.draw(np.random.default_rng([args.val_seed, i]), args.batch_size, self.val_size)
@@ -236,9 +238,51 @@ def draw_config(settings, size: tuple[int, int]) -> DrawConfig:
                       augmentation=AugmentConfig(homography_p=0.0, min_brightness=float(get("min_brightness"))))
 
 
+def student_config(args: argparse.Namespace, num_corners: int) -> ChArUcoNetConfig:
+    """The student's configuration: ``--arch``'s, without batch normalisation where ``--init`` is an ONNX bundle (its
+    convolutions hold their normalisation folded in; `warm_start`), on ``--resume`` too (its ``--init`` is the run's)."""
+    config = named_config(args.arch, num_corners)
+    return replace(config, batch_norm=False) if args.init and is_bundle(args.init) else config
+
+
+# A points-only bundle (a family's) holds the point path alone: the encoder's 1/8 stem and the point head.
+POINT_PATH = ("encoder.stem.", "point_head.")
+
+
+def bundle_state(path: str) -> tuple[dict[str, torch.Tensor], bool]:
+    """(the weights of the ONNX bundle ``path``'s ChArUcoNet by their PyTorch names, whether it holds the ID head
+    too): its graph's initializers, named as the exporter found them in the model's state dict (a points-only graph
+    was exported from `PointHeadOnly`, whose names start ``charuconet.``)."""
+    import onnx
+    from onnx import numpy_helper
+
+    try:
+        bundle = read_bundle(path)
+    except DeepCharucoError as error:
+        raise DeepCharucoError(f"--init: {error}") from None
+    name = "charuconet.onnx" if "charuconet.onnx" in bundle.models else "charuconet_points.onnx"
+    graph = onnx.load_from_string(bundle.models[name]).graph
+    return {i.name.removeprefix("charuconet."): torch.from_numpy(numpy_helper.to_array(i).copy())
+            for i in graph.initializer}, name == "charuconet.onnx"
+
+
 def warm_start(student: ChArUcoNet, path: str, arch: str) -> None:
-    """``student``'s weights from the student checkpoint ``path`` (a `train.distill` run's) of the same ``arch``; its
+    """``student``'s weights from the student checkpoint ``path`` (a `train.distill` run's) of the same ``arch``, or
+    from an ONNX bundle of one (the shipped fast networks': a ``student`` without batch normalisation,
+    `student_config`; a points-only bundle leaves the ID head and its context branches as initialised); its
     optimizer state and step are not taken: the run's schedule starts at step 0."""
+    if is_bundle(path):
+        state, with_ids = bundle_state(path)
+        try:
+            missing, unexpected = student.load_state_dict(state, strict=False)
+        except RuntimeError as error:
+            first = str(error).splitlines()[1].strip() if len(str(error).splitlines()) > 1 else str(error)
+            raise DeepCharucoError(f"--init {path}: its network is not a --arch {arch} ChArUcoNet ({first})") from None
+        lacking = [k for k in missing if with_ids or k.startswith(POINT_PATH)]
+        if unexpected or lacking:
+            raise DeepCharucoError(f"--init {path}: its network is not a --arch {arch} ChArUcoNet (weights "
+                                   f"{', '.join((unexpected or lacking)[:3])} {'left over' if unexpected else 'missing'})")
+        return
     try:
         data = read_checkpoint(path, "charuconet")
     except CheckpointError as error:
@@ -416,8 +460,10 @@ def parser() -> argparse.ArgumentParser:
                         "own, 55 for runs begun before this option)")
     p.add_argument("--seed", type=int, default=0, help="seeds the student's initial weights and every training frame")
     p.add_argument("--init", default="",
-                   help="start from this student's weights (a train.distill checkpoint of the same --arch), e.g. to "
-                        "train on new frames on from a run's best.pt; the schedule starts at step 0")
+                   help="start from this student's weights (a train.distill checkpoint of the same --arch, or its ONNX "
+                        "bundle: the shipped fast networks', e.g. deepcharuco/weights/fast/detector.onnx, whose student "
+                        "then has no batch normalisation), e.g. to train on new frames on from a run's best.pt; the "
+                        "schedule starts at step 0")
     p.add_argument("--val-seed", type=int, default=1000, help="seeds the validation frames (not the training seed)")
     p.add_argument("--val-size", default="320x240", help="validation frames WxH")
     p.add_argument("--val-batches", type=int, default=8, help="validation batches (of --batch-size frames)")

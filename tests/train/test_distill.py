@@ -284,3 +284,46 @@ def test_points_only_distils_the_point_head_of_a_teacher_with_ids(tmp_path):
     assert Detector(board=PAPER_BOARD, weights=tmp_path / "run" / "last.pt", refine="none").geometry == "markers"
     # a run made before the option resumes: its settings lack it, and the default stands for it
     assert distill.parser().get_default("points_only") is False
+
+
+def test_init_from_a_shipped_fast_bundle_starts_where_that_network_is(tmp_path, capsys):
+    """The shipped fast students survive only as ONNX bundles (batch normalisation folded in): `--init` takes one into a
+    student without batch normalisation whose outputs are the bundle's, and a run from it trains, saves, resumes and
+    loads through the runtime loader; a points-only (family) bundle fills the point path and nothing else."""
+    import onnxruntime as ort
+
+    from deepcharuco.networks.shipped import FAST_WEIGHTS_DIR
+
+    bundle = str(FAST_WEIGHTS_DIR / "detector.onnx")
+    args = tiny_args(tmp_path / "run", "--init", bundle)
+    student = ChArUcoNet(distill.student_config(args, PAPER_BOARD.num_corners)).eval()
+    assert not student.config.batch_norm
+    distill.warm_start(student, bundle, "fast")
+    image = np.random.default_rng(2).random((1, 1, 240, 320)).astype(np.float32)
+    session = ort.InferenceSession(str(FAST_WEIGHTS_DIR / "detector.onnx" / "charuconet.onnx"),
+                                   providers=["CPUExecutionProvider"])
+    expected = session.run(None, {session.get_inputs()[0].name: image})
+    with torch.no_grad():
+        found = student(torch.from_numpy(image))
+    for a, b in zip(expected, found):
+        assert np.abs(a - b.numpy()).max() < 1e-4
+    stopped = distill.run(args, stop_at=4)
+    assert stopped["step"] == 4
+    assert distill.run(tiny_args(tmp_path / "run", "--init", bundle, "--resume"))["step"] == 6
+    model, _, data = load_charuconet(tmp_path / "run" / "last.pt")
+    assert not data["config"]["batch_norm"] and not model.config.batch_norm
+    family = ChArUcoNet(distill.named_config("fast", PAPER_BOARD.num_corners))
+    family_fast = ChArUcoNet(distill.student_config(args, PAPER_BOARD.num_corners))
+    before = {k: v.clone() for k, v in family_fast.state_dict().items()}
+    distill.warm_start(family_fast, str(FAST_WEIGHTS_DIR / "families" / "DICT_4X4.onnx"), "fast")
+    changed = {k for k, v in family_fast.state_dict().items() if not torch.equal(v, before[k])}
+    assert changed and all(k.startswith(distill.POINT_PATH) for k in changed)
+    points = ort.InferenceSession(str(FAST_WEIGHTS_DIR / "families" / "DICT_4X4.onnx" / "charuconet_points.onnx"),
+                                  providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        own = family_fast.eval().points(torch.from_numpy(image)).numpy()
+    assert np.abs(points.run(None, {points.get_inputs()[0].name: image})[0] - own).max() < 1e-4
+    code = distill.main(["--out", str(tmp_path / "lite"), "--arch", "lite", "--init", bundle, "--steps", "2", "--quiet",
+                         "--size", "64x48", "--val-size", "64x48", "--batch-size", "2"])
+    assert code == 2 and "is not a --arch lite ChArUcoNet" in capsys.readouterr().err
+    assert family.config.batch_norm  # a run without a bundle keeps its batch normalisation
