@@ -31,7 +31,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            within_border)
 from deepcharuco.cli.calibration_exports import export_outputs, refuse_foreign_exports
 from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
-from deepcharuco.cli.common import check_output_folder, no_empty_folders_on_failure
+from deepcharuco.cli.common import check_output_folder, four_term_note, no_empty_folders_on_failure
 from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_overlap, check_recorded, describe, disagree,
                                       frame_intervals, instants_by_time, read_timestamps, renumbered, worst_spread)
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
@@ -206,13 +206,11 @@ def check_given_models(given: list[str | None] | None, model: str) -> None:
     the cameras solved here: where every camera is given, a ``--model`` other than the default that some file
     disagrees with would change nothing, and is refused (`CameraFileError`) before any frame is read. So is a file
     the rig's solve cannot hold as it is (`held_as_given`)."""
-    for path in given or []:
-        if path not in (None, "-"):
-            held_as_given(path)
+    held = {path: held_as_given(path) for path in given or [] if path not in (None, "-")}
     if not given or any(path in (None, "-") for path in given) or model == "pinhole":
         return
     for path in given:
-        camera = held_as_given(path)
+        camera = held[path]
         kind = "fisheye" if camera.model == "fisheye" else "rational" if camera.dist.size >= 8 else "pinhole"
         if kind != model:
             raise CameraFileError(f"--model {model} is the model of the cameras the rig solves, but every camera is "
@@ -229,6 +227,9 @@ def held_as_given(path: str) -> Camera:
         camera = read_camera(path)
     except CameraFileError as error:
         raise CameraFileError(f"--camera {path}: {error}") from None
+    note = four_term_note(path, camera)
+    if note:
+        print(note, file=sys.stderr)
     if camera.model != "fisheye":
         beyond = np.flatnonzero(camera.dist[8:]) + 8
         if camera.K[0, 1] != 0 or len(beyond):

@@ -20,6 +20,7 @@ from typing import Callable
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.platform import available_cpus, describe_os_error
+from deepcharuco.geometry.camera import Camera
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a command stopped by Ctrl-C
@@ -132,6 +133,16 @@ def load_board(path: str | Path) -> BoardSpec:
         print(f"warning: {path}: square_length {board.square_length:g} m: board files give lengths in metres (54 mm is "
               f"0.054); as written, poses and rig translations come out in the file's own unit", file=sys.stderr)
     return board
+
+
+def four_term_note(path: str | Path, camera: Camera) -> str | None:
+    """A note line where the camera file ``path`` gives 4 distortion coefficients and no fisheye model: read as OpenCV's
+    pinhole k1 k2 p1 p2, which is also how a ``cv2.fisheye`` file without its ``distortion_model`` reads (its poses
+    then a few tenths of a pixel off, without a word); None otherwise."""
+    if camera.model == "fisheye" or camera.dist.size != 4:
+        return None
+    return (f"note: {path} has 4 distortion coefficients and no fisheye model: read as OpenCV's k1 k2 p1 p2; if it is "
+            f"cv2.fisheye's, add 'distortion_model: fisheye' to it")
 
 
 def jobs_warning(jobs: int, cpus: int | None = None) -> str | None:

@@ -28,7 +28,8 @@ import numpy as np
 from tqdm import tqdm
 
 from deepcharuco.boards.board import BoardSpec, check_boards_apart
-from deepcharuco.cli.common import jobs_warning, load_board, no_empty_folders_on_failure, output_folder, run_command
+from deepcharuco.cli.common import (four_term_note, jobs_warning, load_board, no_empty_folders_on_failure,
+                                    output_folder, run_command)
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
@@ -166,6 +167,9 @@ def run(args: argparse.Namespace) -> dict:
     if len(boards) > 1:  # one detector per board below: Detector(boards=...)'s own check does not run
         check_boards_apart(boards, board_files)
     camera = read_camera(args.camera) if args.camera else None
+    note = None if camera is None else four_term_note(args.camera, camera)
+    if note:
+        print(note, file=sys.stderr)
     detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend,
                                corner_fit=not args.no_corner_fit, device=args.device)
                  for board in boards]

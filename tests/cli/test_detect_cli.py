@@ -206,6 +206,11 @@ def test_a_fisheye_camera_gives_the_true_pose(camera):
     assert np.linalg.norm(pose.tvec.ravel() - tvec.ravel()) < 0.005 * np.linalg.norm(tvec)
     naive = detector.estimate_pose(detection, fisheye.K, fisheye.dist)  # k1..k4 read as k1 k2 p1 p2
     assert naive is None or np.linalg.norm(naive.tvec.ravel() - tvec.ravel()) > 2 * np.linalg.norm(pose.tvec.ravel() - tvec.ravel())
+    # A fisheye file that does not say so reads as pinhole k1 k2 p1 p2: detect says that it read it so
+    from deepcharuco.cli.common import four_term_note
+    pinhole_four = Camera(K=camera.K, dist=fisheye.dist, image_size=camera.image_size)
+    assert "add 'distortion_model: fisheye'" in four_term_note("cam.yaml", pinhole_four)
+    assert four_term_note("cam.yaml", fisheye) is None and four_term_note("cam.yaml", camera) is None
     # eps_re in the frame's pixels, through the fisheye model (it was measured in the undistorted image)
     reprojected = fisheye.project(board.object_points()[detection.ids], pose.rvec, pose.tvec)
     assert pose.reprojection_error == pytest.approx(np.linalg.norm(reprojected - detection.corners, axis=1).mean())
