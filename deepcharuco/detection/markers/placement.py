@@ -161,7 +161,7 @@ def find_marker_view(gray: np.ndarray, board: BoardSpec, pixels: np.ndarray, qua
     squares = _neighbour_squares(cells).reshape(-1, 3, 3)
     markers = board_markers(board)
     read_gray, to_read = reading_image(gray, read_gray)
-    if reads is None:
+    if reads is None or rows is None:
         bits, contrast = read_squares(read_gray, to_read @ squares, markers.size, markers.ratio, reader)
     else:
         by_cell = squares.reshape(len(quads), len(NEIGHBOUR_OFFSETS), 3, 3)
