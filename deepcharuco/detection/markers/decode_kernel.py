@@ -370,7 +370,8 @@ def _pairwise_sum(values, start, count):
     """The sum of ``values[start:start + count]`` (float64) as numpy's ``add.reduce`` sums a contiguous row (pairwise:
     eight running sums in blocks of up to 128, halves above: the first half a multiple of 8), so that it is the same
     number to the last bit, up to 512 values (the distinct markers of one view; beyond, halves of more than 256 are
-    summed as two blocks: the same to rounding). Written out, not recursive: numba caches no recursive function."""
+    summed as two blocks: the same to rounding). Written out, not recursive: a recursive version, loaded from
+    numba's cache by a second process, crashed it (docs/detector.md, fourteenth session)."""
     if count <= 128:
         return _block_sum(values, start, count)
     half = count // 2 - (count // 2) % 8
