@@ -64,9 +64,15 @@ def read_toml_board(text: str, path: Path) -> dict:
         square = min(float(data["board_height"]) * to_metres / data["rows"],
                      float(data["board_width"]) * to_metres / data["columns"])
     # Lengths to the nanometre: 5.4 cm / 100 is 0.054, not float's 0.054000000000000006.
+    flags = {}
+    for key, field in (("inverted", "inverted"), ("legacy_pattern", "legacy")):
+        value = data.get(key, False)
+        if not isinstance(value, bool):  # bool("false") is True: a quoted "false" read as true
+            raise BoardSpecError(f"{path}: {key} must be true or false (unquoted), got {value!r}")
+        flags[field] = value
     return {"squares_x": data["columns"], "squares_y": data["rows"], "square_length": round(square, 9),
             "marker_length": round(square * float(data.get("aruco_scale", 0.75)), 9), "dictionary": data["dictionary"],
-            "inverted": bool(data.get("inverted", False)), "legacy": bool(data.get("legacy_pattern", False))}
+            **flags}
 
 
 def read_board_text(path: Path) -> str:
@@ -77,7 +83,7 @@ def read_board_text(path: Path) -> str:
         raise BoardSpecError(f"{path} is over {MAX_BOARD_FILE_BYTES // 1024} KiB, too large for a board file (a few "
                              f"lines of 'field: value'): is it the right file?")
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")  # a byte-order mark (Windows Notepad's UTF-8) is not part of the text
     except UnicodeDecodeError as exc:
         raise BoardSpecError(f"{path} is not a text file ({exc}): a board file is YAML or JSON text") from None
 

@@ -86,6 +86,23 @@ def check_printable(board: BoardSpec) -> None:
                          f"{MIN_BIT_MM * bits:g} mm or more")
 
 
+# A PNG's marker bit cell under this many pixels: its edges fall anywhere in a pixel (no anti-aliasing), so bits merge
+# and split (at 5 dpi, 0.84 px a bit, no detector found the board; at 20 dpi, 3.4 px, it was found).
+MIN_BIT_PX = 2.0
+
+
+def check_png_resolution(board: BoardSpec, dpi: float) -> None:
+    """`PrintError` where a PNG at ``dpi`` draws the board's marker bits under `MIN_BIT_PX` pixels, naming the
+    lowest dpi that draws them."""
+    bits = board.cv_dictionary().markerSize + 2
+    bit_px = board.marker_length * 1000.0 / bits * dpi / 25.4
+    if bit_px < MIN_BIT_PX:
+        lowest = math.ceil(MIN_BIT_PX * bits * 25.4 / (board.marker_length * 1000.0))
+        raise PrintError(f"at {dpi:g} dpi the markers' bits are {bit_px:.2g} px wide in the PNG: they blur into each "
+                         f"other and no detector reads them; give --dpi {lowest} or more (300 for printing), or write "
+                         f"the sheet as PDF or SVG")
+
+
 def check_png_size(paper_mm: tuple[float, float], dpi: float) -> None:
     """`PrintError` where a PNG of ``paper_mm`` at ``dpi`` would exceed `MAX_PNG_PIXELS` (memory: one byte a
     pixel and the encoder's copies), naming the largest dpi that fits and the vector formats."""

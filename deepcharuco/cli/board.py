@@ -19,7 +19,8 @@ from pathlib import Path
 
 from deepcharuco.boards.board import BOARD_FILE_MARK, BoardSpec
 from deepcharuco.boards.printing import (
-    PAPERS_MM, SHEET_MARK, board_sheet, check_png_size, check_printable, paper_size, pdf_bytes, png_bytes, svg_text,
+    PAPERS_MM, SHEET_MARK, board_sheet, check_png_resolution, check_png_size, check_printable, paper_size, pdf_bytes,
+    png_bytes, svg_text,
 )
 from deepcharuco.cli.common import check_output_folder, load_board, run_command
 from deepcharuco.core.errors import BoardSpecError, DeepCharucoError
@@ -94,6 +95,7 @@ def run(args: argparse.Namespace) -> list[Path]:
     check_printable(board)
     sheet = board_sheet(board, args.paper)
     if any(path.suffix == ".png" for path in sheets):
+        check_png_resolution(board, args.dpi)
         check_png_size(sheet.size, args.dpi)
     render = {".pdf": pdf_bytes, ".svg": svg_text, ".png": lambda s: png_bytes(s, args.dpi)}
     files = {}

@@ -19,7 +19,7 @@ import json
 import sys
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -111,19 +111,9 @@ def stream_finder(detector, refresh_every: int, search_every: int, look_back: bo
 
 
 def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
-    """The detector's pose through the camera's own model: a fisheye camera's corners are undistorted first
-    (``solvePnP`` knows only the pinhole model, and would read k1..k4 as k1 k2 p1 p2), and its reprojection error is
-    then measured again in the frame's pixels, through the fisheye model (conventions.md's eps_re; the undistorted
-    image stretches the rim, where a fisheye frame's error read several times larger there)."""
-    if camera.model != "fisheye":
-        return detector.estimate_pose(detection, camera.K, camera.dist)
-    undistorted = Detection(detection.ids, camera.undistort_points(detection.corners), detection.scores)
-    pose = detector.estimate_pose(undistorted, camera.K, None)
-    if pose is None:
-        return None
-    points = detector.board.object_points()[detection.ids]
-    residuals = np.linalg.norm(camera.project(points, pose.rvec, pose.tvec) - detection.corners, axis=1)
-    return replace(pose, reprojection_error=float(residuals.mean()), residuals=residuals)
+    """The detector's pose through the camera's own model (`deepcharuco.estimate_pose` given the `Camera`: a fisheye
+    camera's corners undistorted first, its eps_re measured through its model in the frame's pixels)."""
+    return detector.estimate_pose(detection, camera)
 
 
 def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:

@@ -10,7 +10,8 @@ import numpy as np
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.checks import check_shape
 from deepcharuco.core.detection import Detection
-from deepcharuco.core.errors import OptionError
+from deepcharuco.core.errors import OptionError, ShapeError
+from deepcharuco.geometry.camera import Camera
 
 # Below this ratio of the second to the first singular value the detected corners are
 # (nearly) on one line, and the board's rotation about that line is not observable.
@@ -71,9 +72,27 @@ def project_corners(
     return image_points.reshape(-1, 2)
 
 
+def check_camera_matrix(K) -> np.ndarray:
+    """``K`` as a (3, 3) float64 pinhole camera matrix, or `ShapeError`: not finite (3, 3), fx or fy not positive, or
+    a last row other than 0 0 1 (a transposed matrix fits a pose 3 px from its corners, far from the truth)."""
+    K = check_shape(K, (3, 3), "K")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], (0.0, 0.0, 1.0)):
+        raise ShapeError(f"K is not a pinhole camera matrix (fx, fy > 0, last row 0 0 1; transposed?):\n{K}")
+    return K
+
+
+def check_distortion(dist) -> np.ndarray:
+    """``dist`` as OpenCV's pinhole distortion coefficients (4, 5, 8, 12 or 14 finite values; any shape of them), or
+    `ShapeError` naming the count."""
+    dist = check_shape(np.ravel(np.asarray(dist, np.float64)), (None,), "dist")
+    if dist.size not in (0, 4, 5, 8, 12, 14):
+        raise ShapeError(f"dist holds {dist.size} coefficients: OpenCV's models take 4, 5, 8, 12 or 14")
+    return dist
+
+
 def estimate_pose(
     detection: Detection,
-    K: np.ndarray,
+    K: np.ndarray | Camera,
     dist: np.ndarray | None = None,
     board: BoardSpec | None = None,
     *,
@@ -84,8 +103,12 @@ def estimate_pose(
 
     Args:
         detection: corners of ``board`` (IDs index ``board.corner_points()``).
-        K: (3, 3) camera matrix; dist: OpenCV distortion coefficients or None.
-        board: the board the IDs refer to; default the paper's board.
+        K: (3, 3) camera matrix (fx, fy > 0, last row 0 0 1) with ``dist`` OpenCV's pinhole distortion coefficients
+            (4, 5, 8, 12 or 14) or None; or a `Camera` (``dist`` left out), whose model is then used: a fisheye
+            camera's corners are undistorted first and its reprojection error measured through its own model (its
+            k1..k4 given as ``dist`` would read as k1 k2 p1 p2).
+        board: the board the IDs refer to (required: the IDs alone do not say which board, and another board's
+            squares put the pose at another distance; a detector's own ``estimate_pose`` passes its board).
         ransac_threshold: RANSAC inlier threshold in pixels.
         min_inliers: fewest inliers for a pose to be returned.
 
@@ -95,8 +118,8 @@ def estimate_pose(
         board would be behind the camera.
 
     Raises:
-        ShapeError: ``K`` is not a finite (3, 3) matrix, or ``dist`` not a finite vector.
-        OptionError: the detection's IDs are not corners of ``board``.
+        ShapeError: ``K`` is not a finite pinhole (3, 3) matrix, or ``dist`` not 4, 5, 8, 12 or 14 finite values.
+        OptionError: no ``board``, or the detection's IDs are not corners of it.
 
     Example:
         >>> board = BoardSpec()
@@ -107,7 +130,16 @@ def estimate_pose(
         >>> pose.tvec.round(4), round(pose.reprojection_error, 3)
         (array([-0.05, -0.05,  0.5 ]), 0.0)
     """
-    board = board or BoardSpec()
+    if board is None:
+        raise OptionError("estimate_pose needs board=, the board the detection's corner IDs refer to: the IDs alone do "
+                          "not say which board, and another board's squares put the pose at another distance")
+    camera = K if isinstance(K, Camera) else None
+    if camera is not None:
+        if dist is not None:
+            raise OptionError("give a Camera alone (its dist is its own), or K and dist, not a Camera and dist")
+        K, dist = camera.K, (None if camera.model == "fisheye" else camera.dist)
+    K = check_camera_matrix(K)
+    dist = None if dist is None else check_distortion(dist)
     if len(detection) < 4:
         return None
     if detection.ids.min() < 0 or detection.ids.max() >= board.num_corners:
@@ -116,12 +148,12 @@ def estimate_pose(
             "corners: pass the board the detection was made for"
         )
     object_points = board.object_points()[detection.ids]
-    image_points = detection.corners.astype(np.float64)
+    detected = detection.corners.astype(np.float64)
+    fisheye = camera is not None and camera.model == "fisheye"
+    image_points = camera.undistort_points(detected) if fisheye else detected  # solvePnP knows the pinhole model
     spread = np.linalg.svd(object_points[:, :2] - object_points[:, :2].mean(0), compute_uv=False)
     if spread[1] < MIN_SPREAD_RATIO * spread[0]:
         return None
-    K = check_shape(K, (3, 3), "K")
-    dist = None if dist is None else check_shape(np.ravel(dist), (None,), "dist")
     found, rvec, tvec, inlier_idx = cv2.solvePnPRansac(
         object_points, image_points, K, dist,
         reprojectionError=ransac_threshold, iterationsCount=200, confidence=0.999, flags=cv2.SOLVEPNP_IPPE,
@@ -135,7 +167,9 @@ def estimate_pose(
     depths = (object_points @ rotation.T + tvec)[:, 2]
     if np.any(depths <= 0):
         return None
-    residuals = np.linalg.norm(project_corners(board, rvec, tvec, K, dist, detection.ids) - image_points, axis=1)
+    reprojected = camera.project(object_points, rvec, tvec) if fisheye else \
+        project_corners(board, rvec, tvec, K, dist, detection.ids)
+    residuals = np.linalg.norm(reprojected - detected, axis=1)  # in the frame's pixels, through the camera's model
     return Pose(
         rvec=rvec,
         tvec=tvec,

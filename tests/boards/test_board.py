@@ -270,3 +270,16 @@ def test_caliscope_charuco_toml_reads_as_its_board(tmp_path):
     (tmp_path / "mm.toml").write_text(fields.replace('units = "inch"', 'units = "mm"'))
     with pytest.raises(BoardSpecError, match="units 'mm' unknown: .* 'inch' or 'cm'"):
         BoardSpec.load(tmp_path / "mm.toml")
+    # A quoted "false" was bool("false"), true: an inverted board read where the file said not inverted.
+    (tmp_path / "quoted.toml").write_text(fields + 'inverted = "false"\n')
+    with pytest.raises(BoardSpecError, match="inverted must be true or false \\(unquoted\\), got 'false'"):
+        BoardSpec.load(tmp_path / "quoted.toml")
+
+
+def test_a_board_file_with_a_byte_order_mark_reads(tmp_path):
+    """Windows Notepad's UTF-8 starts with a byte-order mark: the YAML's first field and JSON were refused."""
+    board = BoardSpec(7, 5, 0.03, 0.022, "DICT_6X6_250")
+    board.save(tmp_path / "b.yaml")
+    (tmp_path / "bom.yaml").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "b.yaml").read_bytes())
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + board.to_json().encode())
+    assert BoardSpec.load(tmp_path / "bom.yaml") == board and BoardSpec.load(tmp_path / "bom.json") == board

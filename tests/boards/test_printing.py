@@ -94,6 +94,9 @@ def test_board_command_writes_the_sheet_and_the_new_board_file(tmp_path, capsys)
       "--dpi", "20000"], "at 20000 dpi is 38,669 megapixels (at most 600): give --dpi 2491 or less"),
     (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--format", "png",
       "--paper", "3000x4000mm"], "give --dpi 179 or less, or write the sheet as PDF or SVG"),
+    # A PNG whose marker bits are under 2 px (0.54 px at 5 dpi): written, exit 0, and no detector read it.
+    (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--format", "png",
+      "--dpi", "5"], "at 5 dpi the markers' bits are 0.54 px wide in the PNG"),
     # Written without a word before: an 80 m "paper", markers whose bits no printer draws.
     (["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "30mm", "--marker", "22mm", "--paper",
       "80000x1000mm"], "is 80 m long: no printer takes a sheet over 5 m"),
