@@ -40,7 +40,8 @@ def parse_length(text: str, option: str) -> float:
     match = re.fullmatch(r"\s*(\d+(?:\.\d*)?|\.\d+)\s*(mm|cm|m|in)\s*", text.lower())
     if not match or float(match[1]) <= 0:
         raise DeepCharucoError(f"{option} {text!r}: give a positive length with its unit, e.g. 30mm, 3cm or 0.03m")
-    return float(match[1]) * UNITS_MM[match[2]] / 1000.0
+    # To the nanometre: 0.75in is 0.01905 m in the board file, not float's 0.019049999999999997.
+    return round(float(match[1]) * UNITS_MM[match[2]] / 1000.0, 9)
 
 
 def board_from_args(args: argparse.Namespace) -> tuple[BoardSpec, bool]:
@@ -76,6 +77,9 @@ def outputs(out: Path, formats: list[str], with_board_file: bool) -> tuple[list[
     elif suffix in (".yaml", ".yml", ".json"):
         raise DeepCharucoError(f"--out {out} names a board file: give the sheet's name (board.pdf, .svg, .png) or a "
                                f"name without suffix for both")
+    elif re.fullmatch(r"\.[a-z]{2,4}", suffix):  # another file type (board.tiff): it was written as board.tiff.pdf
+        raise DeepCharucoError(f"--out {out}: a sheet is written as PDF, SVG or PNG, not {suffix[1:].upper()}: give "
+                               f"{out.with_suffix('.pdf').name} (--format png for a raster), or a name without suffix")
     else:
         stem, chosen = out, [".pdf"] + [f".{f}" for f in formats if f != "pdf"]
     return [stem.with_name(stem.name + s) for s in chosen], stem.with_name(stem.name + ".yaml") if with_board_file else None

@@ -110,6 +110,19 @@ def test_board_command_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, 
     assert list(tmp_path.iterdir()) == []
 
 
+def test_another_file_types_suffix_is_refused_and_inches_are_stored_to_the_nanometre(tmp_path, capsys):
+    """--out board.tiff was written as board.tiff.pdf without a word; --marker 0.75in was stored as
+    0.019049999999999997 m."""
+    args = ["--squares", "7x5", "--dictionary", "DICT_6X6_250", "--square", "1in", "--marker", "0.75in"]
+    assert board_main([*args, "--out", str(tmp_path / "board.tiff")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a sheet is written as PDF, SVG or PNG, not TIFF: give board.pdf" in err[0]
+    assert list(tmp_path.iterdir()) == []
+    assert board_main([*args, "--out", str(tmp_path / "board_v1.2")]) == 0  # a dot in a name is not a file type
+    text = (tmp_path / "board_v1.2.yaml").read_text()
+    assert "square_length: 0.0254\n" in text and "marker_length: 0.01905\n" in text
+
+
 def test_a_missing_sheet_library_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
     """A PDF without ReportLab (an install made with --no-deps, a distribution's packages) is refused in one line
     naming the package and another format; no sheet and no board file are written, and SVG still works."""
