@@ -33,7 +33,6 @@ from deepcharuco.cli.common import (four_term_note, jobs_warning, load_board, no
 from deepcharuco.cli.draw import draw_detection
 from deepcharuco.cli.outputs import CSV_FIELDS, CSV_SIGNATURE, JSON_START, OVERLAY_MARK, Overlays, csv_row, frame_record
 from deepcharuco.cli.sources import Source, frame_numbers, open_source
-from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import CameraFileError, DeepCharucoError
 from deepcharuco.core.files import (
     atomic_file, mp4_mark, png_mark, refuse_foreign, starts_with, write_atomic,
@@ -44,7 +43,6 @@ from deepcharuco.detection.opencv_detector import OpenCVDetector
 from deepcharuco.detection.parallel import DetectorPool
 from deepcharuco.detection.tracking import BoardTracker, StreamFrames
 from deepcharuco.geometry.camera import Camera, read_camera
-from deepcharuco.geometry.pose import Pose
 from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.shipped import NETWORKS, network_weights
 
@@ -108,12 +106,6 @@ def stream_finder(detector, refresh_every: int, search_every: int, look_back: bo
     if refresh_every > 1:
         return BoardTracker(detector, refresh_every, search_every, look_back)
     return StreamFrames(detector)
-
-
-def estimate_frame_pose(detector, detection: Detection, camera: Camera) -> Pose | None:
-    """The detector's pose through the camera's own model (`deepcharuco.estimate_pose` given the `Camera`: a fisheye
-    camera's corners undistorted first, its eps_re measured through its model in the frame's pixels)."""
-    return detector.estimate_pose(detection, camera)
 
 
 def _camera_for(camera: Camera | None, shape: tuple[int, ...]) -> Camera | None:
@@ -255,7 +247,8 @@ def run(args: argparse.Namespace) -> dict:
                     unposed.append(f"{name}: {error}; its corners are written without a pose")
                 overlay = frame if frame.ndim == 2 or frame.shape[2] == 3 else cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
                 for board_run, rows, detection in zip(runs, writers, detections):
-                    pose = estimate_frame_pose(board_run.detector, detection, frame_camera) if frame_camera else None
+                    # through the camera's own model (a fisheye's too: `deepcharuco.estimate_pose` given the Camera)
+                    pose = board_run.detector.estimate_pose(detection, frame_camera) if frame_camera else None
                     record = frame_record(number, name, detection, pose,  # its number in the recording
                                           None if source.video is None else source.video.times.get(number))
                     board_run.records.append(record)

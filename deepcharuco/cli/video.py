@@ -43,6 +43,7 @@ class VideoFrames:
         self.read = 0
         self.stopped_at: int | None = None  # a live camera: the frame at which it stopped delivering
         self.times: dict[int, float] = {}  # frame number -> seconds (class docstring)
+        self._start: float | None = None  # a live camera: when its first frame arrived
 
     def __iter__(self) -> Iterator[tuple[int, np.ndarray]]:
         index, bad_from = 0, None
@@ -79,7 +80,7 @@ class VideoFrames:
         """The frame just read's time in seconds (``times``)."""
         if self.live:
             now = time.perf_counter()
-            self._start = getattr(self, "_start", now)
+            self._start = now if self._start is None else self._start
             return now - self._start
         return self.capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
 

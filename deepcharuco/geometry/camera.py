@@ -19,6 +19,12 @@ from deepcharuco.core.opencv_api import undistort_points
 # model included); "fisheye": cv2.fisheye's equidistant model (k1..k4), which cv2.projectPoints would
 # misread as k1 k2 p1 p2.
 CAMERA_MODELS = ("pinhole", "fisheye")
+DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)  # OpenCV's pinhole models' coefficients (0: none)
+
+
+def is_pinhole_matrix(K: np.ndarray) -> bool:
+    """Whether the finite (3, 3) ``K`` is a camera matrix: fx, fy > 0 and a last row 0 0 1 (a transposed one is not)."""
+    return bool(K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], (0.0, 0.0, 1.0)))
 
 
 @dataclass(frozen=True)
@@ -42,10 +48,10 @@ class Camera:
         K = np.asarray(self.K, dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise CameraFileError(f"camera_matrix must be a finite 3x3 matrix, got shape {K.shape}")
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], (0.0, 0.0, 1.0)):
+        if not is_pinhole_matrix(K):
             raise CameraFileError(f"camera_matrix is not a pinhole matrix (fx, fy > 0, last row 0 0 1):\n{K}")
         dist = np.asarray(self.dist if self.dist is not None else np.zeros(5), dtype=np.float64).reshape(-1)
-        if dist.size not in (0, 4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+        if dist.size not in DISTORTION_COUNTS or not np.all(np.isfinite(dist)):
             raise CameraFileError(
                 f"distortion_coefficients must hold 4, 5, 8, 12 or 14 finite values, got {dist.size}"
             )
@@ -165,15 +171,20 @@ def read_camera(path: str | Path) -> Camera:
         if K is None:
             raise CameraFileError(f"{path} has no camera_matrix (an opencv-matrix node)")
         dist = storage.getNode("distortion_coefficients").mat()
-        width_node, height_node = storage.getNode("image_width"), storage.getNode("image_height")
-        if width_node.empty() or height_node.empty():
-            raise CameraFileError(f"{path} lacks image_width / image_height: add the calibration resolution")
-        size = (int(width_node.real()), int(height_node.real()))
-        model_node = storage.getNode("distortion_model")
-        model = "pinhole" if model_node.empty() else model_node.string()
+        size, model = _size_and_model(storage, path)
     finally:
         storage.release()
     return _camera(path, K, dist, size, model)
+
+
+def _size_and_model(storage: cv2.FileStorage, path: Path) -> tuple[tuple[int, int], str]:
+    """A camera file's (image_width, image_height) and its ``distortion_model`` as written ("pinhole" when absent);
+    `CameraFileError` where the size is missing. OpenCV's layout and ROS's name these nodes alike."""
+    width_node, height_node = storage.getNode("image_width"), storage.getNode("image_height")
+    if width_node.empty() or height_node.empty():
+        raise CameraFileError(f"{path} lacks image_width / image_height: add the calibration resolution")
+    model_node = storage.getNode("distortion_model")
+    return (int(width_node.real()), int(height_node.real())), "pinhole" if model_node.empty() else model_node.string()
 
 
 def _camera(path: Path, K: np.ndarray, dist: np.ndarray | None, size: tuple[int, int], model: str) -> Camera:
@@ -206,26 +217,25 @@ def _ros_camera_info(path: Path) -> Camera | None:
     except (OSError, UnicodeDecodeError, cv2.error, SystemError):
         return None
     try:
-        matrix, coefficients = storage.getNode("camera_matrix"), storage.getNode("distortion_coefficients")
-        if not matrix.isMap() or not matrix.getNode("data").isSeq():
+        values = _ros_matrix(storage.getNode("camera_matrix"))
+        if values is None:
             return None
-        values = [matrix.getNode("data").at(i).real() for i in range(matrix.getNode("data").size())]
         if len(values) != 9:
             raise CameraFileError(f"{path}: a ROS camera_info file whose camera_matrix holds {len(values)} values, "
                                   f"not 9")
-        dist = None
-        if coefficients.isMap() and coefficients.getNode("data").isSeq():
-            data = coefficients.getNode("data")
-            dist = np.array([data.at(i).real() for i in range(data.size())], np.float64)
-        width_node, height_node = storage.getNode("image_width"), storage.getNode("image_height")
-        if width_node.empty() or height_node.empty():
-            raise CameraFileError(f"{path} lacks image_width / image_height: add the calibration resolution")
-        size = (int(width_node.real()), int(height_node.real()))
-        model_node = storage.getNode("distortion_model")
-        model = "pinhole" if model_node.empty() else model_node.string()
+        dist = _ros_matrix(storage.getNode("distortion_coefficients"))
+        size, model = _size_and_model(storage, path)
     finally:
         storage.release()
-    return _camera(path, np.array(values, np.float64).reshape(3, 3), dist, size, model)
+    return _camera(path, values.reshape(3, 3), dist, size, model)
+
+
+def _ros_matrix(node: cv2.FileNode) -> np.ndarray | None:
+    """A ROS matrix node's ``data`` ({rows, cols, data}) as a flat float64 array, or None where it is not one."""
+    if not node.isMap() or not node.getNode("data").isSeq():
+        return None
+    data = node.getNode("data")
+    return np.array([data.at(i).real() for i in range(data.size())], np.float64)
 
 
 def write_camera(path: str | Path, camera: Camera,

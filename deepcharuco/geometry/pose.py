@@ -11,7 +11,7 @@ from deepcharuco.boards.board import BoardSpec
 from deepcharuco.core.checks import check_shape
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.errors import OptionError, ShapeError
-from deepcharuco.geometry.camera import Camera
+from deepcharuco.geometry.camera import DISTORTION_COUNTS, Camera, is_pinhole_matrix
 
 # Below this ratio of the second to the first singular value the detected corners are
 # (nearly) on one line, and the board's rotation about that line is not observable.
@@ -76,7 +76,7 @@ def check_camera_matrix(K) -> np.ndarray:
     """``K`` as a (3, 3) float64 pinhole camera matrix, or `ShapeError`: not finite (3, 3), fx or fy not positive, or
     a last row other than 0 0 1 (a transposed matrix fits a pose 3 px from its corners, far from the truth)."""
     K = check_shape(K, (3, 3), "K")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], (0.0, 0.0, 1.0)):
+    if not is_pinhole_matrix(K):
         raise ShapeError(f"K is not a pinhole camera matrix (fx, fy > 0, last row 0 0 1; transposed?):\n{K}")
     return K
 
@@ -85,7 +85,7 @@ def check_distortion(dist) -> np.ndarray:
     """``dist`` as OpenCV's pinhole distortion coefficients (4, 5, 8, 12 or 14 finite values; any shape of them), or
     `ShapeError` naming the count."""
     dist = check_shape(np.ravel(np.asarray(dist, np.float64)), (None,), "dist")
-    if dist.size not in (0, 4, 5, 8, 12, 14):
+    if dist.size not in DISTORTION_COUNTS:
         raise ShapeError(f"dist holds {dist.size} coefficients: OpenCV's models take 4, 5, 8, 12 or 14")
     return dist
 

@@ -189,7 +189,6 @@ def test_hybrid_detector_and_tracking_options(tmp_path, capsys):
 def test_a_fisheye_camera_gives_the_true_pose(camera):
     """A fisheye camera file's k1..k4 are not pinhole coefficients: the pose goes through its own model."""
     from deepcharuco import OpenCVDetector
-    from deepcharuco.cli.detect import estimate_frame_pose
     from deepcharuco.geometry.camera import Camera
 
     board = BoardSpec()
@@ -202,7 +201,7 @@ def test_a_fisheye_camera_gives_the_true_pose(camera):
     detector = OpenCVDetector(board, refine="subpix")
     detection = detector.detect(image)
     assert len(detection) >= 12
-    pose = estimate_frame_pose(detector, detection, fisheye)
+    pose = detector.estimate_pose(detection, fisheye)  # as detect poses a frame: the Camera, its model
     assert np.linalg.norm(pose.tvec.ravel() - tvec.ravel()) < 0.005 * np.linalg.norm(tvec)
     naive = detector.estimate_pose(detection, fisheye.K, fisheye.dist)  # k1..k4 read as k1 k2 p1 p2
     assert naive is None or np.linalg.norm(naive.tvec.ravel() - tvec.ravel()) > 2 * np.linalg.norm(pose.tvec.ravel() - tvec.ravel())
