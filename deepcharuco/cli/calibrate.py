@@ -39,7 +39,7 @@ from deepcharuco.core.files import OutputLock, refuse_foreign, starts_with, writ
 from deepcharuco.core.image import to_gray_u8
 from deepcharuco.detection.parallel import DetectorPool
 from deepcharuco.geometry.camera import camera_file_text, is_camera_file
-from deepcharuco.networks.shipped import NETWORKS, network_weights
+from deepcharuco.networks.shipped import NETWORKS, default_network, network_weights
 
 DETECTORS = ("opencv", "deep", "hybrid")
 
@@ -145,9 +145,9 @@ def run(args: argparse.Namespace) -> CalibrationResult:
 
 def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) -> CalibrationResult:
     board = load_board(args.board[0]) if args.board else BoardSpec()
-    detector = make_detector(args.detector, board, args.refine, args.weights)
+    detector = make_detector(args.detector, board, args.refine, args.weights, network=args.network)
     source = open_source(args.source[0], args.max_frames)
-    pool = calibration_pool(args.detector, [board], args.refine, args.weights, args.jobs)
+    pool = calibration_pool(args.detector, [board], args.refine, args.weights, args.jobs, args.network)
     frames, size = detect_frames(frame_numbers(source), detector, step=args.step, total=source.total, quiet=args.quiet,
                                  pool=pool)
     for line in source.problems():  # damaged stretches of a video, unreadable images: said, then calibrated without
@@ -252,10 +252,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refine", choices=["subpix", "none", "refinenet"], default=None,
                         help="corner refinement (default: subpix for opencv, refinenet for deep and hybrid)")
     parser.add_argument("--weights", default=None, help="--detector deep: weights (default: the shipped ones)")
-    parser.add_argument("--network", choices=NETWORKS, default="lite",
-                        help="deep/hybrid: lite (default), or fast: the distilled fast networks, with the lite "
-                             "networks searching a dim frame they find nothing in (docs/detector.md); not with "
-                             "--weights")
+    parser.add_argument("--network", choices=NETWORKS, default=None,
+                        help="deep/hybrid: auto (the default with the shipped weights): the distilled fast networks "
+                             "first, the lite ones in every frame they find too little in; fast: the lite networks "
+                             "only in a dim frame the fast ones find nothing in; lite (the default with --weights): "
+                             "the lite networks alone (docs/detector.md); auto and fast not with --weights")
     parser.add_argument("--report", default=None, help="HTML report to write (default: <out>_report.html)")
     parser.add_argument("--no-report", action="store_true", help="write the camera file only")
     parser.add_argument("--force", action="store_true",
@@ -328,7 +329,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("; ".join(problems))
     def body() -> None:
         try:
-            args.weights = network_weights(args.network, args.weights)
+            args.network = args.network or default_network(args.weights)
+            network_weights(args.network, args.weights)  # a conflict with --weights: refused here
             if rig:
                 from deepcharuco.cli.calibrate_rig import run_rig
 
@@ -341,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
                                 f"in the same layout): give it once (each view of it would count twice, and the rig "
                                 f"would look more certain than it is)")
                 check_boards_apart(boards, [f"--board {path}" for path in args.board or ["(default)"]])
-                run_rig(args, boards, [make_detector(args.detector, board, args.refine, args.weights)
+                run_rig(args, boards, [make_detector(args.detector, board, args.refine, args.weights,
+                                                     network=args.network)
                                        for board in boards])
             else:
                 run(args)

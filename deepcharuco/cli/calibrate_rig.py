@@ -324,7 +324,7 @@ def run_rig(args: argparse.Namespace, boards: list[BoardSpec], detectors: list) 
 
 def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources: list[Source], names: list[str],
               targets: list[Path], mapping: list[dict[int, int]] | None, auto: str | None) -> RigResult:
-    pool = calibration_pool(args.detector, boards, args.refine, args.weights, args.jobs)
+    pool = calibration_pool(args.detector, boards, args.refine, args.weights, args.jobs, args.network)
     if auto is not None:  # every frame of every source, by its own number; instants once the delays are known
         every = [{k: k for k in range(source.total)} for source in sources]
         detections, sizes = detect_by_time(sources, detectors, every, quiet=args.quiet, pool=pool)

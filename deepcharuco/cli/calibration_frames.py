@@ -13,20 +13,27 @@ from tqdm import tqdm
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.calibration.views import FrameDetection, sharpness
 from deepcharuco.cli.common import jobs_warning
-from deepcharuco.cli.detect import CHUNK_FRAMES, make_finders
+from deepcharuco.cli.detect import CHUNK_FRAMES, make_detector
 from deepcharuco.detection.parallel import DetectorPool
 
 
-def calibration_pool(name: str, boards: list[BoardSpec], refine: str, weights: str | None, jobs: int
-                     ) -> DetectorPool | None:
-    """``jobs`` worker processes, each with the detector ``name`` of each board (as `detect.make_detector` makes
-    them); None for one job (the caller's detectors, in this process)."""
+def calibration_detectors(name: str, boards: list[BoardSpec], refine: str, weights: str | None, network: str
+                          ) -> list:
+    """The detector ``name`` of each board, as `detect.make_detector` makes them (a worker process's finders)."""
+    return [make_detector(name, board, refine, weights, network=network) for board in boards]
+
+
+def calibration_pool(name: str, boards: list[BoardSpec], refine: str, weights: str | None, jobs: int,
+                     network: str = "lite") -> DetectorPool | None:
+    """``jobs`` worker processes, each with the detector ``name`` of each board (`calibration_detectors`); None for
+    one job (the caller's detectors, in this process). Each frame is searched whole, as a photo is, in a worker as
+    in this process (a fast-networks detector's lite backup searches the frames it searches in a photo)."""
     if jobs == 1:
         return None
     warning = jobs_warning(jobs)
     if warning:
         print(warning, file=sys.stderr)
-    return DetectorPool(partial(make_finders, name, boards, refine, weights, None, "auto", True, "cpu", 1), jobs,
+    return DetectorPool(partial(calibration_detectors, name, boards, refine, weights, network), jobs,
                         chunk=CHUNK_FRAMES)
 
 

@@ -44,7 +44,7 @@ from deepcharuco.detection.parallel import DetectorPool
 from deepcharuco.detection.tracking import BoardTracker, StreamFrames
 from deepcharuco.geometry.camera import Camera, read_camera
 from deepcharuco.networks.backends import BACKENDS
-from deepcharuco.networks.shipped import NETWORKS, network_weights
+from deepcharuco.networks.shipped import NETWORKS, default_network, network_weights
 
 
 # Frames kept (spread over the source, every HINT_STRIDE-th of a camera's, until the board is found) to say what
@@ -74,10 +74,10 @@ VIDEO_SEARCH_EVERY = 3
 
 def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str | None = None,
                   refine_weights: str | None = None, backend: str = "auto", corner_fit: bool = True,
-                  device: str = "cpu"):
+                  device: str = "cpu", network: str = "lite"):
     """"opencv", "deep" or "hybrid" (OpenCV first, the networks where its corners do not verify); ``corner_fit``:
     the deep and hybrid detectors place corners last by the printed-pattern fit (`deepcharuco.detection.corner_fit`);
-    ``device``: where their networks run ("cuda": PyTorch on the GPU)."""
+    ``device``: where their networks run ("cuda": PyTorch on the GPU); ``network``: which (`Detector`'s)."""
     if name == "opencv":
         if refine == "refinenet":
             raise DeepCharucoError("--refine refinenet needs --detector deep or hybrid; OpenCV takes subpix or none")
@@ -86,23 +86,23 @@ def make_detector(name: str, board: BoardSpec | None, refine: str, weights: str 
 
     return Detector(board=board, weights=weights, refine=refine, refine_weights=refine_weights,
                     mode="hybrid" if name == "hybrid" else "deep", backend=backend, corner_fit=corner_fit,
-                    device=device)
+                    device=device, network=network)
 
 
 def make_finders(name: str, boards: list[BoardSpec | None], refine: str, weights: str | None,
                  refine_weights: str | None, backend: str, corner_fit: bool, device: str, refresh_every: int,
-                 search_every: int = 1, look_back: bool = True) -> list:
+                 search_every: int = 1, look_back: bool = True, network: str = "lite") -> list:
     """One finder per board, as a worker process of ``--jobs`` makes them (`deepcharuco.detection.parallel`) for a video
     or a camera: the detector, wrapped in a `BoardTracker` where ``refresh_every`` > 1, else in `StreamFrames`."""
-    detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device)
+    detectors = [make_detector(name, board, refine, weights, refine_weights, backend, corner_fit, device, network)
                  for board in boards]
     return [stream_finder(d, refresh_every, search_every, look_back) for d in detectors]
 
 
 def stream_finder(detector, refresh_every: int, search_every: int, look_back: bool):
     """``detector`` for a video's or a camera's frames: a `BoardTracker` where ``refresh_every`` > 1, else each frame
-    searched whole (`StreamFrames`: the fast networks' lite backup, which costs lite's whole search in a dim frame
-    without the board, left out as a tracker leaves it out)."""
+    searched whole (`StreamFrames`: a stream's frames, as a tracker's whole searches are, where the fast networks'
+    lite backup searches fewer of them)."""
     if refresh_every > 1:
         return BoardTracker(detector, refresh_every, search_every, look_back)
     return StreamFrames(detector)
@@ -142,7 +142,8 @@ def run(args: argparse.Namespace) -> dict:
     (of the first board, where several are given), whose ``complete`` is False when Ctrl-C stopped the run (what
     was done is written all the same). Several ``--board`` files: each board is searched in every frame and gets
     its own ``<source>_<board file stem>.csv`` / ``.json``; the overlay shows them all."""
-    args.weights = network_weights(args.network, args.weights, args.device)
+    args.network = args.network or default_network(args.weights, args.device, args.backend)
+    network_weights(args.network, args.weights, args.device)  # a conflict with --weights or --device: refused here
     board_files = args.board or [None]
     suffixes = [""] if len(board_files) == 1 else [f"_{name}" for name in board_names(board_files)]
     boards = [load_board(path) if path else None for path in board_files]  # deep: default to the weights' board
@@ -153,7 +154,7 @@ def run(args: argparse.Namespace) -> dict:
     if note:
         print(note, file=sys.stderr)
     detectors = [make_detector(args.detector, board, args.refine, args.weights, args.refine_weights, args.backend,
-                               corner_fit=not args.no_corner_fit, device=args.device)
+                               corner_fit=not args.no_corner_fit, device=args.device, network=args.network)
                  for board in boards]
     source = open_source(args.source, args.max_frames)
     # Consecutive frames: search around the last board (a full-frame search every --refresh-every frames). A camera's
@@ -184,7 +185,9 @@ def run(args: argparse.Namespace) -> dict:
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detectors[0], "weights", None) is not None:
-        print(f"weights: {detectors[0].weights} (decoding: {detectors[0].geometry})", file=sys.stderr)
+        backup = "" if getattr(detectors[0], "backup", None) is None else \
+            f"; the lite networks behind them: {detectors[0].backup.weights}"
+        print(f"weights: {detectors[0].weights} (decoding: {detectors[0].geometry}{backup})", file=sys.stderr)
 
     overlays = Overlays(out, source)
     interrupted = False
@@ -212,7 +215,7 @@ def run(args: argparse.Namespace) -> dict:
                 print(warning, file=sys.stderr)
             pool = DetectorPool(partial(make_finders, args.detector, boards, args.refine, args.weights,
                                         args.refine_weights, args.backend, not args.no_corner_fit, args.device,
-                                        refresh_every, search_every, look_back),
+                                        refresh_every, search_every, look_back, args.network),
                                 jobs, chunk=1 if source.kind == "camera" else CHUNK_FRAMES)
         files.callback(pool.close)
         try:
@@ -374,11 +377,14 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "(default: the shipped weights for the board: the paper's "
                                                          "board's own, else its marker family's model where one "
                                                          "is shipped)")
-    parser.add_argument("--network", choices=NETWORKS, default="lite",
-                        help="deep/hybrid: lite (default), or fast: the distilled fast networks, 2-4x less network time "
-                             "on a CPU, less recall on small or defocused boards and on dark, steep ones in a video; "
-                             "the lite networks look where they lose a tracked board, and search a dim photo they "
-                             "find nothing in (docs/detector.md); not with --weights")
+    parser.add_argument("--network", choices=NETWORKS, default=None,
+                        help="deep/hybrid: auto (the default on a CPU with the shipped weights): the distilled fast "
+                             "networks first, the lite ones wherever those find too little (a lost board, a photo, "
+                             "a video's dim frames): lite's frames, at the fast networks' speed in good light. "
+                             "fast: the lite networks only where a tracked board is lost and in dim photos (2-4x "
+                             "less network time, fewer dark and steep boards in a video). lite (the default with "
+                             "--weights or on a GPU): the lite networks alone. docs/detector.md; auto and fast not "
+                             "with --weights")
     parser.add_argument("--refine-weights", default=None, help="--detector deep --refine refinenet: RefineNet "
                                                                 "checkpoint when --weights holds only ChArUcoNet")
     parser.add_argument("--out", default="detect_out", help="output folder")

@@ -131,6 +131,14 @@ MODES = ("deep", "hybrid")
 LOCAL_WHITE = ("always", "dim")
 
 
+# Which whole frames the lite networks search where the fast ones find fewer than 4 corners, by (network, whether
+# the frame is a stream's): "dim" (dim and nothing found), "always" or "never". "fast" is for speed: a dark video's
+# frames without a board would each cost lite's whole search (docs/detector.md, "A dim whole frame searched by the
+# lite networks"). "auto" is for lite's frames: on the real videos as `detect` reads them, and on the real photos,
+# it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md, "Auto: the fast networks
+# first, the lite ones where they find too little").
+WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "always", ("auto", True): "dim"}
+
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
 
@@ -293,10 +301,13 @@ class Detector:
             corner's covariance; a corner the fit cannot place keeps ``refine``'s position, with a sigma of
             `FALLBACK_SIGMA_PX` or its distance from where its neighbours put it, whichever is larger.
             False: ``refine``'s positions, no covariances.
-        network: "lite" (default: the shipped networks, or ``weights``) or "fast": the shipped distilled fast
-            ChArUcoNets (`FAST_WEIGHTS_DIR`, ONNX bundles, CPU only; 2-4x less network time, less recall on small
-            and dark boards: docs/detector.md, "The fast networks"), with the lite networks looking where they lose
-            a tracked board and searching a dim whole frame they find nothing in (`backup`). Not with ``weights``.
+        network: "lite" (default: the shipped networks, or ``weights``), "fast" or "auto". "fast": the shipped
+            distilled fast ChArUcoNets (`FAST_WEIGHTS_DIR`, ONNX bundles, CPU only; 2-4x less network time, less
+            recall on small and dark boards: docs/detector.md, "The fast networks"), with the lite networks looking
+            where they lose a tracked board and searching a dim photo they find nothing in (`backup`). "auto" (the
+            command line's default): the fast networks first and the lite ones wherever those find too little: a
+            tracked board lost, any photo, and a stream's dim whole frames (`detect`'s ``stream``); lite's frames at
+            the fast networks' speed where those find the board. Neither with ``weights``.
 
     Every argument after ``weights`` is keyword-only.
 
@@ -320,7 +331,8 @@ class Detector:
         self.local_white_skipped = False  # whether the last `detect` left an inverted print's second search out
         given_weights, given_geometry, weights = weights, geometry, network_weights(network, weights, device)
         if network == "lite" and weights is not None and Path(weights).resolve() == FAST_WEIGHTS_DIR.resolve():
-            network = "fast"  # the shipped fast networks named by their folder (the CLI's --network fast)
+            network = "fast"  # the shipped fast networks named by their folder
+        self.network = network
         self.corner_fit = bool(corner_fit)
         if boards is not None:
             boards = list(boards)
@@ -396,7 +408,7 @@ class Detector:
             printed_pattern(self.board)
         # The fast networks lose some boards the lite ones read (steep, cut by the frame's edge, dark): where a tracked
         # board (``expected``) is lost to them, the lite networks look in the same crop (`backup`), built when first
-        # needed (a `BoardTracker` asks at once), and search a dim whole frame they find nothing in (``dim_backup``).
+        # needed (a `BoardTracker` asks at once), and search the whole frames `WHOLE_BACKUP` names.
         # Deep alone: in hybrid mode OpenCV has just looked there.
         self._backup_options = None if network == "lite" else dict(
             board=self.board, refine=refine, device=device, refine_weights=refine_weights, threshold=threshold,
@@ -438,7 +450,8 @@ class Detector:
         return detect_board_result(self.detect(image))
 
     def detect(self, image: np.ndarray, *, working_size: int | None = None, levels: int | None = None,
-               expected: Detection | None = None, local_white: str = "always", dim_backup: bool = True) -> Detection:
+               expected: Detection | None = None, local_white: str = "always", stream: bool = False,
+               dim_backup: bool | None = None) -> Detection:
         """Find the board's corners in a uint8 grayscale (or BGR) image of any size.
 
         Images longer than ``working_size`` are searched at that size (area-averaged) first, then at twice
@@ -456,15 +469,17 @@ class Detector:
         ``expected``: where the board's corners are expected in ``image`` (`BoardTracker`: the frame before's); a
         board found by its markers is first looked for in that view, moved onto the point head's corners and verified
         by its markers as any view is (`placement.view_near`), and searched for through its cells only where that
-        fails. With ``network="fast"``, where the fast networks find fewer corners than a tracker keeps (4), the lite
-        networks search the image as well (`backup`): on the real videos that found the lite networks' frames on every
-        lit video, for 0-9 % of the fast networks' speed (docs/detector.md, "The lite networks behind the fast ones").
-        ``dim_backup``: with ``network="fast"``, where a whole frame (nothing ``expected``, every level: no ``levels``)
-        is dim (`search_regions.is_dim`) and the fast networks find fewer corners there than a tracker keeps, the lite
-        networks search it whole as well (a photo, a calibration's frames: the fast networks miss dark, steep boards
-        that lite reads). False leaves that out: `BoardTracker` and `StreamFrames` do, since in a dark video it cost
-        lite's whole search in every frame without a board (docs/detector.md, "A dim whole frame searched by the lite
-        networks").
+        fails. With ``network`` "fast" or "auto", where the fast networks lose an ``expected`` board (fewer corners
+        than a tracker keeps, 4), the lite networks look in the image as well (`backup`): on the real videos that
+        found the lite networks' frames on every lit video, for 0-9 % of the fast networks' speed (docs/detector.md,
+        "The lite networks behind the fast ones"). Where they find fewer than 4 in a whole frame (nothing
+        ``expected``, every level: no ``levels``), the lite networks search it whole as well (`WHOLE_BACKUP`): with
+        "fast" a photo that is dim (`search_regions.is_dim`: the fast networks miss dark, steep boards that lite
+        reads), with "auto" any photo and a stream's dim frames. ``stream``: the frame is one of a video's or a
+        camera's, searched whole (`BoardTracker`'s whole searches, `StreamFrames`): with "fast" the lite networks
+        never search it (in a dark video that cost lite's whole search in every frame without the board:
+        docs/detector.md, "A dim whole frame searched by the lite networks"), with "auto" only where it is dim.
+        ``dim_backup=False``: the same as ``stream=True`` (its earlier name).
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
         only in a dim frame (`search_regions.is_dim` of its coarse level). A `BoardTracker`'s whole-frame searches ask
@@ -477,21 +492,37 @@ class Detector:
                                    f"Detection per board")
         check_choice("local_white", local_white, LOCAL_WHITE)
         with single_threaded_blas():
-            found, searched_dim = self._detect(image, working_size, levels, expected, local_white)
-        if len(found) < MIN_TRACKED_CORNERS and self._backup_options is not None:
+            found, dim = self._detect(image, working_size, levels, expected, local_white)
+        if self._backup_options is None:
+            return found
+        whole, stream = expected is None and levels is None, stream or dim_backup is False
+        if len(found) < MIN_TRACKED_CORNERS:
             if expected is not None:
                 tally("backup looks")
-                found = self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
-            elif levels is None and dim_backup and searched_dim:
+                return self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
+            if whole and self._backs_whole(dim, stream):
                 tally("backup searches")
-                found = self.backup.detect(image, working_size=working_size, local_white=local_white)
+                return self.backup.detect(image, working_size=working_size, local_white=local_white)
+        elif whole and dim and not stream and self.network == "auto" \
+                and not self._whole_view_found(found.ids, found.corners, image.shape[:2]):
+            # A dim photo's board found in part: the fast networks' confidences fade first in the dark (the report's
+            # darkness k = 9: lite 0.988 of the corners, fast 0.897, most frames' boards found in part).
+            tally("backup searches")
+            more = self.backup.detect(image, working_size=working_size, local_white=local_white)
+            if len(more) > len(found):
+                return more
         return found
+
+    def _backs_whole(self, dim: bool, stream: bool) -> bool:
+        """Whether the lite networks search a whole frame the fast networks found fewer than 4 corners in: ``dim``,
+        whether it was dim; ``stream``, whether it is a stream's (`detect`)."""
+        return {"dim": dim, "always": True, "never": False}[WHOLE_BACKUP[self.network, stream]]
 
     @property
     def backup(self) -> Detector | None:
-        """With ``network="fast"``: the lite networks' deep detector of the same board and options, which looks where
-        the fast networks lose an expected board (`detect`'s ``expected``: the board a `BoardTracker` follows) and
-        searches a dim whole frame they find nothing in (`detect`'s ``dim_backup``), built at the first use
+        """With ``network`` "fast" or "auto": the lite networks' deep detector of the same board and options, which
+        looks where the fast networks lose an expected board (`detect`'s ``expected``: the board a `BoardTracker`
+        follows) and searches the whole frames they find too little in (`WHOLE_BACKUP`), built at the first use
         (`BoardTracker` asks when it is made). None with the lite networks."""
         if self._backup is None and self._backup_options is not None:
             self._backup = Detector(**self._backup_options)
@@ -499,8 +530,9 @@ class Detector:
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
                 expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, bool]:
-        """`detect` by these networks alone -> (the detection, whether they searched a dim frame and found nothing:
-        `backup`'s cue)."""
+        """`detect` by these networks alone -> (the detection, whether the first level they searched whole was dim,
+        `search_regions.is_dim`: `backup`'s cue; False where OpenCV's corners stand, where the preview found the
+        board, and where the markers beyond the view refused it)."""
         self.local_white_skipped = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
@@ -559,7 +591,7 @@ class Detector:
         if self._layout_ends_short(full, found, ids, corners):
             return Detection.empty(), False
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
-                         covariances=covariances_from_canonical(covariances, self.board)), False
+                         covariances=covariances_from_canonical(covariances, self.board)), dim
 
     def _layout_ends_short(self, full: np.ndarray, found: Found, ids: np.ndarray, corners: np.ndarray) -> bool:
         """Whether the board's own markers are printed beyond the edge of the view the markers verified, read in

@@ -33,11 +33,12 @@ alone, or an inverted print's second search) is searched whole, with everything,
 a full search would have. A small board is then found in the frames a quicker search reached late, and a board a whole
 search missed in one frame (blurred) is kept from the frame after it.
 
-A `Detector` with the fast networks (``network="fast"``) hands a crop they lose the board in to its lite networks
-(`Detector.backup`): the tracker asks once, the detector answers with whichever found it. The tracker's whole-frame
-searches do not let the lite networks search a dim frame the fast ones find nothing in (`Detector.detect`'s
-``dim_backup``), which a photo gets: in a dark video that cost lite's whole search in every frame without the board.
-Nor do a stream's frames searched whole without a tracker (`StreamFrames`).
+A `Detector` with the fast networks (``network`` "fast" or "auto") hands a crop they lose the board in to its lite
+networks (`Detector.backup`): the tracker asks once, the detector answers with whichever found it. The tracker's
+whole-frame searches are a stream's (`Detector.detect`'s ``stream``), as are a stream's frames searched whole without
+a tracker (`StreamFrames`): there "fast" never lets the lite networks search a whole frame (in a dark video that
+cost lite's whole search in every frame without the board) and "auto" lets them search a dim one the fast networks
+find nothing in (a photo gets more: `deep_detector.WHOLE_BACKUP`).
 """
 
 from __future__ import annotations
@@ -58,12 +59,12 @@ HOLD_BYTES = 256 * 2 ** 20  # `push` holds back at most this many bytes of frame
 
 class StreamFrames:
     """A detector's frames of a stream searched whole, one by one, without a tracker (a camera's frames on ``--jobs``
-    workers, a video with ``--refresh-every 1``): as in a `BoardTracker`'s whole searches, a `Detector` with the fast
-    networks is told not to have its lite networks search a dim frame they find nothing in (``dim_backup``)."""
+    workers, a video with ``--refresh-every 1``): as in a `BoardTracker`'s whole searches, a `Detector` is told each
+    frame is a stream's (``stream``: its lite networks behind the fast ones search fewer whole frames)."""
 
     def __init__(self, detector):
         self.detector = detector
-        self._options = _no_dim_backup(detector)
+        self._options = _stream_options(detector)
 
     def detect(self, image: np.ndarray) -> Detection:
         return self.detector.detect(image, **self._options)
@@ -102,10 +103,9 @@ def predicted(last: Detection, before: Detection) -> Detection:
     return Detection(ids=last.ids, corners=last.corners + motion, scores=last.scores)
 
 
-def _no_dim_backup(detector) -> dict:
-    """``detect``'s keywords that leave the fast networks' lite search of a dim whole frame out (``dim_backup``): none
-    for a detector that has no such search."""
-    return {"dim_backup": False} if _takes(detector, "dim_backup") else {}
+def _stream_options(detector) -> dict:
+    """``detect``'s keywords that say the frame is a stream's (`Detector.detect`'s ``stream``), where it takes them."""
+    return {"stream": True} if _takes(detector, "stream") else {}
 
 
 def _takes(detector, option: str) -> bool:
@@ -156,11 +156,10 @@ class BoardTracker:
         # (module docstring); a print that is not inverted has none to leave out.
         inverted = bool(getattr(getattr(detector, "board", None), "inverted", False))
         self._whole_options = {"local_white": "dim"} if inverted and _takes(detector, "local_white") else {}
-        # Nor do its whole searches let the fast networks' lite backup search a dim frame they find nothing in: in a
-        # dark video the board is away in most of those frames, and each cost lite's whole search (~0.26 s at 720p);
-        # on the real dark videos, at most every 10 frames halved the speed, for cam_1's frames alone
-        # (docs/detector.md).
-        self._no_dim_backup = _no_dim_backup(detector)
+        # Its whole searches are a stream's: a fast-networks detector's lite backup searches fewer of them
+        # (`deep_detector.WHOLE_BACKUP`; with network "fast", none: in a dark video the board is away in most of
+        # those frames, and each cost lite's whole search, ~0.26 s at 720p; docs/detector.md).
+        self._stream = _stream_options(detector)
         self._left_out = False  # whether the last whole-frame search left something out
         self._since_full = 0
         self._coarse_left = 0  # coarse-only searches before the next search of every level
@@ -225,7 +224,7 @@ class BoardTracker:
         for image, _, partial in reversed(self._held):
             around = self._around(image, later, after)
             if len(around) < MIN_CORNERS and partial:
-                around = self.detector.detect(image, **self._no_dim_backup)
+                around = self.detector.detect(image, **self._stream)
             if len(around) < MIN_CORNERS:
                 break
             later, after = around, later
@@ -252,7 +251,7 @@ class BoardTracker:
                 self._since_full = 0
             self.last_search, self._left_out = "coarse", True
             return detection
-        detection = self.detector.detect(image, **self._whole_options, **self._no_dim_backup)
+        detection = self.detector.detect(image, **self._whole_options, **self._stream)
         self._left_out = bool(getattr(self.detector, "local_white_skipped", False))  # only "dim" leaves anything out
         self._since_full = 0
         if refreshing and len(detection) < MIN_CORNERS:

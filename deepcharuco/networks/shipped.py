@@ -16,12 +16,28 @@ FAMILY_WEIGHTS_DIR = WEIGHTS_DIR / "families"
 # families/<FAMILY>.onnx/) as ONNX bundles alone, so they run on the CPU through ONNX Runtime, where the network
 # is the cost; on a GPU the lite network is under a millisecond a frame and the decoding is the cost.
 FAST_WEIGHTS_DIR = WEIGHTS_DIR / "fast"
-NETWORKS = ("lite", "fast")  # Detector(network=...), deepcharuco detect/calibrate --network
+# Detector(network=...), deepcharuco detect/calibrate --network. "auto": the fast networks first, the lite ones
+# wherever those find too little (`deep_detector.Detector`'s ``network``).
+NETWORKS = ("lite", "fast", "auto")
+
+
+def fast_networks_shipped() -> bool:
+    """Whether this version ships the fast networks (`FAST_WEIGHTS_DIR`)."""
+    return (FAST_WEIGHTS_DIR / "detector.onnx" / "bundle.json").is_file()
+
+
+def default_network(weights: str | Path | None, device: str = "cpu", backend: str = "auto") -> str:
+    """The command line's network where ``--network`` is not given: "auto" for the shipped weights in ONNX Runtime on
+    the CPU, else "lite" (a user's ``weights``; a GPU, where the lite network takes under a millisecond a frame;
+    ``backend`` "torch" or "onnx-int8", which the fast networks' float32 ONNX bundles do not run in; a version
+    without the fast networks)."""
+    onnx = backend in ("auto", "onnx")
+    return "auto" if weights is None and str(device) == "cpu" and onnx and fast_networks_shipped() else "lite"
 
 
 def network_weights(network: str, weights: str | Path | None, device: str = "cpu") -> str | Path | None:
     """The weights a detector reads for ``network`` (`NETWORKS`): ``weights`` for "lite" (None: the shipped lite
-    networks), the shipped fast networks' folder (`FAST_WEIGHTS_DIR`) for "fast"."""
+    networks), the shipped fast networks' folder (`FAST_WEIGHTS_DIR`) for "fast" and "auto"."""
     check_choice("network", network, NETWORKS)
     if network == "lite":
         return weights
@@ -30,7 +46,7 @@ def network_weights(network: str, weights: str | Path | None, device: str = "cpu
     if str(device) != "cpu":
         raise OptionError(f"network={network!r} ships as ONNX bundles, which run on the CPU; on a GPU the lite "
                           f"network takes under a millisecond a frame: leave network out there, or use device='cpu'")
-    if not (FAST_WEIGHTS_DIR / "detector.onnx" / "bundle.json").is_file():
+    if not fast_networks_shipped():
         raise DeepCharucoError(f"network={network!r}: this version ships no fast networks ({FAST_WEIGHTS_DIR} is "
                                f"missing); leave network out for the lite ones")
     return FAST_WEIGHTS_DIR

@@ -8,6 +8,7 @@ from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.stage_times import StageTimes
 from deepcharuco.detection.parallel import detect_all
+from deepcharuco.detection.search_regions import is_dim
 from deepcharuco.detection.tracking import BoardTracker, StreamFrames, predicted, search_region
 from deepcharuco.geometry.camera import Camera
 
@@ -314,7 +315,7 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
         return None, board_like, dim
 
     monkeypatch.setattr(fast, "_search", blind)
-    for image, options in ((lit, {}), (dark, {"levels": 1}), (dark, {"dim_backup": False})):
+    for image, options in ((lit, {}), (dark, {"levels": 1}), (dark, {"stream": True}), (dark, {"dim_backup": False})):
         with StageTimes() as times:
             assert len(fast.detect(image, **options)) == 0
         assert "backup searches" not in times.counts
@@ -324,11 +325,51 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
     assert len(found) == 16 and np.abs(found.corners - truth[found.ids]).max() < 0.2
 
 
-def test_a_stream_never_lets_the_lite_networks_search_a_dim_whole_frame(monkeypatch):
-    """`BoardTracker`'s whole searches, and `StreamFrames` (a stream's frames each searched whole), ask for no search
-    of a dim whole frame by the fast networks' lite backup (``dim_backup``): in a dark video the board is away in most
-    frames the fast networks find nothing in, and each cost lite's whole search (docs/detector.md). The same frame
-    given to the detector itself is searched by lite."""
+def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames_the_fast_ones_find_too_little_in(
+        monkeypatch):
+    """``network="auto"``: a whole frame the fast networks find nothing in is searched by the lite networks too where
+    it is a photo, lit or dim, and where it is a stream's (``stream``) only when dim; a dim photo whose board they
+    found in part is searched by lite too and the detection with more corners kept. ``network="fast"``: a dim photo
+    alone. Neither in a quick look (``levels``). (`deep_detector.WHOLE_BACKUP`)"""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    lit, _, _, truth = make_view(board, camera, distance=0.4)
+    dark = (lit.astype(np.float32) * 0.12).round().astype(np.uint8)  # white at ~31 of 255
+    auto, fast = Detector(board=board, network="auto"), Detector(board=board, network="fast")
+    assert auto.backup.weights == Detector(board=board).weights and auto.network == "auto"
+    for detector in (auto, fast):
+        search = detector._search
+
+        def blind(*args, search=search, **kwargs):  # the fast networks see nothing; the frame's dimness is measured
+            _, board_like, dim = search(*args, **kwargs)
+            return None, board_like, dim
+
+        monkeypatch.setattr(detector, "_search", blind)
+    cases = [(auto, lit, {}, 1), (auto, dark, {}, 1), (auto, lit, {"stream": True}, 0), (auto, dark, {"stream": True}, 1),
+             (auto, dark, {"levels": 1}, 0), (fast, lit, {}, 0), (fast, dark, {}, 1), (fast, dark, {"stream": True}, 0)]
+    for detector, image, options, searches in cases:
+        with StageTimes() as times:
+            found = detector.detect(image, **options)
+        assert times.counts.get("backup searches", 0) == searches, (detector.network, options)
+        assert len(found) == (16 if searches else 0)
+        if searches:
+            assert np.abs(found.corners - truth[found.ids]).max() < 0.2
+    whole = Detector(board=board).detect(dark)
+    half = Detection(whole.ids[:8], whole.corners[:8], whole.scores[:8])
+    for detector in (auto, fast):  # the fast networks find half the board
+        monkeypatch.setattr(detector, "_detect", lambda image, *args, **kwargs: (half, is_dim(image)))
+    for detector, image, options, corners in ((auto, dark, {}, 16), (auto, dark, {"stream": True}, 8),
+                                              (auto, lit, {}, 8), (fast, dark, {}, 8)):
+        with StageTimes() as times:
+            assert len(detector.detect(image, **options)) == corners, (detector.network, options)
+        assert times.counts.get("backup searches", 0) == (corners == 16)
+
+
+def test_a_stream_never_lets_the_fast_networks_lite_backup_search_a_dim_whole_frame(monkeypatch):
+    """With ``network="fast"``, `BoardTracker`'s whole searches, and `StreamFrames` (a stream's frames each searched
+    whole), say each frame is a stream's (``stream``): the lite backup searches no dim whole frame there, since in a
+    dark video the board is away in most frames the fast networks find nothing in, and each cost lite's whole search
+    (docs/detector.md). The same frame given to the detector itself is searched by lite."""
     rng = np.random.default_rng(0)
     dark = rng.integers(0, 30, (360, 640)).astype(np.uint8)  # no board, white below is_dim's 64
     fast = Detector(board=BoardSpec(), network="fast")
