@@ -2,6 +2,7 @@
 
     python benchmarks/detect.py [--count 8] [--sizes 320x240,640x480,1280x720,1920x1080]
                                 [--realdata realdata] [--seconds 3] [--skip-videos] [--candidate runs/fast]
+                                [--network auto]
 
 ``--realdata``: a folder of capture folders as docs/evaluation.md's "Real captures" lists them (caliscope's
 calibration session with its frames_review.csv, ...; each with its board.yaml). Without it, the backgrounds
@@ -38,6 +39,7 @@ from deepcharuco.core.stage_times import StageTimes, stage
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.detection.parallel import flushed, settled
 from deepcharuco.detection.tracking import BoardTracker
+from deepcharuco.networks.shipped import NETWORKS
 from evaluate.paper.protocols import TestFrame, darken, score_corners, time_pipelines
 from evaluate.paper.unseen_boards import UNSEEN_BOARDS
 from evaluate.speed.machine import cpu_description, gpu_name
@@ -114,14 +116,25 @@ def print_row(label: str, cells: list[str], width: int) -> None:
     print(f"{label:34s} " + " ".join(f"{c:>{width}s}" for c in cells), flush=True)
 
 
-def detector_set(board: BoardSpec, device: str, candidate: Path | None) -> dict:
-    """OpenCV (+ cornerSubPix), the deep and the hybrid detector with the shipped weights, and with ``candidate``
-    (weights, a bundle or a weights folder: `Detector(weights=...)`) the deep and hybrid detectors with those too."""
+Candidate = tuple[str, dict]  # a second set of deep and hybrid detectors: (its label, `Detector`'s keywords)
+
+
+def candidate_of(weights: Path | None, network: str | None) -> Candidate | None:
+    """``--candidate`` (weights, a bundle or a weights folder: `Detector(weights=...)`) or ``--network``."""
+    if weights is not None:
+        return "candidate", {"weights": weights}
+    return None if network is None else (network, {"network": network})
+
+
+def detector_set(board: BoardSpec, device: str, candidate: Candidate | None) -> dict:
+    """OpenCV (+ cornerSubPix), the deep and the hybrid detector with the shipped lite networks, and with
+    ``candidate`` the deep and hybrid detectors with its weights or networks too."""
     detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "deep": Detector(board, device=device),
                  "hybrid": Detector(board, mode="hybrid", device=device)}
     if candidate is not None:
-        detectors["deep, candidate"] = Detector(board, weights=candidate, device=device)
-        detectors["hybrid, candidate"] = Detector(board, weights=candidate, mode="hybrid", device=device)
+        label, options = candidate
+        detectors[f"deep, {label}"] = Detector(board, device=device, **options)
+        detectors[f"hybrid, {label}"] = Detector(board, mode="hybrid", device=device, **options)
     return detectors
 
 
@@ -137,7 +150,7 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
             right, wrong = scores(detectors[name], frames)
             cells.append(f"{fps[name]:6.1f} ({fps[name] / fps['opencv']:5.2f}x) {right:4.2f} {wrong:4d}")
         print_row(label, cells, 27)
-        for name in ("deep", "deep, candidate"):
+        for name in [n for n in names if n.startswith("deep")]:
             if name in detectors:
                 breakdowns.append((name, label, *stage_breakdown(detectors[name], frames)))
     for name in dict.fromkeys(b[0] for b in breakdowns):
@@ -147,14 +160,14 @@ def time_rows(rows: list[tuple[str, list[TestFrame]]], detectors: dict, seconds:
             print_row(label, [f"{groups[g]:.1f}" for g in STAGE_GROUPS] + [f"{levels:.1f}"], 11)
 
 
-def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = None) -> None:
+def video_rows(realdata: Path, device: str = "cpu", candidate: Candidate | None = None) -> None:
     """Every frame of every video under ``realdata`` (with its folder's board.yaml), lit and darkened: fps and
     frames with >= 4 corners for OpenCV, the deep detector searching each frame whole, tracked with every level of
     every frame searched while no board is tracked, tracked as ``deepcharuco detect`` tracks a video (every level
     every `VIDEO_SEARCH_EVERY`-th frame while no board is tracked, looking back: `BoardTracker.push`) and as it
     tracks a camera (every `CAMERA_SEARCH_EVERY`-th frame, no looking back), and the hybrid detector tracked as a
-    video; with ``candidate``, its deep detector searching each frame whole and tracked as a video, and its hybrid
-    tracked as a video. The detectors take the frames in turn (each frame by every detector, then the next), so that load on the
+    video; with ``candidate`` (`candidate_of`), its deep detector searching each frame whole and tracked as a video,
+    and its hybrid tracked as a video. The detectors take the frames in turn (each frame by every detector, then the next), so that load on the
     machine hits all alike."""
     videos = sorted(realdata.glob("*/*.mp4"))
     if not videos:
@@ -164,7 +177,8 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
     names = ["opencv", "deep", "deep tracked (1)", f"deep, video's ({VIDEO_SEARCH_EVERY})",
              f"deep, camera's ({CAMERA_SEARCH_EVERY})", "hybrid, video's"]
     if candidate is not None:
-        names += ["candidate", "candidate, video's", "hybrid cand., video's"]
+        label, options = candidate
+        names += [label, f"{label}, video's", f"hybrid {label}, video's"]
     print_row("video", names, 20)
     for path in videos:
         board = BoardSpec.load(path.parent / "board.yaml")
@@ -174,10 +188,10 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Path | None = Non
                 names[4]: BoardTracker(deep, search_every=CAMERA_SEARCH_EVERY, look_back=False),
                 names[5]: BoardTracker(hybrid, search_every=VIDEO_SEARCH_EVERY)}
         if candidate is not None:
-            runs["candidate"] = Detector(board, weights=candidate, device=device)
-            runs["candidate, video's"] = BoardTracker(runs["candidate"], search_every=VIDEO_SEARCH_EVERY)
-            runs["hybrid cand., video's"] = BoardTracker(Detector(board, weights=candidate, mode="hybrid", device=device),
-                                                         search_every=VIDEO_SEARCH_EVERY)
+            runs[names[6]] = Detector(board, device=device, **options)
+            runs[names[7]] = BoardTracker(runs[names[6]], search_every=VIDEO_SEARCH_EVERY)
+            runs[names[8]] = BoardTracker(Detector(board, mode="hybrid", device=device, **options),
+                                          search_every=VIDEO_SEARCH_EVERY)
         frames = video_frames(path)
         for label, clip in ((path.parent.name + "/" + path.name, frames),
                             (f"  dark k={DARK_K}", [darken(f, DARK_K) for f in frames])):
@@ -215,9 +229,15 @@ def main() -> None:
                         help="other weights to time and score beside the shipped ones in the same run: a checkpoint, "
                              "a bundle, or a folder laid out as deepcharuco/weights (e.g. distilled fast networks; "
                              "deepcharuco/weights/fast is network='fast', with the lite networks behind its tracking)")
+    parser.add_argument("--network", choices=[n for n in NETWORKS if n != "lite"], default=None,
+                        help="time and score the deep and hybrid detectors with these networks (Detector's network: "
+                             "auto, deepcharuco detect's default, or fast) beside the lite ones in the same run")
     args = parser.parse_args()
     if args.count < 1:
         parser.error("--count must be >= 1")
+    if args.candidate is not None and args.network is not None:
+        parser.error("give --candidate or --network, not both")
+    candidate = candidate_of(args.candidate, args.network)
 
     rng = np.random.default_rng(args.seed)
     real = [] if args.realdata is None else real_backgrounds(args.realdata / "caliscope_calibration", limit=24)
@@ -228,22 +248,22 @@ def main() -> None:
     print("# backgrounds: procedural clutter" + (f" and {len(real)} real frames without a board" if real else
                                                 " only (--realdata holds no caliscope_calibration review)"))
     print("# each detector: detect + estimate_pose; 'deep' = Detector(board), 'hybrid' = Detector(board, mode='hybrid')"
-          " (deepcharuco detect's default)")
+          " (the lite networks; deepcharuco detect's default is hybrid with network='auto')")
     if not args.skip_boards:
         sizes = [parse_size(s) for s in args.sizes.split(",")]
-        detectors = detector_set(board, args.device, args.candidate)
+        detectors = detector_set(board, args.device, candidate)
         print(f"\nthe paper's board ({board.squares_x}x{board.squares_y} {board.dictionary}), {args.count} frames a row")
         time_rows(board_rows(board, sizes, args.count, rng, real), detectors, args.seconds)
 
         frames = [with_board(TINY_BOARD, b, rng, Placement(0.08, 0.15), f"5MP #{i}")
                   for i, b in enumerate(backgrounds_for(FIVE_MP, max(2, args.count // 2), rng, real))]
-        tiny = detector_set(TINY_BOARD, args.device, args.candidate)
+        tiny = detector_set(TINY_BOARD, args.device, candidate)
         print(f"\na 3x3 board (4 corners, {TINY_BOARD.dictionary}) at 8-15 % of a {FIVE_MP[0]}x{FIVE_MP[1]} frame")
         time_rows([("5 MP tiny board", frames), ("5 MP tiny board dark", [darkened(f) for f in frames])], tiny,
                   args.seconds)
 
         for name, unseen in UNSEEN_BOARDS.items():
-            others = detector_set(unseen, args.device, args.candidate)
+            others = detector_set(unseen, args.device, candidate)
             print(f"\nboard never seen in training ({name}), read by its markers, on clutter")
             frames = [with_board(unseen, b, rng, FILLING, f"{name} #{i}")
                       for i, b in enumerate(backgrounds_for((640, 480), args.count, rng, real))]
@@ -254,7 +274,7 @@ def main() -> None:
     if args.realdata is None:
         print("\nno real videos timed: pass --realdata (docs/evaluation.md, Real captures)")
         return
-    video_rows(args.realdata, args.device, args.candidate)
+    video_rows(args.realdata, args.device, candidate)
 
 
 if __name__ == "__main__":

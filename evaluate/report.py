@@ -33,6 +33,7 @@ from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import write_atomic
 from deepcharuco.core.platform import available_cpus, describe_os_error
 from deepcharuco.detection.opencv_detector import OpenCVDetector
+from deepcharuco.networks.shipped import NETWORKS
 from evaluate import captures as real_captures
 from evaluate import documents
 from evaluate.calibration import calibration_eval, corner_precision
@@ -73,9 +74,10 @@ def ensure_rendered(folder: Path, default: Path, command: list[str], allowed: bo
 
 
 def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str | None, device: str,
-                    notes: list[str]) -> dict:
+                    notes: list[str], network: str = "lite") -> dict:
     """The five configurations of the paper's timing table (the three deep ones when weights exist), and the
-    deep detector without its board-geometry check (the paper's decoding), to show what the check adds."""
+    deep detector without its board-geometry check (the paper's decoding), to show what the check adds.
+    ``network``: the three deep configurations' (`Detector`'s); the decodings compared beside them stay lite's."""
     detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "opencv_norefine": OpenCVDetector(board, refine="none")}
     from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
@@ -88,7 +90,7 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
     for name, refine, fit in (("deep", "refinenet", True), ("deep_subpix", "subpix", False),
                               ("deep_norefine", "none", False)):
         detectors[name] = Detector(board=board, weights=weights, refine=refine, device=device,
-                                   refine_weights=refine_weights, corner_fit=fit)
+                                   refine_weights=refine_weights, corner_fit=fit, network=network)
     if detectors["deep"].geometry == "markers":  # no ID head for this board: a family model, or another layout
         notes.append(f"**The deep detector reads {board} by its markers** ({detectors['deep'].weights} is a points-only "
                      f"family model, or was trained for another layout): the deep rows are the markers decoding; the "
@@ -123,7 +125,7 @@ def run_report(args: argparse.Namespace) -> dict:
                            f"{sequences_dir} and python -m datagen.render --seed {TEST_SEED} --out {data_dir}")
     first = sequences_dir if have_sequences else data_dir if have_data else Path(args.captures)
     board = BoardSpec.load(args.board) if args.board else board_of(first)
-    detectors = build_detectors(board, args.weights, args.refine_weights, args.device, notes)
+    detectors = build_detectors(board, args.weights, args.refine_weights, args.device, notes, args.network)
     compared = {name: detectors[name] for name in ("deep", "deep_markers", "deep_paper", "deep_norefine", "opencv")
                 if name in detectors}
     headline = {name: detectors[name] for name in ("deep", "deep_markers", "deep_paper", "opencv") if name in detectors}
@@ -132,7 +134,7 @@ def run_report(args: argparse.Namespace) -> dict:
                      "board": board.to_dict(), "quick": quick,
                      "detectors": {name: experiments.LABELS[name] for name in detectors},
                      "weights": {"charuconet": str(args.weights or "shipped") if "deep" in detectors else None,
-                                 "refinenet": args.refine_weights}}
+                                 "refinenet": args.refine_weights, "network": args.network}}
     pictures: dict[str, bytes] = {}
     sequence_frames = load_frames(sequences_dir, board) if have_sequences else []
     render_frames = load_frames(data_dir, board) if have_data else []
@@ -194,14 +196,15 @@ def run_report(args: argparse.Namespace) -> dict:
         # Boards the weights never saw (python -m evaluate.paper.unseen_boards renders them), when rendered.
         results["unseen_boards"] = unseen_boards.unseen_boards_experiment(
             Path(args.unseen_boards), args.weights, args.refine_weights, args.device,
-            synthetic_images=synthetic_count, every=4 if quick else 1, seed=args.seed, quiet=args.quiet)
+            synthetic_images=synthetic_count, every=4 if quick else 1, seed=args.seed, quiet=args.quiet,
+            network=args.network)
     elif not args.no_unseen_boards:
         notes.append(f"No boards-never-seen section: {args.unseen_boards} holds no rendered sets "
                      "(python -m evaluate.paper.unseen_boards renders them, ~10 min a board).")
 
     if capture_sets:  # real photos and videos (evaluate.captures): the shipped sample unless --captures names others
         results["real_captures"], real_pictures = real_captures.evaluate_captures(
-            capture_sets, args.weights, args.refine_weights, args.device, quiet=args.quiet)
+            capture_sets, args.weights, args.refine_weights, args.device, quiet=args.quiet, network=args.network)
         pictures.update(real_pictures)
 
     if not args.no_false_positives:
@@ -273,6 +276,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weights", default=None, help="ChArUcoNet checkpoint or bundle, or a folder of them laid out as "
                                                          "deepcharuco/weights (default: the shipped weights)")
     parser.add_argument("--refine-weights", default=None, help="RefineNet checkpoint when --weights is not a bundle")
+    parser.add_argument("--network", choices=NETWORKS, default="lite",
+                        help="the deep detector's networks (Detector's network; default: %(default)s, the shipped "
+                             "weights the model card describes; auto: deepcharuco detect's default)")
     parser.add_argument("--sequences", default=str(DEFAULT_SEQUENCES), help="rendered sequences (default: %(default)s)")
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="held-out renders (default: %(default)s)")
     parser.add_argument("--captures", nargs="+", default=None, metavar="DIR",

@@ -441,7 +441,8 @@ class Detector:
         if self._each:
             return f"Detector(boards={self.boards!r})"
         return (f"Detector(board={self.board!r}, refine={self.refine!r}, geometry={self.geometry!r}, "
-                f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r})")
+                f"mode={self.mode!r}, device={str(self.device)!r}, backend={self.runner.name!r}, "
+                f"network={self.network!r})")
 
     def detectBoard(self, image: np.ndarray):  # noqa: N802 - OpenCV's name, so that scripts switch in one line
         """`detect` in the shapes ``cv2.aruco.CharucoDetector.detectBoard`` returns: (charuco corners (N, 1, 2)

@@ -39,7 +39,7 @@ from deepcharuco.core.opencv_api import undistort_points
 from deepcharuco.geometry.camera import Camera, read_camera
 from evaluate.calibration.rig_views import CONDITIONS, RIG_BOARD, DrawnRig, drawn_rig
 
-DETECTORS = ("opencv", "deep", "fast")  # fast: the deep detector with the shipped fast networks (network="fast")
+DETECTORS = ("opencv", "deep", "fast", "auto")  # fast, auto: the deep detector with network="fast" or "auto"
 
 
 def make_detector(name: str, board: BoardSpec):

@@ -11,6 +11,7 @@ from pathlib import Path
 from deepcharuco.calibration.html_page import html_page
 from deepcharuco.cli.common import output_folder, run_command
 from deepcharuco.core.files import write_atomic
+from deepcharuco.networks.shipped import NETWORKS
 from evaluate.captures.present import DEFAULT_GALLERY, DEFAULT_STEP, capture_sections, evaluate_captures, sample_folders
 from evaluate.paper.figures import figure_file_name
 
@@ -27,6 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="frames a set where the detectors disagree most, drawn (default: %(default)s)")
     parser.add_argument("--weights", default=None, help="deep detector weights (default: the shipped bundle)")
     parser.add_argument("--refine-weights", default=None, help="RefineNet checkpoint when --weights is not a bundle")
+    parser.add_argument("--network", choices=NETWORKS, default="lite",
+                        help="the deep and hybrid detectors' networks (Detector's network; default: %(default)s, the "
+                             "shipped weights the model card describes)")
     parser.add_argument("--device", default="cpu", help="torch device (default: %(default)s)")
     parser.add_argument("--out", default="report", help="output folder (default: %(default)s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -58,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> None:
         out = output_folder(args.out)
         results, pictures = evaluate_captures(args.folders or sample_folders(), args.weights, args.refine_weights,
-                                              args.device, args.step, args.limit, args.gallery, args.quiet)
+                                              args.device, args.step, args.limit, args.gallery, args.quiet,
+                                              args.network)
         results["command"] = "python -m evaluate.captures " + " ".join(shlex.quote(a) for a in argv)
         write_atomic(out / "captures.json", json.dumps(results, indent=1) + "\n")
         page = capture_sections(results)

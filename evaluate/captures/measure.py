@@ -81,18 +81,19 @@ class FrameMeasure:
 
 
 def build_detectors(board: BoardSpec, weights: str | None = None, refine_weights: str | None = None,
-                    device: str = "cpu") -> dict[str, DetectorLike]:
+                    device: str = "cpu", network: str = "lite") -> dict[str, DetectorLike]:
     """OpenCV + cornerSubPix, the deep detector (when there are weights: given, or shipped), and its hybrid
-    mode when this version's `Detector` has one (``mode="hybrid"``)."""
+    mode when this version's `Detector` has one (``mode="hybrid"``); ``network``: `Detector`'s, where not "lite"."""
     from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
     detectors: dict[str, DetectorLike] = {REFERENCE: OpenCVDetector(board, refine="subpix")}
     if weights is None and not DEFAULT_WEIGHTS.is_file():
         return detectors
-    detectors["deep"] = Detector(board=board, weights=weights, refine_weights=refine_weights, device=device)
+    options = {} if network == "lite" else {"network": network}  # a version before the fast networks takes none
+    detectors["deep"] = Detector(board=board, weights=weights, refine_weights=refine_weights, device=device, **options)
     if "mode" in inspect.signature(Detector).parameters:
         detectors["hybrid"] = Detector(board=board, weights=weights, refine_weights=refine_weights, device=device,
-                                       mode="hybrid")
+                                       mode="hybrid", **options)
     return detectors
 
 

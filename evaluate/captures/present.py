@@ -33,7 +33,8 @@ def sample_folders() -> list[Path]:
 
 def evaluate_captures(folders: list[str | Path], weights: str | None = None, refine_weights: str | None = None,
                       device: str = "cpu", step: int = DEFAULT_STEP, limit: int | None = None,
-                      gallery: int = DEFAULT_GALLERY, quiet: bool = True) -> tuple[dict, dict[str, bytes]]:
+                      gallery: int = DEFAULT_GALLERY, quiet: bool = True, network: str = "lite"
+                      ) -> tuple[dict, dict[str, bytes]]:
     """Every capture folder through OpenCV and the deep detector -> (results, JPEG gallery images by name).
     All folders are opened and checked before any is evaluated, so a bad one fails fast; files among them
     (a shell glob's README.md) are skipped, named on stderr and in ``results["skipped"]``."""
@@ -48,7 +49,7 @@ def evaluate_captures(folders: list[str | Path], weights: str | None = None, ref
     results: dict = {"step": step, "limit": limit, "sets": [], "gallery": [], "skipped": skipped}
     pictures: dict[str, bytes] = {}
     for captures in sets:
-        detectors = build_detectors(captures.board, weights, refine_weights, device)
+        detectors = build_detectors(captures.board, weights, refine_weights, device, network)
         result, kept = evaluate_capture_set(captures, detectors, step, limit, gallery, quiet)
         results["sets"].append(result)
         for entry in kept:

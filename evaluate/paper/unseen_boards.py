@@ -97,11 +97,11 @@ def _shown(path: Path) -> str:
 
 def unseen_boards_experiment(root: Path = DEFAULT_ROOT, weights: str | None = None, refine_weights: str | None = None,
                              device: str = "cpu", synthetic_images: int = 20, every: int = 1, seed: int = 0,
-                             quiet: bool = False, only: list[str] | None = None) -> dict:
+                             quiet: bool = False, only: list[str] | None = None, network: str = "lite") -> dict:
     """Per rendered board: the synthetic protocol and the sequences, deep (by markers) vs OpenCV.
 
     ``every``: keep every n-th frame of each sequence (the report's --quick uses 4); ``only``: these boards
-    (names of `UNSEEN_BOARDS`, any case) among the rendered ones."""
+    (names of `UNSEEN_BOARDS`, any case) among the rendered ones; ``network``: the deep detector's (`Detector`'s)."""
     from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
     boards = {}
@@ -111,8 +111,9 @@ def unseen_boards_experiment(root: Path = DEFAULT_ROOT, weights: str | None = No
             continue
         board = UNSEEN_BOARDS[name]
         frames = load_frames(folder_of(root, name), board)
-        detectors = {"deep": Detector(board=board, weights=weights, refine_weights=refine_weights, device=device)}
-        if weights is None and detectors["deep"].weights != DEFAULT_WEIGHTS:
+        detectors = {"deep": Detector(board=board, weights=weights, refine_weights=refine_weights, device=device,
+                                      network=network)}
+        if weights is None and network == "lite" and detectors["deep"].weights != DEFAULT_WEIGHTS:
             # The board's family model, side by side with the paper's weights, whose point head finds it too.
             detectors["deep_paper_weights"] = Detector(board=board, weights=DEFAULT_WEIGHTS, device=device)
         detectors["opencv"] = OpenCVDetector(board, refine="subpix")
