@@ -24,9 +24,9 @@ TOML_START = "# deepcharuco rig calibration"
 
 
 def rig_camera_text(result: RigResult, camera: int, boards: list[BoardSpec], detector: str, frame: str,
-                    name: str = "camera.yaml") -> str:
+                    name: str = "camera.yaml", network: str | None = None) -> str:
     """Camera ``camera``'s file. ``frame`` says what the rig's frame is (e.g. "camera cam_0"); ``boards``: the
-    board (a list of the boards, where several are)."""
+    board (a list of the boards, where several are); ``network``: the deep or hybrid detector's networks."""
     std = result.std[camera]
 
     def nodes(storage: cv2.FileStorage) -> None:
@@ -45,6 +45,8 @@ def rig_camera_text(result: RigResult, camera: int, boards: list[BoardSpec], det
         storage.write("view_frames", np.array([v.instant for v in result.views if v.camera == camera],
                                               np.int32).reshape(-1, 1))
         storage.write("detector", detector)
+        if network:
+            storage.write("network", network)
         storage.write("board", json.dumps(boards[0].to_dict() if len(boards) == 1 else [b.to_dict() for b in boards]))
 
     return camera_file_text(result.cameras[camera], name, extra=nodes)

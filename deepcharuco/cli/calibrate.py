@@ -30,7 +30,7 @@ from deepcharuco.calibration.views import (CalibrationError, FrameDetection, Sel
                                            border_margin)
 from deepcharuco.cli.calibration_exports import (add_export_options, export_folder, export_outputs, export_problems,
                                                 refuse_foreign_exports)
-from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
+from deepcharuco.cli.calibration_frames import calibration_pool, detect_views, networks_of
 from deepcharuco.cli.common import check_output_folder, load_board, no_empty_folders_on_failure, run_command
 from deepcharuco.cli.detect import make_detector
 from deepcharuco.cli.sources import frame_numbers, open_source
@@ -72,7 +72,8 @@ def detect_frames(frames, detector, *, step: int = 1, total: int | None = None, 
     return detections[0][0], size
 
 
-def calibration_text(result: CalibrationResult, board: BoardSpec, detector: str, name: str = "camera.yaml") -> str:
+def calibration_text(result: CalibrationResult, board: BoardSpec, detector: str, name: str = "camera.yaml",
+                     network: str | None = None) -> str:
     """The camera file: `write_camera`'s four nodes (what `read_camera` and OpenCV's samples read), then
     the model, the RMS, the standard deviations, the views, and the per-corner uncertainty
     (``corner_sigma_px``, `CalibrationResult.corner_sigma`) with every corner's residual
@@ -102,6 +103,8 @@ def calibration_text(result: CalibrationResult, board: BoardSpec, detector: str,
         ).astype(np.float64))
         storage.write("view_frames", np.array([v.index for v in result.views], np.int32).reshape(-1, 1))
         storage.write("detector", detector)
+        if network:  # the networks of a deep or hybrid detector (--network)
+            storage.write("network", network)
         storage.write("board", json.dumps(board.to_dict()))
 
     return camera_file_text(result.camera, name, extra=calibration_nodes)
@@ -159,7 +162,7 @@ def _calibrate_into(args: argparse.Namespace, out: Path, report: Path | None) ->
                                border_px=border_margin(args.refine) if args.border_margin is None else args.border_margin,
                                select_terms=not args.all_terms, weight_views=not args.equal_weights)
     result = calibrate(frames, board, size, args.model, options, fix_k3=args.fix_k3)
-    files = {out: calibration_text(result, board, args.detector, out.name)}
+    files = {out: calibration_text(result, board, args.detector, out.name, networks_of(args))}
     if report is not None:
         try:
             import matplotlib  # noqa: F401 - the report's figures need it: the eval extra

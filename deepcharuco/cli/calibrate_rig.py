@@ -30,7 +30,7 @@ from deepcharuco.calibration.time_sync import SyncError
 from deepcharuco.calibration.views import (CalibrationError, FrameDetection, SelectionOptions, border_margin,
                                            within_border)
 from deepcharuco.cli.calibration_exports import export_outputs, refuse_foreign_exports
-from deepcharuco.cli.calibration_frames import calibration_pool, detect_views
+from deepcharuco.cli.calibration_frames import calibration_pool, detect_views, networks_of
 from deepcharuco.cli.common import check_output_folder, four_term_note, no_empty_folders_on_failure
 from deepcharuco.cli.rig_sync import (aligned_times, align_sources, check_overlap, check_recorded, describe, disagree,
                                       frame_intervals, instants_by_time, read_timestamps, renumbered, worst_spread)
@@ -392,7 +392,7 @@ def _rig_into(args, boards: list[BoardSpec], detectors: list, out: Path, sources
         (instant, board_index), result = board_origin(result, args.origin_instant)
         frame = f"the board's at instant {instant}" if len(boards) == 1 else \
             f"board {Path(args.board[board_index]).stem}'s at instant {instant}"
-    files = {path: rig_camera_text(result, c, boards, args.detector, frame, path.name)
+    files = {path: rig_camera_text(result, c, boards, args.detector, frame, path.name, networks_of(args))
              for c, path in enumerate(targets[:len(names)])}
     files[out / TOML_NAME] = rig_toml(result, frame)
     if not args.no_report:

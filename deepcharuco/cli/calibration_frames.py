@@ -17,6 +17,12 @@ from deepcharuco.cli.detect import CHUNK_FRAMES, make_detector
 from deepcharuco.detection.parallel import DetectorPool
 
 
+def networks_of(args) -> str | None:
+    """The networks a calibration's detector ran (``args.network``, resolved), or None for OpenCV's: the camera files'
+    ``network`` node."""
+    return None if args.detector == "opencv" else args.network
+
+
 def calibration_detectors(name: str, boards: list[BoardSpec], refine: str, weights: str | None, network: str
                           ) -> list:
     """The detector ``name`` of each board, as `detect.make_detector` makes them (a worker process's finders)."""

@@ -132,7 +132,7 @@ LOCAL_WHITE = ("always", "dim")
 
 
 # Which whole frames the lite networks search where the fast ones find fewer than 4 corners, by (network, whether
-# the frame is a stream's): "dim" (dim and nothing found), "always" or "never". "fast" is for speed: a dark video's
+# the frame is a stream's): "dim" (where the frame is dim, `search_regions.is_dim`), "always" or "never". "fast" is for speed: a dark video's
 # frames without a board would each cost lite's whole search (docs/detector.md, "A dim whole frame searched by the
 # lite networks"). "auto" is for lite's frames: on the real videos as `detect` reads them, and on the real photos,
 # it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md, "Auto: the fast networks
@@ -476,10 +476,12 @@ class Detector:
         "The lite networks behind the fast ones"). Where they find fewer than 4 in a whole frame (nothing
         ``expected``, every level: no ``levels``), the lite networks search it whole as well (`WHOLE_BACKUP`): with
         "fast" a photo that is dim (`search_regions.is_dim`: the fast networks miss dark, steep boards that lite
-        reads), with "auto" any photo and a stream's dim frames. ``stream``: the frame is one of a video's or a
-        camera's, searched whole (`BoardTracker`'s whole searches, `StreamFrames`): with "fast" the lite networks
-        never search it (in a dark video that cost lite's whole search in every frame without the board:
-        docs/detector.md, "A dim whole frame searched by the lite networks"), with "auto" only where it is dim.
+        reads), with "auto" any photo and a stream's dim frames; with "auto" a dim photo whose board they found in part
+        (fewer corners than their view of it puts inside the image) is searched by lite too, and the detection with
+        more corners kept. ``stream``: the frame is one of a video's or a camera's, searched whole (`BoardTracker`'s
+        whole searches, `StreamFrames`): with "fast" the lite networks never search it (in a dark video that cost
+        lite's whole search in every frame without the board: docs/detector.md, "A dim whole frame searched by the
+        lite networks"), with "auto" only where it is dim.
         ``dim_backup=False``: the same as ``stream=True`` (its earlier name).
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
@@ -501,18 +503,16 @@ class Detector:
             if expected is not None:
                 tally("backup looks")
                 return self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
-            if whole and self._backs_whole(dim, stream):
-                tally("backup searches")
-                return self.backup.detect(image, working_size=working_size, local_white=local_white)
-        elif whole and dim and not stream and self.network == "auto" \
-                and not self._whole_view_found(found.ids, found.corners, image.shape[:2]):
-            # A dim photo's board found in part: the fast networks' confidences fade first in the dark (the report's
-            # darkness k = 9: lite 0.988 of the corners, fast 0.897, most frames' boards found in part).
-            tally("backup searches")
-            more = self.backup.detect(image, working_size=working_size, local_white=local_white)
-            if len(more) > len(found):
-                return more
-        return found
+            if not (whole and self._backs_whole(dim, stream)):
+                return found
+        elif not (whole and dim and not stream and self.network == "auto"
+                  and not self._whole_view_found(found.ids, found.corners, image.shape[:2])):
+            return found
+        # Too few corners, or (auto) a dim photo's board found in part: the fast networks' confidences fade first in
+        # the dark (the report's darkness k = 9: lite 0.988 of the corners, fast 0.897, most boards found in part).
+        tally("backup searches")
+        more = self.backup.detect(image, working_size=working_size, local_white=local_white)
+        return more if len(more) > len(found) else found
 
     def _backs_whole(self, dim: bool, stream: bool) -> bool:
         """Whether the lite networks search a whole frame the fast networks found fewer than 4 corners in: ``dim``,

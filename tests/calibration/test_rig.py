@@ -220,6 +220,7 @@ def test_the_command_calibrates_a_rig_into_camera_files_a_toml_and_a_report(tmp_
         assert abs(camera.K[0, 0] / truth.cameras[c].K[0, 0] - 1) < 0.01
         storage = cv2.FileStorage(str(out / f"cam{c}.yaml"), cv2.FILE_STORAGE_READ)
         R, t = storage.getNode("rotation_matrix").mat(), storage.getNode("translation_vector").mat().ravel()
+        assert storage.getNode("detector").string() == "opencv" and storage.getNode("network").empty()
         assert rotation_angle_deg(R @ truth.rotations[c].T) < 0.5
         assert np.linalg.norm(t - truth.translations[c]) < 0.01
         entry = toml[f"cam_{c}"]

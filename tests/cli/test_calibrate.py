@@ -124,6 +124,7 @@ def test_cli_writes_a_camera_file_opencv_reads_and_a_report(tmp_path, waved):
     assert np.abs(camera.K[:2, 2] - K[:2, 2]).max() < 0.3 and abs(camera.dist[0] - dist[0]) < 0.0015
     storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     assert storage.getNode("distortion_model").string() == "pinhole"
+    assert storage.getNode("detector").string() == "deep" and storage.getNode("network").string() == "auto"
     # One deviation per parameter solved: fx fy cx cy and the distortion terms chosen (p1 p2 may be held at 0).
     terms = storage.getNode("distortion_terms").string().split()
     assert terms[:2] == ["k1", "k2"] and storage.getNode("std_intrinsics").mat().shape == (4 + len(terms), 1)

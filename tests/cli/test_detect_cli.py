@@ -109,6 +109,7 @@ def test_folder_of_images_without_camera(tmp_path, camera, default_views):
         (["--board", "missing.json"], "board file missing.json does not exist"),
         (["--network", "fast", "--weights", "mine.pt"], "give weights or network='fast', not both"),
         (["--network", "fast", "--device", "cuda"], "run on the CPU"),
+        (["--network", "auto", "--weights", "mine.pt"], "give weights or network='auto', not both"),
     ],
 )
 def test_clear_errors(tmp_path, capsys, extra, message):
@@ -265,6 +266,21 @@ def test_the_fast_networks_find_the_bundled_example(tmp_path, capsys):
     summary = json.loads((tmp_path / "board_320x240.json").read_text())
     assert summary["frames"][0]["num_corners"] >= 14
     assert "weights/fast/detector.onnx" in capsys.readouterr().err
+
+
+def test_without_network_the_shipped_weights_run_auto_on_the_cpu_and_lite_otherwise(tmp_path, capsys):
+    """No --network: "auto" (the fast networks, the lite ones behind them) with the shipped weights in ONNX Runtime on
+    the CPU, named on the terminal and in the JSON; "lite" with --weights, a GPU or PyTorch's backend."""
+    from deepcharuco.networks.shipped import default_network
+
+    assert main([str(EXAMPLES / "board_320x240.png"), "--out", str(tmp_path), "--detector", "deep", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "weights/fast/detector.onnx" in err and "the lite networks behind them: " in err
+    summary = json.loads((tmp_path / "board_320x240.json").read_text())
+    assert "network='auto'" in summary["detector"] and summary["frames"][0]["num_corners"] >= 14
+    assert default_network(None) == "auto" and default_network(None, "cpu", "onnx") == "auto"
+    assert default_network("mine.pt") == "lite" and default_network(None, "cuda") == "lite"
+    assert default_network(None, "cpu", "torch") == "lite" and default_network(None, "cpu", "onnx-int8") == "lite"
 
 
 def test_image_files_of_other_depths_are_read_at_eight_bits_by_the_range_they_use():
