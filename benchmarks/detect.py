@@ -167,8 +167,8 @@ def video_rows(realdata: Path, device: str = "cpu", candidate: Candidate | None 
     every `VIDEO_SEARCH_EVERY`-th frame while no board is tracked, looking back: `BoardTracker.push`) and as it
     tracks a camera (every `CAMERA_SEARCH_EVERY`-th frame, no looking back), and the hybrid detector tracked as a
     video; with ``candidate`` (`candidate_of`), its deep detector searching each frame whole and tracked as a video,
-    and its hybrid tracked as a video. The detectors take the frames in turn (each frame by every detector, then the next), so that load on the
-    machine hits all alike."""
+    and its hybrid tracked as a video. The detectors take the frames in turn (each frame by every detector, then the
+    next), so that load on the machine hits all alike."""
     videos = sorted(realdata.glob("*/*.mp4"))
     if not videos:
         print(f"\nno real videos under {realdata}: pass --realdata")

@@ -132,11 +132,11 @@ LOCAL_WHITE = ("always", "dim")
 
 
 # Which whole frames the lite networks search where the fast ones find fewer than 4 corners, by (network, whether
-# the frame is a stream's): "dim" (where the frame is dim, `search_regions.is_dim`), "always" or "never". "fast" is for speed: a dark video's
-# frames without a board would each cost lite's whole search (docs/detector.md, "A dim whole frame searched by the
-# lite networks"). "auto" is for lite's frames: on the real videos as `detect` reads them, and on the real photos,
-# it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md, "Auto: the fast networks
-# first, the lite ones where they find too little").
+# the frame is a stream's): "dim" (where the frame is dim, `search_regions.is_dim`), "always" or "never". "fast" is
+# for speed: a dark video's frames without a board would each cost lite's whole search (docs/detector.md, "A dim
+# whole frame searched by the lite networks"). "auto" is for lite's frames: on the real videos as `detect` reads
+# them, and on the real photos, it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md,
+# "Auto: the fast networks first, the lite ones where they find too little").
 WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "always", ("auto", True): "dim"}
 
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.

@@ -345,8 +345,9 @@ def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames
             return None, board_like, dim
 
         monkeypatch.setattr(detector, "_search", blind)
-    cases = [(auto, lit, {}, 1), (auto, dark, {}, 1), (auto, lit, {"stream": True}, 0), (auto, dark, {"stream": True}, 1),
-             (auto, dark, {"levels": 1}, 0), (fast, lit, {}, 0), (fast, dark, {}, 1), (fast, dark, {"stream": True}, 0)]
+    cases = [(auto, lit, {}, 1), (auto, dark, {}, 1), (auto, lit, {"stream": True}, 0),
+             (auto, dark, {"stream": True}, 1), (auto, dark, {"levels": 1}, 0), (fast, lit, {}, 0), (fast, dark, {}, 1),
+             (fast, dark, {"stream": True}, 0)]
     for detector, image, options, searches in cases:
         with StageTimes() as times:
             found = detector.detect(image, **options)
