@@ -77,7 +77,8 @@ def build_detectors(board: BoardSpec, weights: str | None, refine_weights: str |
                     notes: list[str], network: str = "lite") -> dict:
     """The five configurations of the paper's timing table (the three deep ones when weights exist), and the
     deep detector without its board-geometry check (the paper's decoding), to show what the check adds.
-    ``network``: the three deep configurations' (`Detector`'s); the decodings compared beside them stay lite's."""
+    ``network``: the three deep configurations' (`Detector`'s); the fast networks read every board by its markers,
+    so with them the paper's decoding is not compared."""
     detectors = {"opencv": OpenCVDetector(board, refine="subpix"), "opencv_norefine": OpenCVDetector(board, refine="none")}
     from deepcharuco.detection.deep_detector import DEFAULT_WEIGHTS, Detector
 
