@@ -185,8 +185,8 @@ def run(args: argparse.Namespace) -> dict:
     if camera is None:
         print("no --camera given: detecting corners only, no pose", file=sys.stderr)
     if getattr(detectors[0], "weights", None) is not None:
-        backup = "" if getattr(detectors[0], "backup", None) is None else \
-            f"; the lite networks behind them: {detectors[0].backup.weights}"
+        behind = getattr(detectors[0], "backup_weights", None)  # named, not built: a photo may never need them
+        backup = "" if behind is None else f"; the lite networks behind them: {behind}"
         print(f"weights: {detectors[0].weights} (decoding: {detectors[0].geometry}{backup})", file=sys.stderr)
 
     overlays = Overlays(out, source)

@@ -529,6 +529,12 @@ class Detector:
             self._backup = Detector(**self._backup_options)
         return self._backup
 
+    @property
+    def backup_weights(self) -> Path | None:
+        """The weights `backup` reads (the shipped lite networks for this board), named without building it; None with
+        the lite networks."""
+        return None if self._backup_options is None else shipped_weights(self.board)
+
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
                 expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, bool]:
         """`detect` by these networks alone -> (the detection, whether the first level they searched whole was dim,

@@ -149,25 +149,24 @@ def read_camera(path: str | Path) -> Camera:
         raise CameraFileError(f"camera file {path} does not exist: calibrate the camera first (python -m "
                               f"deepcharuco.cli.calibrate VIDEO --board board.yaml --out {path})")
 
-    def not_ours(exc: Exception) -> CameraFileError:
-        return CameraFileError(f"{path} is not an OpenCV FileStorage file ({exc.__class__.__name__}); it must start "
-                               f"with '%YAML:1.0' (OpenCV 5: '%YAML 1.2') and hold camera_matrix as an opencv-matrix")
+    def ros_or_refused(exc: Exception) -> Camera:
+        """The file as a ROS camera_info YAML (which OpenCV's parser refuses without its header), else refused."""
+        ros = _ros_camera_info(path)
+        if ros is None:
+            raise CameraFileError(f"{path} is not an OpenCV FileStorage file ({exc.__class__.__name__}); it must start "
+                                  f"with '%YAML:1.0' (OpenCV 5: '%YAML 1.2') and hold camera_matrix as an "
+                                  f"opencv-matrix") from exc
+        return ros
 
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:
-        ros = _ros_camera_info(path)
-        if ros is not None:
-            return ros
-        raise not_ours(exc) from exc
+        return ros_or_refused(exc)
     try:
         try:
             K = storage.getNode("camera_matrix").mat()
         except cv2.error as exc:  # OpenCV 5 opens a file without the header, and fails on its first node instead
-            ros = _ros_camera_info(path)
-            if ros is not None:
-                return ros
-            raise not_ours(exc) from exc
+            return ros_or_refused(exc)
         if K is None:
             raise CameraFileError(f"{path} has no camera_matrix (an opencv-matrix node)")
         dist = storage.getNode("distortion_coefficients").mat()

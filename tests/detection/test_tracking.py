@@ -336,7 +336,8 @@ def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames
     lit, _, _, truth = make_view(board, camera, distance=0.4)
     dark = (lit.astype(np.float32) * 0.12).round().astype(np.uint8)  # white at ~31 of 255
     auto, fast = Detector(board=board, network="auto"), Detector(board=board, network="fast")
-    assert auto.backup.weights == Detector(board=board).weights and auto.network == "auto"
+    assert auto.backup_weights is not None and auto._backup is None  # named before it is built
+    assert auto.backup.weights == auto.backup_weights == Detector(board=board).weights and auto.network == "auto"
     for detector in (auto, fast):
         search = detector._search
 
