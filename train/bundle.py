@@ -148,6 +148,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="how Detector decodes the weights' own board when not told (stored in the bundle; "
                              "default: none stored, 'repair' where the ID head was trained): 'markers' for a "
                              "network whose point head serves but whose ID head does not")
+    parser.add_argument("--input-white", type=float, default=None,
+                        help="the grey in (0, 1] that ChArUcoNet's input is brightened to where its 99th percentile "
+                             "lies below it (stored in the bundle; default: none, the input as it is): 0.3 for the "
+                             "distilled fast networks, chosen on drawn validation frames (docs/detector.md)")
     parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE", help="provenance to record (repeatable)")
     args = parser.parse_args(argv)
     note = {}
@@ -179,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                                                   geometry=args.geometry)
             print("right - wrong corners on validation frames by threshold: "
                   + ", ".join(f"{t:.2f}: {v}" for t, v in balance.items()) + f" -> {threshold:.2f}")
-        path = save_bundle(out, args.charuconet, args.refinenet, note, threshold, args.default_geometry)
+        path = save_bundle(out, args.charuconet, args.refinenet, note, threshold, args.default_geometry,
+                           args.input_white)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
         # The same networks as ONNX beside it: Detector(weights=...) loads them where PyTorch is not installed.
         print(f"wrote {write_onnx_bundle(path)} (its ONNX bundle)")

@@ -191,6 +191,7 @@ def write_onnx_bundle(weights: str | Path, refine_weights: str | Path | None = N
     meta = {"format": FORMAT, "board": (board.plain() if points_only else board).to_dict(),
             "heads": "points" if points_only else "all", "threshold": checkpoint.get("threshold"),
             **({"geometry": checkpoint["geometry"]} if checkpoint.get("geometry") else {}),
+            **({"input_white": checkpoint["input_white"]} if checkpoint.get("input_white") else {}),
             "weights": Path(weights).name, "weights_sha256": fingerprint,
             "models_sha256": {name: hashlib.sha256(data).hexdigest() for name, data in models.items()},
             "weights_file_sha256": file_sha256(weights)}

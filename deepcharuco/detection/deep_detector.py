@@ -51,7 +51,7 @@ from deepcharuco.networks.backends import BACKENDS
 from deepcharuco.networks.cells import CELL, best_per_id, cell_candidates, cell_confidence
 from deepcharuco.networks.offsets import soft_argmax_offsets
 from deepcharuco.networks.onnx_bundle import (
-    BundleError, OnnxBundle, bundle_path, check_exported_from, checked_runner, is_bundle, read_bundle,
+    BundleError, OnnxBundle, bundle_path, check_exported_from, checked_runner, input_white, is_bundle, read_bundle,
 )
 from deepcharuco.networks.onnx_runner import OnnxRunner, onnxruntime_available
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
@@ -390,6 +390,7 @@ class Detector:
                 f"layout differs from {self.board}: use geometry='markers' (or leave it out) for this board")
         self.refine = refine
         self.threshold = float(threshold if threshold is not None else self.checkpoint.get("threshold", DEFAULT_THRESHOLD))
+        self.input_white = input_white(self.checkpoint, self.weights)
         self.soft_radius = int(soft_radius)
         self.geometry = geometry
         if working_size is not None and working_size < 2 * CELL:
@@ -848,7 +849,7 @@ class Detector:
         (boards found by their markers)."""
         height, width = gray.shape
         with stage(f"network {level}"):
-            point_logits, id_logits = self.runner.charuconet(network_input(gray))
+            point_logits, id_logits = self.runner.charuconet(network_input(gray, self.input_white))
         with stage("candidates"):
             confidence = cell_confidence(point_logits)
         if self.geometry == "markers":

@@ -32,12 +32,29 @@ PREVIEW_SUBPIX_HALF_WINDOW = 2
 PREVIEW_MAX_NUDGE_PX = 1.5
 
 
-def network_input(gray: np.ndarray) -> np.ndarray:
+def network_input(gray: np.ndarray, white: float | None = None) -> np.ndarray:
     """(H, W) uint8 -> ChArUcoNet's input (1, 1, H', W') float32 in [0, 1]: the network sees whole 8x8 cells,
-    so the image is padded right and bottom to multiples of 8 by replicating its border."""
+    so the image is padded right and bottom to multiples of 8 by replicating its border. ``white`` (a network's
+    bundle's ``input_white``): an image whose 99th percentile grey is below ``white`` (in [0, 1]) is scaled so that it
+    reaches it (`brightness_gain`), clipped at 1."""
     height, width = gray.shape
     padded = cv2.copyMakeBorder(gray, 0, -height % CELL, 0, -width % CELL, cv2.BORDER_REPLICATE)
-    return padded[None, None] / np.float32(255.0)
+    gain = brightness_gain(gray, white)
+    if gain == 1.0:
+        return padded[None, None] / np.float32(255.0)
+    return np.minimum(padded[None, None] * np.float32(gain / 255.0), np.float32(1.0))
+
+
+def brightness_gain(gray: np.ndarray, white: float | None) -> float:
+    """The factor that brings the (H, W) uint8 image's 99th percentile grey (its rank-0.99 value, as
+    `search_regions.is_dim` takes it; at least 1) up to ``white`` * 255, or 1 where it is there already or ``white``
+    is None."""
+    if white is None:
+        return 1.0
+    histogram = cv2.calcHist([gray], [0], None, [256], [0, 256]).ravel()
+    rank = int(0.99 * (gray.size - 1))
+    percentile = max(int(np.searchsorted(np.cumsum(histogram), rank + 1)), 1)
+    return max(1.0, white * 255.0 / percentile)
 
 
 def reduced(image: np.ndarray, scale: float) -> np.ndarray:

@@ -92,7 +92,8 @@ def save_atomically(data: dict, path: str | Path) -> Path:
 
 
 def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path, note: dict | None = None,
-                threshold: float | None = None, geometry: str | None = None) -> Path:
+                threshold: float | None = None, geometry: str | None = None, input_white: float | None = None
+                ) -> Path:
     """Both networks' checkpoints in one shippable file, written atomically.
 
     Training state that only resuming needs (optimizer, AMP scaler) is dropped, which is most of a
@@ -100,7 +101,8 @@ def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path,
     ``training``, and ``note`` (free-form: commands, data, hardware) under ``note``. ``threshold``, the
     operating point chosen on validation frames, becomes the ChArUcoNet part's ``threshold``, the
     `Detector`'s default; ``geometry`` (`deep_detector.DECODINGS`), its ``geometry``: how `Detector` decodes the
-    weights' own board when not told (else "repair" where the ID head was trained)."""
+    weights' own board when not told (else "repair" where the ID head was trained); ``input_white``, its
+    ``input_white``: the grey ChArUcoNet's dim inputs are brightened to (`onnx_bundle.input_white`)."""
     parts = {}
     for kind, source in (("charuconet", charuconet), ("refinenet", refinenet)):
         data = read_checkpoint(source, kind)
@@ -114,6 +116,10 @@ def save_bundle(path: str | Path, charuconet: str | Path, refinenet: str | Path,
         if geometry not in ("repair", "filter", "none", "markers"):
             raise CheckpointError(f"geometry {geometry!r} is none of repair, filter, none, markers")
         parts["charuconet"]["geometry"] = geometry
+    if input_white is not None:
+        if not 0.0 < input_white <= 1.0:
+            raise CheckpointError(f"input_white {input_white} is not a grey in (0, 1]")
+        parts["charuconet"]["input_white"] = float(input_white)
     return save_atomically({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": "bundle", **parts,
                              "note": note or {}}, path)
 

@@ -4,7 +4,9 @@ A bundle is a folder ``NAME.onnx/`` beside the weights ``NAME.pt`` it was export
 
     bundle.json               format, the board, the score threshold, which heads were trained, the source
                               weights' file name and the sha256 of ChArUcoNet's weights (as loaded); optionally
-                              ``geometry``: how `Detector` decodes the weights' own board when not told
+                              ``geometry``: how `Detector` decodes the weights' own board when not told, and
+                              ``input_white``: the grey (0-1] ChArUcoNet's input is brightened to where its 99th
+                              percentile lies below it (`input_white`)
     charuconet.onnx           ChArUcoNet, both heads (only where the ID head was trained)
     charuconet_points.onnx    ChArUcoNet's point head alone (boards read by their markers)
     charuconet_int8.onnx      the int8 ChArUcoNet the weights carry, where they carry one
@@ -129,6 +131,19 @@ def check_exported_from(bundle: OnnxBundle, weights: str | Path) -> None:
     if recorded and Path(weights).is_file() and file_sha256(weights) != recorded:
         raise BundleError(f"{bundle.path} was exported from another {Path(weights).name} than the one beside it "
                           f"(retrained or replaced since): {bundle_fix(bundle.path)} where PyTorch is installed")
+
+
+def input_white(meta: dict, source: str | Path) -> float | None:
+    """A checkpoint's or bundle's ``input_white`` (``meta``: its ChArUcoNet part or bundle.json; ``source``: where it
+    was read, for the message), or None: the grey in (0, 1] that ChArUcoNet's input is brightened to where its 99th
+    percentile lies below it (`deepcharuco.detection.levels.network_input`). Distilled networks whose confidences fade
+    in near darkness carry it (the shipped fast networks: docs/detector.md, "The fast networks' input brightened")."""
+    value = meta.get("input_white")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
+        raise BundleError(f"{source}: input_white {value!r} is not a grey in (0, 1]: {bundle_fix(Path(source))}")
+    return float(value)
 
 
 def bundle_fix(path: Path) -> str:
