@@ -307,7 +307,9 @@ class Detector:
             where they lose a tracked board and searching a dim photo they find nothing in (`backup`). "auto" (the
             command line's default): the fast networks first and the lite ones wherever those find too little: a
             tracked board lost, any photo, and a stream's dim whole frames (`detect`'s ``stream``); lite's frames at
-            the fast networks' speed where those find the board. Neither with ``weights``.
+            the fast networks' speed where those find the board. Neither with ``weights``. Weights whose bundle
+            says ``input_white`` (the fast networks': `input_white` attribute) see a dim whole frame brightened
+            (`levels.network_input`), not a tracked crop (``detect``'s ``expected``).
 
     Every argument after ``weights`` is keyword-only.
 
@@ -555,8 +557,12 @@ class Detector:
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
         working_size = working_size or self.working_size
         prior = self._expected_view(expected, full.shape[1])
+        # The fast networks' dim input brightened (their bundle's ``input_white``) where nothing is expected: in a tracked
+        # crop the expected view holds the board, and brightened crops put corners 3-10 px off on caliscope's darkened
+        # videos, where the lit frames' detections and OpenCV's agree (docs/detector.md).
+        white = self.input_white if expected is None else None
         found, board_like, dim = self._search(full, working_size, levels, prior,
-                                              None if prior is None else corner_spacing(expected.corners))
+                                              None if prior is None else corner_spacing(expected.corners), white)
         second = found is None and board_like and self.geometry == "markers" and self.board.inverted and levels is None
         self.local_white_skipped = second and local_white == "dim" and not dim
         if second and not self.local_white_skipped:
@@ -567,7 +573,7 @@ class Detector:
             # `BoardTracker`'s whole frames, which its crops and its look back cover).
             with stage("canonical view"):
                 full = canonical_view_local_white(gray_u8, self.board)
-            found, _, _ = self._search(full, working_size, levels, prior)
+            found, _, _ = self._search(full, working_size, levels, prior, white=white)
         if found is None:
             return Detection.empty(), dim
         region = found.region
@@ -696,7 +702,7 @@ class Detector:
         return locate_by_pattern(full, self.board, homography, ids[placing], corners[placing]).astype(np.float32)
 
     def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None,
-                prior: np.ndarray | None = None, expected_spacing: float | None = None
+                prior: np.ndarray | None = None, expected_spacing: float | None = None, white: float | None = None
                 ) -> tuple[Found | None, bool, bool]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
         that decided found, or None; whether any level saw board-like cells or a board; whether the first level searched
@@ -712,12 +718,13 @@ class Detector:
         metres -> ``full``'s pixels, where the board is expected (`_expected_view`); ``expected_spacing``: its
         corner spacing in ``full``'s pixels. An expected board is searched first from the first level where its
         squares are `MIN_SQUARE_PX` wide (the level a search from the coarsest would stop at), and the coarser
-        levels only where that finds nothing (`_expected_start`)."""
+        levels only where that finds nothing (`_expected_start`). ``white``: the networks' dim inputs are brightened
+        to it (`levels.network_input`; None: as they are)."""
         height, width = full.shape
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
             gray = reduced(full, 0.5)
-            ids, pixels, scores, early, _, view = self._find(gray, full, "preview")
+            ids, pixels, scores, early, _, view = self._find(gray, full, "preview", white=white)
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
                 # dim is asked only where nothing is found: not worked out for a board the preview found
                 return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True, False
@@ -725,12 +732,12 @@ class Detector:
         scales = self._level_scales(max(height, width), working_size)[:levels]
         start = self._expected_start(scales, max(height, width), expected_spacing)
         if start:
-            found, board_like, dim = self._search_levels(full, scales, start, len(scales), prior)
+            found, board_like, dim = self._search_levels(full, scales, start, len(scales), prior, white)
             if found is not None:
                 return found, board_like, dim
-            found, coarse_like, dim = self._search_levels(full, scales, 0, start, prior)
+            found, coarse_like, dim = self._search_levels(full, scales, 0, start, prior, white)
             return found, board_like or coarse_like, dim
-        return self._search_levels(full, scales, 0, len(scales), prior)
+        return self._search_levels(full, scales, 0, len(scales), prior, white)
 
     @staticmethod
     def _expected_start(scales: list[float], longest: int, spacing: float | None) -> int:
@@ -745,7 +752,7 @@ class Detector:
         return start if scales[start] * longest <= WHOLE_SEARCH_SIZE else 0
 
     def _search_levels(self, full: np.ndarray, scales: list[float], first: int, stop: int,
-                       prior: np.ndarray | None) -> tuple[Found | None, bool, bool]:
+                       prior: np.ndarray | None, white: float | None = None) -> tuple[Found | None, bool, bool]:
         """`_search` through the levels ``scales[first:stop]``, the first of them whole -> (what the level that
         decided found, or None; whether any of them saw board-like cells or a board; whether the first was dim)."""
         height, width = full.shape
@@ -776,8 +783,8 @@ class Detector:
                 gray = region if scale == 1.0 else reduced(region, scale)
                 if level == first:
                     dim = is_dim(gray)  # the whole frame at the first level searched
-                ids, pixels, scores, early, confidence, view = self._find(gray, region, level,
-                                                                    to_level(level_prior, box, gray.shape, region.shape))
+                ids, pixels, scores, early, confidence, view = self._find(
+                    gray, region, level, to_level(level_prior, box, gray.shape, region.shape), white)
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
                                to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,
@@ -839,17 +846,18 @@ class Detector:
         scales.append(1.0 if longest <= MAX_SEARCH_SIZE else MAX_SEARCH_SIZE / longest)
         return scales
 
-    def _find(self, gray: np.ndarray, full: np.ndarray, level: int | str = 0, prior: np.ndarray | None = None
+    def _find(self, gray: np.ndarray, full: np.ndarray, level: int | str = 0, prior: np.ndarray | None = None,
+              white: float | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EarlyRefinement | None, np.ndarray, np.ndarray | None]:
         """ChArUcoNet and the decoding on a canonical image -> (ids, integer pixels, scores) in ``gray``, the
         `EarlyRefinement` started for them (or None), the (Hc, Wc) cell confidences, and the view the markers
         verified (3x3, board metres -> ``gray``'s pixels; None: none, or not found by markers); markers are read in
         ``full``, the same image at full resolution; ``level`` names the search level in stage times
         (`deepcharuco.core.stage_times`); ``prior``: where the board is expected, board metres -> ``gray``'s pixels
-        (boards found by their markers)."""
+        (boards found by their markers); ``white``: ChArUcoNet's input brightened to it where dim (`network_input`)."""
         height, width = gray.shape
         with stage(f"network {level}"):
-            point_logits, id_logits = self.runner.charuconet(network_input(gray, self.input_white))
+            point_logits, id_logits = self.runner.charuconet(network_input(gray, white))
         with stage("candidates"):
             confidence = cell_confidence(point_logits)
         if self.geometry == "markers":

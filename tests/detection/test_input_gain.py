@@ -3,6 +3,8 @@
 import json
 import shutil
 
+import deepcharuco.detection.deep_detector as deep_detector
+
 import numpy as np
 import pytest
 
@@ -55,6 +57,25 @@ def test_the_fast_networks_find_a_board_in_near_darkness_only_with_their_input_b
     assert np.abs(found.corners - truth[found.ids]).max() < 0.3
     fast.input_white = None
     assert len(fast.detect(dark, stream=True)) == 0
+
+
+@pytest.mark.skipif(not onnxruntime_available(), reason="ONNX Runtime not installed")
+def test_a_tracked_crop_is_not_brightened(monkeypatch):
+    """Where the board is expected (a `BoardTracker`'s crop) the input stays as it is: brightened crops put corners
+    3-10 px off on caliscope's darkened videos (docs/detector.md); a whole frame is brightened."""
+    camera = Camera.from_fov(320, 240, hfov_deg=60.0)
+    image, _, _, _ = make_view(BOARD, camera, **VIEW_POSES[1])
+    dark = darken(image, 8)
+    fast = Detector(BOARD, network="fast")
+    whites = []
+    network_input = deep_detector.network_input
+    monkeypatch.setattr(deep_detector, "network_input", lambda gray, white=None: whites.append(white)
+                        or network_input(gray, white))
+    found = fast.detect(dark, stream=True)
+    assert len(found) == BOARD.num_corners and set(whites) == {0.3}
+    whites.clear()
+    assert len(fast.detect(dark, expected=found)) == BOARD.num_corners
+    assert whites and set(whites) == {None}
 
 
 def test_a_bundles_input_white_must_be_a_grey(tmp_path):
