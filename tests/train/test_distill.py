@@ -1,5 +1,7 @@
 """train.draw's frames and labels, train.distill's loss, resume and checkpoints (tiny frames, a few steps)."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -8,7 +10,7 @@ import torch
 from deepcharuco.boards.board import BoardSpec
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.networks.charuconet import ChArUcoNet, ChArUcoNetConfig, fold_batch_norm
-from deepcharuco.networks.checkpoint import load_charuconet, read_checkpoint, save_bundle
+from deepcharuco.networks.checkpoint import CheckpointError, load_charuconet, read_checkpoint, save_bundle
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS
 from train import distill
 from train.draw import FrameDrawer, DrawConfig
@@ -118,10 +120,18 @@ def test_the_checkpoint_loads_through_the_runtime_loader(tmp_path):
     np.testing.assert_allclose(points, expected[0][0].numpy(), atol=1e-3)
     np.testing.assert_allclose(ids, expected[1][0].numpy(), atol=1e-3)
     # Bundled with the shipped RefineNet, a Detector builds the fast network from the checkpoint's own config.
-    bundle = save_bundle(tmp_path / "fast.pt", tmp_path / "run" / "last.pt", DEFAULT_WEIGHTS, threshold=0.25)
+    # Its input_white (dim inputs brightened) travels from the bundle into its ONNX bundle and the Detector.
+    bundle = save_bundle(tmp_path / "fast.pt", tmp_path / "run" / "last.pt", DEFAULT_WEIGHTS, threshold=0.25,
+                         input_white=0.3)
     detector = Detector(weights=bundle, backend="onnx")
-    assert detector.charuconet.config.arch == "fast"
+    assert detector.charuconet.config.arch == "fast" and detector.input_white == 0.3
     assert detector.detect(np.full((120, 160), 128, np.uint8)) is not None
+    from deepcharuco.cli.export import write_onnx_bundle
+
+    exported = write_onnx_bundle(bundle)
+    assert json.loads((exported / "bundle.json").read_text())["input_white"] == 0.3
+    with pytest.raises(CheckpointError, match="input_white 1.5"):
+        save_bundle(tmp_path / "bad.pt", tmp_path / "run" / "last.pt", DEFAULT_WEIGHTS, input_white=1.5)
 
 
 def test_a_missing_teacher_is_one_line_and_writes_nothing(tmp_path, capsys):
