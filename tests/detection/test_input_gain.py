@@ -3,12 +3,11 @@
 import json
 import shutil
 
-import deepcharuco.detection.deep_detector as deep_detector
-
 import numpy as np
 import pytest
 
 from conftest import VIEW_POSES, make_view
+import deepcharuco.detection.deep_detector as deep_detector
 from deepcharuco import BoardSpec
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.detection.levels import brightness_gain, network_input
@@ -30,7 +29,10 @@ def test_a_dim_input_is_brightened_to_the_white_and_a_bright_one_left_as_it_is()
     brightened = network_input(dim, 0.3)[0, 0]
     assert np.sort(brightened.ravel())[rank] == pytest.approx(0.3, abs=1e-6)
     np.testing.assert_allclose(brightened, dim * (0.3 * 255 / percentile) / 255, rtol=1e-6)
-    assert brightened.max() <= 1.0  # the few greys above the percentile are clipped, not wrapped
+    lamp = dim.copy()
+    lamp[0, :20] = 200  # 20 of 3,072 pixels (under 1 %): the percentile stays dim, the lamp is clipped, not wrapped
+    assert brightness_gain(lamp, 0.3) == brightness_gain(dim, 0.3)
+    np.testing.assert_array_equal(network_input(lamp, 0.3)[0, 0, 0, :20], 1.0)
     black = np.zeros((16, 16), np.uint8)
     assert network_input(black, 0.3).max() == 0.0  # nothing to brighten: no division by a zero percentile
 
