@@ -464,9 +464,9 @@ def test_an_expected_board_its_level_does_not_find_is_looked_for_at_the_coarser_
     searches = []
     original = Detector._search_levels
 
-    def finer_levels_find_nothing(self, full, scales, first, stop, prior):
+    def finer_levels_find_nothing(self, full, scales, first, stop, prior, white=None):
         searches.append((first, stop, len(scales)))
-        return (None, False, False) if first > 0 else original(self, full, scales, first, stop, prior)
+        return (None, False, False) if first > 0 else original(self, full, scales, first, stop, prior, white)
 
     monkeypatch.setattr(Detector, "_search_levels", finer_levels_find_nothing)
     with StageTimes() as times:
