@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from deepcharuco.core.vectors import lengths
-from deepcharuco.detection.search_regions import Box
+from deepcharuco.detection.search_regions import Box, white_level
 from deepcharuco.networks.cells import CELL, CellCandidates
 from deepcharuco.networks.offsets import PATCH
 from deepcharuco.networks.shipped import DEFAULT_WEIGHTS, FAMILY_WEIGHTS_DIR, WEIGHTS_DIR  # noqa: F401 (WEIGHTS_DIR: API)
@@ -46,15 +46,11 @@ def network_input(gray: np.ndarray, white: float | None = None) -> np.ndarray:
 
 
 def brightness_gain(gray: np.ndarray, white: float | None) -> float:
-    """The factor that brings the (H, W) uint8 image's 99th percentile grey (its rank-0.99 value, as
-    `search_regions.is_dim` takes it; at least 1) up to ``white`` * 255, or 1 where it is there already or ``white``
-    is None."""
+    """The factor that brings the (H, W) uint8 image's 99th percentile grey (`search_regions.white_level`, at least 1)
+    up to ``white`` * 255, or 1 where it is there already or ``white`` is None."""
     if white is None:
         return 1.0
-    histogram = cv2.calcHist([gray], [0], None, [256], [0, 256]).ravel()
-    rank = int(0.99 * (gray.size - 1))
-    percentile = max(int(np.searchsorted(np.cumsum(histogram), rank + 1)), 1)
-    return max(1.0, white * 255.0 / percentile)
+    return max(1.0, white * 255.0 / max(white_level(gray), 1))
 
 
 def reduced(image: np.ndarray, scale: float) -> np.ndarray:

@@ -8,7 +8,7 @@ from conftest import network_widths
 from deepcharuco import BoardSpec, Detector
 from deepcharuco.core.stage_times import StageTimes, stage, tally
 from deepcharuco.detection.search_regions import (CONFIDENCE, DIM_CONFIDENCE, DIM_MIN_CELLS, DIM_WHITE, MIN_CELLS, area_share,
-                                                  board_like_boxes, is_dim, to_full)
+                                                  board_like_boxes, is_dim, to_full, white_level)
 from deepcharuco.networks.cells import CELL, cell_confidence
 from evaluate.speed.realistic import Placement, clutter, with_board, without_board
 
@@ -35,6 +35,17 @@ def test_a_dim_frame_counts_fainter_and_fewer_cells():
     assert is_dim((lit * (DIM_WHITE - 1) / 200).astype(np.uint8))
     lit[:, :2] = 255  # a lamp on 1 % of the frame does not make it lit
     assert not is_dim(lit) and is_dim(np.where(lit == 255, 255, 20).astype(np.uint8))
+
+
+def test_the_white_level_is_the_99th_percentile_grey_by_rank():
+    rng = np.random.default_rng(3)
+    for shape in ((1, 1), (7, 13), (180, 320)):
+        for high in (2, 30, 256):
+            gray = rng.integers(0, high, shape).astype(np.uint8)
+            rank = int(0.99 * (gray.size - 1))
+            assert white_level(gray) == np.sort(gray.ravel())[rank]
+            view = np.pad(gray, 3)[3:-3, 1:-5]  # a strided view (a region of a frame) reads the same
+            assert white_level(view) == np.sort(view.ravel())[int(0.99 * (view.size - 1))]
 
 
 def test_boxes_map_to_full_pixels_inside_the_image_at_least_the_minimum_side():
