@@ -142,7 +142,8 @@ def input_white(meta: dict, source: str | Path) -> float | None:
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
-        raise BundleError(f"{source}: input_white {value!r} is not a grey in (0, 1]: {bundle_fix(Path(source))}")
+        raise BundleError(f"{source}: input_white {value!r} is not a grey in (0, 1]: give one there, or bundle the "
+                          f"weights again (python -m train.bundle ... --input-white GREY)")
     return float(value)
 
 
