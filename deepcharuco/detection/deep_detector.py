@@ -131,13 +131,18 @@ MODES = ("deep", "hybrid")
 LOCAL_WHITE = ("always", "dim")
 
 
-# Which whole frames the lite networks search where the fast ones find fewer than 4 corners, by (network, whether
-# the frame is a stream's): "dim" (where the frame is dim, `search_regions.is_dim`), "always" or "never". "fast" is
+# What searches a whole frame again where the fast networks find fewer than 4 corners in it, by (network, whether the
+# frame is a stream's): the lite networks "dim" (where the frame is dim, `search_regions.is_dim`), "always" or
+# "never"; "finest": where it is dim, the fast networks search its finest level whole, where their search of it went
+# only where a coarser level saw board-like cells (a level longer than `WHOLE_SEARCH_SIZE`); else as "dim". "fast" is
 # for speed: a dark video's frames without a board would each cost lite's whole search (docs/detector.md, "A dim
 # whole frame searched by the lite networks"). "auto" is for lite's frames: on the real videos as `detect` reads
 # them, and on the real photos, it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md,
-# "Auto: the fast networks first, the lite ones where they find too little").
-WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "always", ("auto", True): "dim"}
+# "Auto: the fast networks first, the lite ones where they find too little"). In a dim stream the boards lite found
+# and they did not were small (squares of 7-11 px at 720p), which their own finest level found as often, at a third of
+# lite's cost: the real dark videos the same frames at 2-3x the speed (docs/detector.md, "A dark video's frames
+# searched at full resolution").
+WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "always", ("auto", True): "finest"}
 
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
@@ -479,12 +484,15 @@ class Detector:
         "The lite networks behind the fast ones"). Where they find fewer than 4 in a whole frame (nothing
         ``expected``, every level: no ``levels``), the lite networks search it whole as well (`WHOLE_BACKUP`): with
         "fast" a photo that is dim (`search_regions.is_dim`: the fast networks miss dark, steep boards that lite
-        reads), with "auto" any photo and a stream's dim frames; with "auto" a dim photo whose board they found in part
+        reads), with "auto" any photo and a stream's dim frames (below); with "auto" a dim photo whose board they found in part
         (fewer corners than their view of it puts inside the image) is searched by lite too, and the detection with
         more corners kept. ``stream``: the frame is one of a video's or a camera's, searched whole (`BoardTracker`'s
         whole searches, `StreamFrames`): with "fast" the lite networks never search it (in a dark video that cost
         lite's whole search in every frame without the board: docs/detector.md, "A dim whole frame searched by the
-        lite networks"), with "auto" only where it is dim.
+        lite networks"), with "auto" only where it is dim, and where the fast networks searched its finest level only
+        around board-like cells (a level longer than `WHOLE_SEARCH_SIZE`) they search that level whole instead (the
+        real dark videos' frames at 2-3x the speed: docs/detector.md, "A dark video's frames searched at full
+        resolution").
         ``dim_backup=False``: the same as ``stream=True`` (its earlier name).
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
@@ -506,6 +514,12 @@ class Detector:
             if expected is not None:
                 tally("backup looks")
                 return self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
+            finest = self._finest_searched_in_part(image.shape[:2], working_size)
+            if whole and dim and finest and WHOLE_BACKUP[self.network, stream] == "finest":
+                tally("finest searches")
+                with single_threaded_blas():
+                    more, _ = self._detect(image, finest, local_white=local_white, opencv=False)
+                return more if len(more) > len(found) else found
             if not (whole and self._backs_whole(dim, stream)):
                 return found
         elif not (whole and dim and not stream and self.network == "auto"
@@ -520,7 +534,16 @@ class Detector:
     def _backs_whole(self, dim: bool, stream: bool) -> bool:
         """Whether the lite networks search a whole frame the fast networks found fewer than 4 corners in: ``dim``,
         whether it was dim; ``stream``, whether it is a stream's (`detect`)."""
-        return {"dim": dim, "always": True, "never": False}[WHOLE_BACKUP[self.network, stream]]
+        return {"dim": dim, "always": True, "never": False, "finest": dim}[WHOLE_BACKUP[self.network, stream]]
+
+    def _finest_searched_in_part(self, shape: tuple[int, int], working_size: int | None) -> int | None:
+        """The finest level's longest side (px) where a whole search of an image of ``shape`` (H, W) searches that
+        level only where a coarser one saw board-like cells (`_search`: a level longer than `WHOLE_SEARCH_SIZE`), else
+        None (every level it searches, it searches whole)."""
+        longest = max(shape)
+        scales = self._level_scales(longest, working_size or self.working_size)
+        size = round(scales[-1] * longest)
+        return size if len(scales) > 1 and size > WHOLE_SEARCH_SIZE else None
 
     @property
     def backup(self) -> Detector | None:
@@ -539,15 +562,17 @@ class Detector:
         return None if self._backup_options is None else shipped_weights(self.board)
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
-                expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, bool]:
+                expected: Detection | None = None, local_white: str = "always", opencv: bool = True
+                ) -> tuple[Detection, bool]:
         """`detect` by these networks alone -> (the detection, whether the first level they searched whole was dim,
         `search_regions.is_dim`: `backup`'s cue; False where OpenCV's corners stand, where the preview found the
-        board, and where the markers beyond the view refused it)."""
+        board, and where the markers beyond the view refused it). ``opencv=False``: a hybrid detector's networks
+        alone (OpenCV has looked already)."""
         self.local_white_skipped = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
         # next full search runs OpenCV; a whole video looks back from it (`BoardTracker.push`).
-        if self._opencv is not None and levels is None:
+        if self._opencv is not None and levels is None and opencv:
             with stage("opencv"):
                 found = self._opencv.detect(image)
             if self._verified(found):

@@ -328,12 +328,13 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
 def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames_the_fast_ones_find_too_little_in(
         monkeypatch):
     """``network="auto"``: a whole frame the fast networks find nothing in is searched by the lite networks too where
-    it is a photo, lit or dim, and where it is a stream's (``stream``) only when dim; a dim photo whose board they
+    it is a photo, lit or dim, and where it is a stream's (``stream``) only when dim and searched whole at every level
+    (640x480: a 1280x720 one goes to the fast networks' finest level, the test after); a dim photo whose board they
     found in part is searched by lite too and the detection with more corners kept. ``network="fast"``: a dim photo
     alone. Neither in a quick look (``levels``). (`deep_detector.WHOLE_BACKUP`)"""
-    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    camera = Camera.from_fov(640, 480, hfov_deg=60.0)
     board = BoardSpec()
-    lit, _, _, truth = make_view(board, camera, distance=0.4)
+    lit, _, _, truth = make_view(board, camera, distance=0.3)
     dark = (lit.astype(np.float32) * 0.12).round().astype(np.uint8)  # white at ~31 of 255
     auto, fast = Detector(board=board, network="auto"), Detector(board=board, network="fast")
     assert auto.backup_weights is not None and auto._backup is None  # named before it is built
@@ -365,6 +366,44 @@ def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames
         with StageTimes() as times:
             assert len(detector.detect(image, **options)) == corners, (detector.network, options)
         assert times.counts.get("backup searches", 0) == (corners == 16)
+
+
+@pytest.mark.parametrize("mode", ["deep", "hybrid"])
+def test_auto_searches_a_streams_dim_720p_frame_again_at_full_resolution_with_the_fast_networks(monkeypatch, mode):
+    """``network="auto"``, a stream's dim 1280x720 frame the fast networks find nothing in: their search of the
+    full-resolution level went only around board-like cells (a level longer than `WHOLE_SEARCH_SIZE`), so they search
+    that level whole (`WHOLE_BACKUP`'s "finest"), not the lite networks, and OpenCV (hybrid) is not asked again. Not in
+    a lit frame, a quick look, a tracked crop, nor with ``network="fast"``; a photo is still lite's."""
+    camera = Camera.from_fov(1280, 720, hfov_deg=60.0)
+    board = BoardSpec()
+    lit, _, _, truth = make_view(board, camera, distance=0.5)
+    dark = (lit.astype(np.float32) * 0.04).round().astype(np.uint8)  # white at ~10 of 255: OpenCV finds nothing
+    auto, fast = Detector(board=board, network="auto", mode=mode), Detector(board=board, network="fast", mode=mode)
+    searched = []
+    for detector in (auto, fast):
+        search = detector._search
+
+        def coarse_blind(full, working_size, *args, search=search, **kwargs):
+            """The fast networks' search level by level sees no board; their full-resolution level alone does."""
+            searched.append(working_size)
+            found, board_like, dim = search(full, working_size, *args, **kwargs)
+            return (found if working_size == max(full.shape) else None), board_like, dim
+
+        monkeypatch.setattr(detector, "_search", coarse_blind)
+    with StageTimes() as times:
+        found = auto.detect(dark, stream=True)
+    assert searched == [320, 1280]
+    assert times.counts["finest searches"] == 1 and "backup searches" not in times.counts
+    assert times.counts.get("opencv", 0) == (mode == "hybrid")
+    assert len(found) == 16 and np.abs(found.corners - truth[found.ids]).max() < 0.2
+    for detector, image, options in ((auto, lit, {"stream": True}), (auto, dark, {"stream": True, "levels": 1}),
+                                     (fast, dark, {"stream": True})):
+        with StageTimes() as times:  # in hybrid mode OpenCV finds the lit board
+            assert len(detector.detect(image, **options)) == (16 if mode == "hybrid" and image is lit else 0)
+        assert "finest searches" not in times.counts and "backup searches" not in times.counts
+    with StageTimes() as times:
+        assert len(auto.detect(dark)) == 16  # a photo: the lite networks
+    assert times.counts["backup searches"] == 1 and "finest searches" not in times.counts
 
 
 def test_a_stream_never_lets_the_fast_networks_lite_backup_search_a_dim_whole_frame(monkeypatch):
