@@ -379,8 +379,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "is shipped)")
     parser.add_argument("--network", choices=NETWORKS, default=None,
                         help="deep/hybrid: auto (the default on a CPU with the shipped weights): the distilled fast "
-                             "networks first, the lite ones wherever those find too little (a lost board, a photo, "
-                             "a video's dim frames): lite's frames, at the fast networks' speed in good light. "
+                             "networks first, the lite ones wherever those find too little (a lost board, a photo; "
+                             "a video's dim frame: the fast ones again at full resolution): lite's frames, at the "
+                             "fast networks' speed in good light. "
                              "fast: the lite networks only where a tracked board is lost and in dim photos (2-4x "
                              "less network time, fewer dark and steep boards in a video). lite (the default with "
                              "--weights or on a GPU): the lite networks alone. docs/detector.md; auto and fast not "

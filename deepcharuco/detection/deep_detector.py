@@ -311,9 +311,10 @@ class Detector:
             recall on small and dark boards: docs/detector.md, "The fast networks"), with the lite networks looking
             where they lose a tracked board and searching a dim photo they find nothing in (`backup`). "auto" (the
             command line's default): the fast networks first and the lite ones wherever those find too little: a
-            tracked board lost, any photo, and a stream's dim whole frames (`detect`'s ``stream``); lite's frames at
-            the fast networks' speed where those find the board. Neither with ``weights``. Weights whose bundle
-            says ``input_white`` (the fast networks': `input_white` attribute) see a dim whole frame brightened
+            tracked board lost, any photo, and a stream's dim whole frames (`detect`'s ``stream``; where its finest
+            level is longer than `WHOLE_SEARCH_SIZE`, the fast networks search that level whole instead); lite's
+            frames at the fast networks' speed where those find the board. Neither with ``weights``. Weights whose
+            bundle says ``input_white`` (the fast networks': `input_white` attribute) see a dim whole frame brightened
             (`levels.network_input`), not a tracked crop (``detect``'s ``expected``).
 
     Every argument after ``weights`` is keyword-only.
@@ -484,15 +485,15 @@ class Detector:
         "The lite networks behind the fast ones"). Where they find fewer than 4 in a whole frame (nothing
         ``expected``, every level: no ``levels``), the lite networks search it whole as well (`WHOLE_BACKUP`): with
         "fast" a photo that is dim (`search_regions.is_dim`: the fast networks miss dark, steep boards that lite
-        reads), with "auto" any photo and a stream's dim frames (below); with "auto" a dim photo whose board they found in part
-        (fewer corners than their view of it puts inside the image) is searched by lite too, and the detection with
-        more corners kept. ``stream``: the frame is one of a video's or a camera's, searched whole (`BoardTracker`'s
-        whole searches, `StreamFrames`): with "fast" the lite networks never search it (in a dark video that cost
-        lite's whole search in every frame without the board: docs/detector.md, "A dim whole frame searched by the
-        lite networks"), with "auto" only where it is dim, and where the fast networks searched its finest level only
-        around board-like cells (a level longer than `WHOLE_SEARCH_SIZE`) they search that level whole instead (the
-        real dark videos' frames at 2-3x the speed: docs/detector.md, "A dark video's frames searched at full
-        resolution").
+        reads), with "auto" any photo and a stream's dim frames (below); with "auto" a dim photo whose board they found
+        in part (fewer corners than their view of it puts inside the image) is searched by lite too, and the detection
+        with more corners kept. ``stream``: the frame is one of a video's or a camera's, searched whole
+        (`BoardTracker`'s whole searches, `StreamFrames`): with "fast" the lite networks never search it (in a dark
+        video that cost lite's whole search in every frame without the board: docs/detector.md, "A dim whole frame
+        searched by the lite networks"), with "auto" only where it is dim, and where the fast networks searched its
+        finest level only around board-like cells (a level longer than `WHOLE_SEARCH_SIZE`) they search that level
+        whole instead, as one level (the real dark videos' frames at 2-3x the speed: docs/detector.md, "A dark
+        video's frames searched at full resolution").
         ``dim_backup=False``: the same as ``stream=True`` (its earlier name).
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
@@ -516,9 +517,12 @@ class Detector:
                 return self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
             finest = self._finest_searched_in_part(image.shape[:2], working_size)
             if whole and dim and finest and WHOLE_BACKUP[self.network, stream] == "finest":
+                # That level as a search of one level (``levels``): OpenCV (hybrid) does not look again, nor does an
+                # inverted print's second search about its local white, which the coarser levels made; on the drawn
+                # validation videos it found no frame more for 12 % more time (docs/detector.md).
                 tally("finest searches")
                 with single_threaded_blas():
-                    more, _ = self._detect(image, finest, local_white=local_white, opencv=False)
+                    more, _ = self._detect(image, finest, levels=1)
                 return more if len(more) > len(found) else found
             if not (whole and self._backs_whole(dim, stream)):
                 return found
@@ -562,17 +566,15 @@ class Detector:
         return None if self._backup_options is None else shipped_weights(self.board)
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
-                expected: Detection | None = None, local_white: str = "always", opencv: bool = True
-                ) -> tuple[Detection, bool]:
+                expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, bool]:
         """`detect` by these networks alone -> (the detection, whether the first level they searched whole was dim,
         `search_regions.is_dim`: `backup`'s cue; False where OpenCV's corners stand, where the preview found the
-        board, and where the markers beyond the view refused it). ``opencv=False``: a hybrid detector's networks
-        alone (OpenCV has looked already)."""
+        board, and where the markers beyond the view refused it)."""
         self.local_white_skipped = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
         # next full search runs OpenCV; a whole video looks back from it (`BoardTracker.push`).
-        if self._opencv is not None and levels is None and opencv:
+        if self._opencv is not None and levels is None:
             with stage("opencv"):
                 found = self._opencv.detect(image)
             if self._verified(found):

@@ -37,8 +37,9 @@ A `Detector` with the fast networks (``network`` "fast" or "auto") hands a crop 
 networks (`Detector.backup`): the tracker asks once, the detector answers with whichever found it. The tracker's
 whole-frame searches are a stream's (`Detector.detect`'s ``stream``), as are a stream's frames searched whole without
 a tracker (`StreamFrames`): there "fast" never lets the lite networks search a whole frame (in a dark video that
-cost lite's whole search in every frame without the board) and "auto" lets them search a dim one the fast networks
-find nothing in (a photo gets more: `deep_detector.WHOLE_BACKUP`).
+cost lite's whole search in every frame without the board) and in a dim one the fast networks find nothing in "auto"
+has them search its full resolution whole (a 640x480 frame's, searched whole already: the lite networks; a photo gets
+more: `deep_detector.WHOLE_BACKUP`).
 """
 
 from __future__ import annotations
