@@ -3,9 +3,10 @@
 speed, against every level of every frame.
 
     python benchmarks/search_every.py [--seed 0] [--videos 1] [--frames 150] [--values 1,3,4,6,8,12]
-                                      [--network lite|fast] [--detector deep|hybrid] [--camera]
+                                      [--network lite|fast|auto] [--detector deep|hybrid] [--camera]
 
-Boards: the paper's (read by the shipped weights' ID head) and 7x5 DICT_6X6_250 (read by its markers); conditions:
+Boards: the paper's (read by the shipped weights' ID head), 7x5 DICT_6X6_250 and an inverted 4x5 DICT_4X4_1000 (both
+read by their markers); conditions:
 good, dark and shake; ``--videos`` videos of each, drawn from ``--seed`` (0 chooses; the real videos in realdata/
 measure). Each video is read by `BoardTracker.push` once per value, as ``detect VIDEO`` reads it (looking back; with
 ``--camera`` frame by frame, as a live camera), the values' order turned by one for each video so that load on the
@@ -31,7 +32,8 @@ from deepcharuco.detection.tracking import MIN_CORNERS, BoardTracker
 from evaluate.paper.unseen_boards import UNSEEN_BOARDS
 from evaluate.speed.drawn_videos import CONDITIONS, DrawnVideo, drawn_video
 
-BOARDS = {"paper 5x5 DICT_5X5_50": BoardSpec(), "7x5 DICT_6X6_250": UNSEEN_BOARDS["7x5 DICT_6X6_250"]}
+BOARDS = {"paper 5x5 DICT_5X5_50": BoardSpec(), "7x5 DICT_6X6_250": UNSEEN_BOARDS["7x5 DICT_6X6_250"],
+          "4x5 DICT_4X4_1000 inverted": UNSEEN_BOARDS["4x5 DICT_4X4_1000 inverted"]}
 WRONG_PX = 3.0
 
 
@@ -62,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--videos", type=int, default=1, help="videos per board and condition (default 1)")
     parser.add_argument("--frames", type=int, default=150, help="frames a video (default 150, 5 s at 30 fps)")
     parser.add_argument("--values", default="1,3,4,6,8,12", help="search_every values; 1 is the reference")
-    parser.add_argument("--network", choices=("lite", "fast"), default="lite")
+    parser.add_argument("--network", choices=("lite", "fast", "auto"), default="lite",
+                        help="the networks (Detector's network; auto: deepcharuco detect's default)")
     parser.add_argument("--detector", choices=("deep", "hybrid"), default="deep")
     parser.add_argument("--camera", action="store_true", help="frame by frame, without looking back (a live camera)")
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
