@@ -404,6 +404,9 @@ def test_auto_searches_a_streams_dim_720p_frame_again_at_full_resolution_with_th
     with StageTimes() as times:
         assert len(auto.detect(dark)) == 16  # a photo: the lite networks
     assert times.counts["backup searches"] == 1 and "finest searches" not in times.counts
+    with StageTimes() as times:
+        assert len(auto.detect(dark, stream=True, expected=found)) == 16  # a tracked crop lost: the lite networks look
+    assert times.counts["backup looks"] == 1 and "finest searches" not in times.counts
 
 
 def test_a_stream_never_lets_the_fast_networks_lite_backup_search_a_dim_whole_frame(monkeypatch):
