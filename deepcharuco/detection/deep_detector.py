@@ -88,6 +88,12 @@ MAX_EARLY_PER_CORNER = 2
 MAX_SEARCH_SIZE = 2048
 
 
+# A search level within this factor of the full image is the full image: a tracked crop's working size, its frame's
+# scale rounded, put a doubled level a pixel or two short of the crop (a 157-px crop: 78, 156, then 157 px), and
+# where the board's squares were too narrow at 156 px the network and the markers ran again at 157.
+LEVEL_SNAP = 1.05
+
+
 # Search levels no longer than this are searched whole; finer ones only around what the level before found or saw
 # (`Detector._search`, `deepcharuco.detection.search_regions`): a frame without a board is not searched above 640 px, and a
 # small board in a large frame costs the pixels around it. 320 was faster still (a 1280x720 frame without a board
@@ -862,11 +868,12 @@ class Detector:
     def _level_scales(longest: int, working_size: int | None) -> list[float]:
         """The scales (of the full image, whose longest side is ``longest``) the board is searched at, coarse first:
         ``working_size``, then twice that, ... up to the full image itself (a board whose squares are too small for
-        the coarse level is found at a finer one), the finest never longer than `MAX_SEARCH_SIZE`."""
+        the coarse level is found at a finer one), the finest never longer than `MAX_SEARCH_SIZE`; a level within
+        `LEVEL_SNAP` of the full image is the full image."""
         if working_size is None:
             return [1.0]
         scales, size = [], max(working_size, 2 * CELL)
-        while size < longest and size < MAX_SEARCH_SIZE:
+        while size * LEVEL_SNAP < longest and size < MAX_SEARCH_SIZE:
             scales.append(size / longest)
             size *= 2
         # the network never sees more than MAX_SEARCH_SIZE: memory and time stay bounded

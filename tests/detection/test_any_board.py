@@ -358,6 +358,17 @@ def test_huge_images_are_never_searched_above_the_cap():
     assert Detector._level_scales(8000, None) == [1.0]
 
 
+def test_a_level_a_pixel_or_two_short_of_the_full_image_is_the_full_image():
+    """A tracked crop's working size is its frame's scale rounded (157 px at a quarter: 39, doubled by the tracker to
+    78): its doubled level fell a pixel short of the crop, and a board too narrow at 156 px was searched again at 157."""
+    def sides(longest, working_size):
+        return [round(scale * longest) for scale in Detector._level_scales(longest, working_size)]
+
+    assert sides(157, 78) == [78, 157] and sides(1001, 250) == [250, 500, 1001]
+    assert sides(1280, 320) == [320, 640, 1280] and sides(1920, 320) == [320, 640, 1280, 1920]
+    assert sides(1366, 320) == [320, 640, 1280, 1366] and sides(340, 320) == [320, 340]
+
+
 def test_inverted_print_negated_about_its_local_white(camera):
     """A dim inverted board in a frame whose white is a lamp (caliscope's board across the room): negated about the
     frame's white it is pale grey on white; about its local white it is a dim board, found by its markers."""
