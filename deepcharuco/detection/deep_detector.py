@@ -521,8 +521,9 @@ class Detector:
             if expected is not None:
                 tally("backup looks")
                 return self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
-            finest = self._finest_searched_in_part(image.shape[:2], working_size)
-            if whole and dim and finest and WHOLE_BACKUP[self.network, stream] == "finest":
+            finest = whole and dim and WHOLE_BACKUP[self.network, stream] == "finest" \
+                and self._finest_searched_in_part(image.shape[:2], working_size)
+            if finest:
                 # That level as a search of one level (``levels``): OpenCV (hybrid) does not look again, nor does an
                 # inverted print's second search about its local white, which the coarser levels made; on the drawn
                 # validation videos it found no frame more for 12 % more time (docs/detector.md).
