@@ -44,6 +44,11 @@ class ChArUcoNetTask:
     def __init__(self, config: TrainConfig, augmentation: AugmentConfig | None = AugmentConfig()):
         if config.label_sigma != TrainConfig.label_sigma:
             raise DeepCharucoError("--label-sigma applies to RefineNet's targets; ChArUcoNet's are cell classes")
+        if config.width == "fast" or config.teacher:
+            raise DeepCharucoError("--width fast and --teacher train RefineNet here; a fast ChArUcoNet is distilled "
+                                   "from a teacher by python -m train.distill --arch fast")
+        if (config.distill_weight, config.temperature) != (TrainConfig.distill_weight, TrainConfig.temperature):
+            raise DeepCharucoError("--distill-weight and --temperature apply to RefineNet's --teacher")
         if augmentation is not None and config.crop:
             augmentation = replace(augmentation, crop=parse_crop(config.crop))
         if augmentation is not None and config.shadow_edges:

@@ -11,7 +11,8 @@ from train.loop import TrainConfig, pick_device, train
 
 HELP = {
     "data": "folder of shards", "out": "run folder (last.pt, best.pt, log.csv)", "steps": "optimizer steps in all",
-    "width": "network width: paper or lite", "val_every": "steps between validations",
+    "width": "network width: paper or lite; RefineNet also fast (a space-to-depth encoder, a third of lite's cost)",
+    "val_every": "steps between validations",
     "val_batches": "validation batches per validation", "checkpoint_every": "steps between last.pt saves",
     "workers": "DataLoader worker processes", "device": "auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:1, mps",
     "amp": "mixed precision on CUDA",
@@ -21,6 +22,10 @@ HELP = {
              "alone (ID loss off) on renders of any boards, e.g. a marker family: the checkpoint records that its ID "
              "head is untrained, so Detector finds every board by its markers",
     "label_sigma": "RefineNet only: width of the Gaussian target in 1/8 px grid cells; 0 = the paper's one-hot cell",
+    "teacher": "RefineNet only: distil from this RefineNet (a checkpoint or a bundle, e.g. deepcharuco/weights/"
+               "detector.pt): its 4096-way softmax as a soft target beside the labels' ('' = labels alone)",
+    "distill_weight": "RefineNet only, with --teacher: weight of the teacher's term (T^2 KL) beside the labels' term",
+    "temperature": "RefineNet only, with --teacher: the softmax temperature of the teacher's term",
     "crop": "ChArUcoNet only: train on random WxH crops, e.g. 160x120 (multiples of 8); '' = whole frames",
     "shadow_edges": "ChArUcoNet only: share of training crops on which a cast shadow's edge passes within 2 px of a "
                     "visible corner (0 = the paper's augmentation)",
@@ -38,7 +43,7 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
         if isinstance(default, bool):
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=HELP.get(field.name, " "))
         elif field.name == "width":
-            parser.add_argument(flag, choices=("paper", "lite"), default=default, help=HELP[field.name])
+            parser.add_argument(flag, choices=("paper", "lite", "fast"), default=default, help=HELP[field.name])
         elif field.name == "heads":
             parser.add_argument(flag, choices=HEADS, default=default, help=HELP[field.name])
         else:
@@ -50,6 +55,8 @@ def parse_config(prog: str, description: str, defaults: dict, argv: list[str] | 
                 if getattr(config, name) < low]
     if config.lr <= 0:
         problems.append("--lr must be > 0")
+    if config.distill_weight < 0 or config.temperature <= 0:
+        problems.append("--distill-weight must be >= 0 and --temperature > 0")
     if not 0.0 <= config.shadow_edges <= 1.0:
         problems.append("--shadow-edges is a share of the crops, from 0 to 1")
     if config.id_positive_weight <= 0:

@@ -56,11 +56,14 @@ class TrainConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     warmup: int = 500
-    width: str = "paper"  # "paper" or "lite"
+    width: str = "paper"  # "paper" or "lite"; RefineNet also "fast"
     init: str = ""  # start from these weights (a checkpoint of the same network), fresh optimizer and schedule
     id_positive_weight: float = 1.0  # ChArUcoNet: weight of corner cells in the ID cross-entropy; 1 = plain mean
     heads: str = "all"  # ChArUcoNet: "all" (point + ID heads) or "points" (point head alone: any boards, a family model)
     label_sigma: float = 2.0  # RefineNet: Gaussian target width in grid cells (1/8 px); 0 = one-hot
+    teacher: str = ""  # RefineNet: distil from this RefineNet (checkpoint or bundle) besides the labels
+    distill_weight: float = 1.0  # RefineNet: weight of the teacher's term (T^2 KL) beside the labels' term
+    temperature: float = 2.0  # RefineNet: the softmax temperature T of the teacher's term
     crop: str = ""  # ChArUcoNet: train on random WxH crops ("160x120"); "" = whole frames
     shadow_edges: float = 0.0  # ChArUcoNet: share of crops with a cast shadow's edge through a corner
     val_fraction: float = 0.1

@@ -5,7 +5,12 @@ Loss: 4096-way cross-entropy against a Gaussian around the true offset on the 64
 wrong-by-a-pixel guess the same loss as a wild one, and here the networks sat at the uniform
 distribution's loss (ln 4096) for the first thousand steps; the Gaussian's gradient points
 towards the corner from the start. Validation: mean distance (px) between the decoded offset
-(argmax + soft-argmax) and the truth.
+(argmax + soft-argmax) and the truth, and its 90th percentile.
+
+``--teacher`` distils another RefineNet into this one (e.g. ``--width fast`` from the shipped lite one, on patches
+of drawn frames, ``python -m train.drawn_patches``): the loss adds ``--distill-weight`` times T^2 KL(teacher ||
+student) of the 4096-way softmax at temperature T (``--temperature``), and validation reports the teacher's own
+errors on the same patches (``teacher_error_px``, ``teacher_p90_px``: the mark to reach).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import torch.nn.functional as F
 
 from datagen.shards import read_patch_shard
 from deepcharuco.core.errors import DeepCharucoError
+from deepcharuco.networks.checkpoint import load_refinenet
 from deepcharuco.networks.refinenet import CENTRE_LOW, GRID, RefineNet, RefineNetConfig, decode_offsets, offset_to_cell
 from train.cli import run_trainer
 from train.dataset import split_shards
@@ -53,7 +59,6 @@ def gaussian_targets(offsets: torch.Tensor, sigma: float) -> torch.Tensor:
 
 class RefineNetTask:
     higher_is_better = False
-    metric_names = ("score", "mean_error_px")
 
     def __init__(self, config: TrainConfig):
         if config.crop:
@@ -68,25 +73,47 @@ class RefineNetTask:
         training, validation = split_shards(config.data, config.val_fraction,
                                             "make some with python -m datagen.patches")
         torch.manual_seed(config.seed)
-        self.model = RefineNet(RefineNetConfig.lite() if config.width == "lite" else RefineNetConfig.paper())
+        self.model = RefineNet(getattr(RefineNetConfig, config.width)())
         self.train_set, self.val_set = PatchDataset(training), PatchDataset(validation)
         self.label_sigma = config.label_sigma
+        self.teacher = load_refinenet(config.teacher)[0].requires_grad_(False) if config.teacher else None
+        self.distill_weight, self.temperature = config.distill_weight, config.temperature
+        self.metric_names = ("score", "mean_error_px", "p90_error_px") + \
+            (("teacher_error_px", "teacher_p90_px") if self.teacher is not None else ())
 
     def loss(self, model, batch: dict, device: torch.device) -> torch.Tensor:
-        logits = model(batch["image"].to(device)).float()
+        image = batch["image"].to(device)
+        logits = model(image).float()
         if self.label_sigma <= 0:
-            return F.cross_entropy(logits, batch["target"].to(device))
-        target = gaussian_targets(batch["offset"].to(device), self.label_sigma)
-        return -(target * F.log_softmax(logits, dim=1)).sum(dim=1).mean()
+            loss = F.cross_entropy(logits, batch["target"].to(device))
+        else:
+            target = gaussian_targets(batch["offset"].to(device), self.label_sigma)
+            loss = -(target * F.log_softmax(logits, dim=1)).sum(dim=1).mean()
+        if self.teacher is None or self.distill_weight == 0:
+            return loss
+        with torch.no_grad():
+            taught = F.softmax(self.teacher.to(device)(image).float() / self.temperature, dim=1)
+        kl = F.kl_div(F.log_softmax(logits / self.temperature, dim=1), taught, reduction="batchmean")
+        return loss + self.distill_weight * self.temperature ** 2 * kl
 
     def validate(self, model, batches: list[dict], device: torch.device) -> dict:
-        errors = [torch.linalg.norm(decode_offsets(model(b["image"].to(device)).float()).cpu() - b["offset"], dim=1)
-                  for b in batches]
-        error = float(torch.cat(errors).mean())
-        return {"score": error, "mean_error_px": error}
+        error = _errors(model, batches, device)
+        metrics = {"score": float(error.mean()), "mean_error_px": float(error.mean()),
+                   "p90_error_px": float(torch.quantile(error, 0.9))}
+        if self.teacher is not None:
+            taught = _errors(self.teacher.to(device), batches, device)
+            metrics.update(teacher_error_px=float(taught.mean()), teacher_p90_px=float(torch.quantile(taught, 0.9)))
+        return metrics
 
     def checkpoint_kwargs(self) -> dict:
         return {}
+
+
+def _errors(model, batches: list[dict], device: torch.device) -> torch.Tensor:
+    """(N,) distances (px) between ``model``'s decoded offsets and the labels over ``batches``."""
+    with torch.no_grad():
+        return torch.cat([torch.linalg.norm(decode_offsets(model(b["image"].to(device)).float()).cpu() - b["offset"],
+                                            dim=1) for b in batches])
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,6 +7,16 @@
 
 1.07 M parameters, 4.1 MB in float32, as the paper reports.
 
+The ``fast`` architecture (``arch="fast"``, `RefineNetConfig.fast`) has the same output from a space-to-depth
+encoder, for about a third of the ``lite`` width's multiply-adds and time on a CPU (issue 51; RefineNet was the
+largest stage of a tracked frame with the fast point networks):
+
+    patch -> pixel_unshuffle by 2 (4 channels at 12x12) -> 2 x conv3x3 w1 -> max-pool (6x6)
+          -> 2 x conv3x3 w2 -> max-pool (3x3) -> 2 x conv3x3 w3 -> the head and classifier above
+
+The lossless rearrangement keeps every pixel for the sub-pixel answer; it spares the thin layers at 24x24 that are
+memory-bound in ONNX Runtime (as ChArUcoNet's fast encoder does at full resolution).
+
 Sub-pixel convention (OpenCV's: pixel centres at integers). The central 8x8 pixels of a
 patch are 8..15, covering positions [7.5, 15.5) on each axis. Grid cell j (0..63) covers
 [7.5 + j/8, 7.5 + (j+1)/8); a corner at ``offset`` is cell ``floor((offset - 7.5) * 8)`` and
@@ -28,10 +38,11 @@ from deepcharuco.networks.offsets import CENTRE_LOW, GRID, PATCH, soft_argmax_of
 
 @dataclass(frozen=True)
 class RefineNetConfig:
-    widths: tuple[int, int, int, int] = (64, 64, 128, 128)
+    widths: tuple[int, ...] = (64, 64, 128, 128)
     head: int = 128
     bottleneck: int = 8
     batch_norm: bool = True  # see charuconet's docstring
+    arch: str = "vgg"  # "vgg": ``widths`` are the VGG encoder's 4 stages; "fast": the 3 stages after pixel_unshuffle
 
     @classmethod
     def paper(cls) -> "RefineNetConfig":
@@ -41,13 +52,50 @@ class RefineNetConfig:
     def lite(cls) -> "RefineNetConfig":
         return cls(widths=(16, 32, 48, 64), head=64, bottleneck=8)
 
+    @classmethod
+    def fast(cls) -> "RefineNetConfig":
+        """The space-to-depth encoder (module docstring): 1.7 M multiply-adds a patch against lite's 5.9 M."""
+        return cls(widths=(16, 32, 48), head=48, bottleneck=8, arch="fast")
+
+    def __post_init__(self):
+        if self.arch not in ARCHITECTURES:
+            raise ValueError(f"RefineNet arch must be one of {ARCHITECTURES}, got {self.arch!r}")
+        if len(self.widths) != (4 if self.arch == "vgg" else 3):
+            raise ValueError(f"a {self.arch} RefineNet has {4 if self.arch == 'vgg' else 3} widths, got {self.widths}")
+
     def to_dict(self) -> dict:
-        return {**asdict(self), "widths": list(self.widths)}
+        data = {**asdict(self), "widths": list(self.widths)}
+        if self.arch == "vgg":  # files of the paper's encoder stay as they were before "arch" existed
+            del data["arch"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefineNetConfig":
         return cls(widths=tuple(int(w) for w in data["widths"]), head=int(data["head"]), bottleneck=int(data["bottleneck"]),
-                   batch_norm=bool(data.get("batch_norm", False)))  # format 1 files before batch_norm had none
+                   batch_norm=bool(data.get("batch_norm", False)),  # format 1 files before batch_norm had none
+                   arch=str(data.get("arch", "vgg")))
+
+
+ARCHITECTURES = ("vgg", "fast")
+WIDTH_NAMES = ("paper", "lite", "fast")  # the named configurations, as train.refinenet's --width takes them
+
+
+class FastPatchEncoder(nn.Module):
+    """The ``fast`` encoder (module docstring): (B, 1, 24, 24) -> (B, widths[-1], 3, 3)."""
+
+    def __init__(self, widths: tuple[int, int, int], batch_norm: bool = True):
+        super().__init__()
+        layers, channels = [nn.PixelUnshuffle(2)], 4
+        for i, width in enumerate(widths):
+            layers += [conv(channels, width, batch_norm=batch_norm), conv(width, width, batch_norm=batch_norm)]
+            if i < len(widths) - 1:
+                layers.append(nn.MaxPool2d(2, 2))
+            channels = width
+        self.layers = nn.Sequential(*layers)
+        self.out_channels = channels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)
 
 
 class RefineNet(nn.Module):
@@ -57,7 +105,8 @@ class RefineNet(nn.Module):
         super().__init__()
         self.config = config
         bn = config.batch_norm
-        self.encoder = VGGEncoder(config.widths, batch_norm=bn)
+        self.encoder = FastPatchEncoder(config.widths, bn) if config.arch == "fast" else \
+            VGGEncoder(config.widths, batch_norm=bn)
         self.head = nn.Sequential(conv(self.encoder.out_channels, config.head, batch_norm=bn),
                                   conv(config.head, config.bottleneck, 1, batch_norm=bn))
         self.classifier = nn.Linear(config.bottleneck * (PATCH // 8) ** 2, GRID * GRID)

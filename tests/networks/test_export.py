@@ -105,3 +105,24 @@ def test_cli_refuses_an_unwritable_or_file_out_in_one_line(checkpoints, tmp_path
         assert main(["--weights", str(folder / "charuconet.pt"), "--out", str(out), "--format", "torchscript"]) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_the_fast_refinenet_runs_the_same_in_onnx_runtime(tmp_path):
+    from deepcharuco.networks import load_refinenet
+    from deepcharuco.networks.onnx_runner import _session
+    from deepcharuco.networks.runtime import float_onnx
+
+    torch.manual_seed(5)
+    model = RefineNet(RefineNetConfig.fast())
+    for layer in model.modules():  # logits of realistic magnitude, as in `checkpoints`
+        if isinstance(layer, (torch.nn.Conv2d, torch.nn.Linear)):
+            layer.weight.data.mul_(3.0)
+    save_checkpoint(tmp_path / "fast.pt", model)
+    loaded, _ = load_refinenet(tmp_path / "fast.pt")  # its architecture read back from the checkpoint, BN folded
+    patches = torch.rand(7, 1, 24, 24)
+    with torch.no_grad():
+        want = model.eval()(patches).numpy()
+    session = _session(float_onnx(loaded), 1)
+    (got,) = session.run(None, {session.get_inputs()[0].name: patches.numpy()})
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    assert np.abs(want).max() > 1.0  # not a trivially small output

@@ -91,7 +91,8 @@ def test_checkpoints_from_before_batch_norm_still_load(tmp_path):
 
 def test_folding_batch_norm_keeps_the_outputs():
     torch.manual_seed(0)
-    for model, shape in ((ChArUcoNet(ChArUcoNetConfig.lite()), (2, 1, 64, 80)), (RefineNet(RefineNetConfig.lite()), (5, 1, 24, 24))):
+    for model, shape in ((ChArUcoNet(ChArUcoNetConfig.lite()), (2, 1, 64, 80)), (RefineNet(RefineNetConfig.lite()), (5, 1, 24, 24)),
+                         (RefineNet(RefineNetConfig.fast()), (5, 1, 24, 24))):
         for m in model.modules():
             if isinstance(m, torch.nn.BatchNorm2d):  # statistics as after training, not the identity of a fresh layer
                 m.running_mean.uniform_(-0.5, 0.5), m.running_var.uniform_(0.5, 2.0), m.weight.data.uniform_(0.5, 1.5)
@@ -105,6 +106,32 @@ def test_folding_batch_norm_keeps_the_outputs():
             assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
     with pytest.raises(ValueError, match="eval mode"):
         fold_batch_norm(RefineNet(RefineNetConfig.lite()).train())
+
+
+def test_the_fast_refinenet_has_the_same_output_for_a_third_of_the_multiply_adds():
+    multiply_adds = {}
+    for name in ("lite", "fast"):
+        model, total = RefineNet(getattr(RefineNetConfig, name)()).eval(), []
+
+        def count(module, inputs, output):
+            if isinstance(module, torch.nn.Conv2d):
+                total.append(output.numel() * module.in_channels * module.kernel_size[0] * module.kernel_size[1])
+            elif isinstance(module, torch.nn.Linear):
+                total.append(module.in_features * module.out_features)
+
+        hooks = [m.register_forward_hook(count) for m in model.modules()]
+        with torch.no_grad():
+            assert model(torch.rand(1, 1, 24, 24)).shape == (1, 4096)  # one patch
+        [h.remove() for h in hooks]
+        multiply_adds[name] = sum(total)
+    assert multiply_adds["fast"] < 0.4 * multiply_adds["lite"], multiply_adds
+    fast = RefineNetConfig.fast()
+    assert RefineNetConfig.from_dict(fast.to_dict()) == fast and fast.to_dict()["arch"] == "fast"
+    assert "arch" not in RefineNetConfig.lite().to_dict()  # the shipped lite files stay as they were
+    with pytest.raises(ValueError, match="3 widths"):
+        RefineNetConfig(widths=(16, 32, 48, 64), arch="fast")
+    with pytest.raises(ValueError, match="arch"):
+        RefineNetConfig(arch="xfeat")
 
 
 def test_gaussian_targets_peak_at_the_label_cell_and_centre_on_the_offset():

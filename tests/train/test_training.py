@@ -14,7 +14,7 @@ import torch
 from conftest import ROOT, process_group
 
 from datagen.patches import synthetic_patches
-from datagen.shards import FrameLabels, write_patch_shard, write_shard
+from datagen.shards import FrameLabels, read_patch_shard, write_patch_shard, write_shard
 from deepcharuco import BoardSpec, DeepCharucoError
 from deepcharuco.detection.deep_detector import Detector
 from deepcharuco.networks import load_charuconet, load_refinenet
@@ -59,7 +59,38 @@ def test_refinenet_loss_falls(patches, tmp_path):
     assert np.mean(losses[-10:]) < np.mean(losses[:10]) - 0.4, (losses[:10], losses[-10:])
     model, _ = load_refinenet(tmp_path / "best.pt")
     log = (tmp_path / "log.csv").read_text().splitlines()
-    assert log[0] == "step,loss,lr,seconds,score,mean_error_px" and len(log) == 1 + 60
+    assert log[0] == "step,loss,lr,seconds,score,mean_error_px,p90_error_px" and len(log) == 1 + 60
+
+
+def test_a_fast_refinenet_learns_from_its_teacher(patches, tmp_path):
+    """--width fast with --teacher (the shipped lite RefineNet): the student's corners move onto the teacher's, and
+    validation reports the teacher's own errors beside the student's."""
+    from deepcharuco.networks.refinenet import decode_offsets
+    from deepcharuco.networks.shipped import DEFAULT_WEIGHTS
+
+    teacher, _ = load_refinenet(DEFAULT_WEIGHTS)
+    images = np.concatenate([read_patch_shard(path)[0] for path in sorted(patches.glob("*.h5"))])
+    val = torch.from_numpy(images[:256, None].astype(np.float32) / 255.0)
+    cfg = config(patches, tmp_path, steps=200, batch_size=32, width="fast", teacher=str(DEFAULT_WEIGHTS),
+                 distill_weight=4.0, lr=3e-3, warmup=20, val_every=100)
+    task = RefineNetTask(cfg)
+    with torch.no_grad():
+        taught = decode_offsets(teacher(val))
+        before = torch.linalg.norm(decode_offsets(task.model.eval()(val)) - taught, dim=1).mean()
+    train(task, cfg, "refinenet")
+    student, checkpoint = load_refinenet(tmp_path / "best.pt")
+    assert checkpoint["config"]["arch"] == "fast"
+    with torch.no_grad():
+        after = torch.linalg.norm(decode_offsets(student(val)) - taught, dim=1).mean()
+    assert after < 0.5 * before, (before, after)
+    header = (tmp_path / "log.csv").read_text().splitlines()[0].split(",")
+    assert header[-2:] == ["teacher_error_px", "teacher_p90_px"]
+
+
+def test_the_charuconet_trainer_refuses_refinenet_options(frames, tmp_path):
+    for option in ({"width": "fast"}, {"teacher": "deepcharuco/weights/detector.pt"}, {"temperature": 3.0}):
+        with pytest.raises(DeepCharucoError, match="RefineNet"):
+            ChArUcoNetTask(config(frames, tmp_path, **option))
 
 
 def test_charuconet_loss_falls(frames, tmp_path):
