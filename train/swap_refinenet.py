@@ -5,7 +5,7 @@ The shipped fast point networks are ONNX bundles whose PyTorch weights are not s
 cannot write them again; RefineNet is board-agnostic, and one trained for them (``python -m train.refinenet --width
 fast --teacher ...``) goes into each bundle here: ``refinenet.onnx`` exported as the runtime exports it in memory,
 checked against PyTorch on random patches, and ``bundle.json``'s ``models_sha256`` and ``refinenet`` record (the
-checkpoint's file name, sha256 and architecture) written after it. A bundle inside the installed package (the
+checkpoint's path as given, sha256 and architecture) written after it. A bundle inside the installed package (the
 shipped ``deepcharuco/weights/fast``) is refused unless ``--force``: replacing shipped weights is a maintainer's
 release step.
 """
@@ -55,7 +55,7 @@ def swap(bundle: Path, refinenet: Path, data: bytes, architecture: dict) -> None
     read_bundle(bundle)  # a damaged bundle is named before anything is written
     meta = json.loads((bundle / META_FILE).read_text())
     meta.setdefault("models_sha256", {})["refinenet.onnx"] = hashlib.sha256(data).hexdigest()
-    meta["refinenet"] = {"weights": refinenet.name, "weights_file_sha256": file_sha256(refinenet),
+    meta["refinenet"] = {"weights": str(refinenet), "weights_file_sha256": file_sha256(refinenet),
                          "config": architecture}
     write_atomic(bundle / "refinenet.onnx", data)
     write_atomic(bundle / META_FILE, json.dumps(meta, indent=1) + "\n")

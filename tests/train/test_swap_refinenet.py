@@ -28,7 +28,7 @@ def test_the_refinenet_is_swapped_and_recorded_and_the_rest_kept(tmp_path, capsy
         assert after.models[name] == before.models[name]
     assert after.models["refinenet.onnx"] != before.models["refinenet.onnx"]
     meta = json.loads((bundle / "bundle.json").read_text())
-    assert meta["refinenet"]["config"]["arch"] == "fast" and meta["refinenet"]["weights"] == "fast.pt"
+    assert meta["refinenet"]["config"]["arch"] == "fast" and meta["refinenet"]["weights"] == str(tmp_path / "fast.pt")
     assert {k: v for k, v in meta.items() if k not in ("refinenet", "models_sha256")} == \
         {k: v for k, v in before.meta.items() if k not in ("refinenet", "models_sha256")}
     patches = torch.rand(4, 1, 24, 24)
