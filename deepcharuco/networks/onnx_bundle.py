@@ -6,7 +6,9 @@ A bundle is a folder ``NAME.onnx/`` beside the weights ``NAME.pt`` it was export
                               weights' file name and the sha256 of ChArUcoNet's weights (as loaded); optionally
                               ``geometry``: how `Detector` decodes the weights' own board when not told, and
                               ``input_white``: the grey (0-1] ChArUcoNet's input is brightened to where its 99th
-                              percentile lies below it (`input_white`)
+                              percentile lies below it (`input_white`); optionally ``refinenet``: where
+                              RefineNet came from another checkpoint than the weights (its path, sha256 and
+                              architecture; ``python -m train.swap_refinenet``)
     charuconet.onnx           ChArUcoNet, both heads (only where the ID head was trained)
     charuconet_points.onnx    ChArUcoNet's point head alone (boards read by their markers)
     charuconet_int8.onnx      the int8 ChArUcoNet the weights carry, where they carry one
