@@ -40,9 +40,9 @@ from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.networks.checkpoint import read_checkpoint, save_checkpoint
 
 # Options --resume may change: they do not decide the run's result (out: the folder may move; steps:
-# train longer than first planned), or are compared by what they name (data, init) in `_path_differs`.
+# train longer than first planned), or are compared by what they name (data, init, teacher) in `_path_differs`.
 RESUME_MAY_CHANGE = ("resume", "quiet", "workers", "device", "steps", "out")
-COMPARED_AS_PATHS = ("data", "init")
+COMPARED_AS_PATHS = ("data", "init", "teacher")
 
 
 @dataclass
