@@ -77,6 +77,17 @@ def test_a_fast_refinenet_learns_from_its_teacher(patches, tmp_path):
     with torch.no_grad():
         taught = decode_offsets(teacher(val))
         before = torch.linalg.norm(decode_offsets(task.model.eval()(val)) - taught, dim=1).mean()
+        # the loss is the labels' term plus distill_weight T^2 KL(teacher || student)
+        batch = {"image": val[:16], "offset": torch.from_numpy(
+            np.concatenate([read_patch_shard(path)[1] for path in sorted(patches.glob("*.h5"))])[:16])}
+        task.distill_weight = 0.0
+        plain = task.loss(task.model, batch, torch.device("cpu"))
+        task.distill_weight = 4.0
+        student_log = torch.log_softmax(task.model(batch["image"]) / 2.0, dim=1)
+        kl = torch.nn.functional.kl_div(student_log, torch.softmax(teacher(batch["image"]) / 2.0, dim=1),
+                                        reduction="batchmean")
+        assert kl > 0.1
+        assert torch.isclose(task.loss(task.model, batch, torch.device("cpu")), plain + 4.0 * 4.0 * kl, rtol=1e-4)
     train(task, cfg, "refinenet")
     student, checkpoint = load_refinenet(tmp_path / "best.pt")
     assert checkpoint["config"]["arch"] == "fast"
