@@ -5,7 +5,7 @@ The shipped fast point networks are ONNX bundles whose PyTorch weights are not s
 cannot write them again; RefineNet is board-agnostic, and one trained for them (``python -m train.refinenet --width
 fast --teacher ...``) goes into each bundle here: ``refinenet.onnx`` exported as the runtime exports it in memory,
 checked against PyTorch on random patches, and ``bundle.json``'s ``models_sha256`` and ``refinenet`` record (the
-checkpoint's path as given, sha256 and architecture) written after it. A bundle inside the installed package (the
+checkpoint's path as given, sha256 and architecture) written with it. A bundle inside the installed package (the
 shipped ``deepcharuco/weights/fast``) is refused unless ``--force``: replacing shipped weights is a maintainer's
 release step.
 """
@@ -24,7 +24,7 @@ import torch
 import deepcharuco
 from deepcharuco.cli.common import run_command
 from deepcharuco.core.errors import DeepCharucoError
-from deepcharuco.core.files import write_atomic
+from deepcharuco.core.files import write_together
 from deepcharuco.networks.checkpoint import load_refinenet
 from deepcharuco.networks.onnx_bundle import META_FILE, file_sha256, read_bundle
 from deepcharuco.networks.onnx_runner import _session
@@ -51,14 +51,14 @@ def checked_onnx(model: torch.nn.Module) -> bytes:
 
 
 def swap(bundle: Path, refinenet: Path, data: bytes, architecture: dict) -> None:
-    """Write ``data`` as ``bundle``'s refinenet.onnx and record it in its bundle.json (written last)."""
+    """Write ``data`` as ``bundle``'s refinenet.onnx and record it in its bundle.json, the two files together."""
     read_bundle(bundle)  # a damaged bundle is named before anything is written
     meta = json.loads((bundle / META_FILE).read_text())
     meta.setdefault("models_sha256", {})["refinenet.onnx"] = hashlib.sha256(data).hexdigest()
     meta["refinenet"] = {"weights": str(refinenet), "weights_file_sha256": file_sha256(refinenet),
                          "config": architecture}
-    write_atomic(bundle / "refinenet.onnx", data)
-    write_atomic(bundle / META_FILE, json.dumps(meta, indent=1) + "\n")
+    # together: a model whose sha256 bundle.json does not record would make the bundle refuse to load
+    write_together({bundle / "refinenet.onnx": data, bundle / META_FILE: json.dumps(meta, indent=1) + "\n"})
     read_bundle(bundle)
 
 
