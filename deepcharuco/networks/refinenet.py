@@ -8,8 +8,8 @@
 1.07 M parameters, 4.1 MB in float32, as the paper reports.
 
 The ``fast`` architecture (``arch="fast"``, `RefineNetConfig.fast`) has the same output from a space-to-depth
-encoder, for about a third of the ``lite`` width's multiply-adds and time on a CPU (issue 51; RefineNet was the
-largest stage of a tracked frame with the fast point networks):
+encoder, for about a third of the ``lite`` width's multiply-adds and time on a CPU (issue 51; with the fast point
+networks RefineNet had become a large share of the deep detector's frame):
 
     patch -> pixel_unshuffle by 2 (4 channels at 12x12) -> 2 x conv3x3 w1 -> max-pool (6x6)
           -> 2 x conv3x3 w2 -> max-pool (3x3) -> 2 x conv3x3 w3 -> the head and classifier above
