@@ -21,32 +21,30 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import deepcharuco
 from deepcharuco.cli.common import run_command
+from deepcharuco.cli.export import TOLERANCE, compare
 from deepcharuco.core.errors import DeepCharucoError
 from deepcharuco.core.files import write_together
 from deepcharuco.networks.checkpoint import load_refinenet
 from deepcharuco.networks.onnx_bundle import META_FILE, file_sha256, read_bundle
 from deepcharuco.networks.onnx_runner import _session
 from deepcharuco.networks.runtime import float_onnx
+from train.bundle import PACKAGE_DIR
 
-PACKAGE_DIR = Path(deepcharuco.__file__).resolve().parent
 CHECK_PATCHES = 16
-CHECK_TOLERANCE = 1e-3  # logits; ONNX Runtime's float32 kernels against PyTorch's
 
 
 def checked_onnx(model: torch.nn.Module) -> bytes:
-    """``model`` (a loaded RefineNet) as the runtime's float32 ONNX, refused where ONNX Runtime's logits on random
-    patches differ from PyTorch's by more than `CHECK_TOLERANCE`."""
+    """``model`` (a loaded RefineNet) as the runtime's float32 ONNX, refused (`deepcharuco.cli.export.compare`'s
+    ExportError) where ONNX Runtime's logits on random patches differ from PyTorch's by more than the export's
+    `TOLERANCE`."""
     data = float_onnx(model)
     patches = np.random.default_rng(0).random((CHECK_PATCHES, 1, 24, 24), dtype=np.float32)
     session = _session(data, 1)
-    (got,) = session.run(None, {session.get_inputs()[0].name: patches})
+    got = session.run(None, {session.get_inputs()[0].name: patches})
     with torch.no_grad():
-        want = model(torch.from_numpy(patches)).numpy()
-    if not np.allclose(got, want, atol=CHECK_TOLERANCE):
-        raise DeepCharucoError(f"the exported RefineNet's logits differ from PyTorch's by up to "
-                               f"{np.abs(got - want).max():.2g}: not written")
+        want = [model(torch.from_numpy(patches)).numpy()]
+    compare(want, got, "the exported RefineNet (nothing written)", TOLERANCE)
     return data
 
 

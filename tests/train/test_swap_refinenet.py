@@ -9,10 +9,10 @@ import torch
 from deepcharuco.networks import RefineNet, RefineNetConfig, save_checkpoint
 from deepcharuco.networks.onnx_bundle import read_bundle
 from deepcharuco.networks.onnx_runner import _session
-from deepcharuco.networks.shipped import DEFAULT_WEIGHTS
+from deepcharuco.networks.shipped import FAST_WEIGHTS_DIR
 from train import swap_refinenet
 
-FAST_BUNDLE = DEFAULT_WEIGHTS.parent / "fast" / "detector.onnx"
+FAST_BUNDLE = FAST_WEIGHTS_DIR / "detector.onnx"
 
 
 def test_the_refinenet_is_swapped_and_recorded_and_the_rest_kept(tmp_path, capsys):
