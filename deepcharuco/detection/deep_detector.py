@@ -37,14 +37,14 @@ from deepcharuco.detection.board_check import (
 )
 from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
-from deepcharuco.detection.levels import (EarlyRefinement, Found, candidates_in_image, moves_limited, network_input, nudged,
-                                          from_level, on_cell_grid, patches_around, reduced, to_level)
+from deepcharuco.detection.levels import (EarlyRefinement, Found, Seen, candidates_in_image, moves_limited, network_input,
+                                          nudged, from_level, on_cell_grid, patches_around, reduced, to_level)
 from deepcharuco.detection.markers.marker_reader import READERS
 from deepcharuco.detection.markers.placement import PATTERN_SCORE, corners_from_markers, weak_confidence
 from deepcharuco.detection.markers.settling import drop_isolated, neighbour_distances, settle_corners
 from deepcharuco.detection.markers.verification import layout_ends_short, marker_view_verified
 from deepcharuco.detection.opencv_detector import OpenCVDetector
-from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, is_dim, to_full
+from deepcharuco.detection.search_regions import Box, area_share, board_like_boxes, corner_cells, is_dim, to_full
 from deepcharuco.detection.tracking import MIN_CORNERS as MIN_TRACKED_CORNERS, search_region
 from deepcharuco.geometry.pose import Pose, estimate_pose
 from deepcharuco.networks.backends import BACKENDS
@@ -138,17 +138,22 @@ LOCAL_WHITE = ("always", "dim")
 
 
 # What searches a whole frame again where the fast networks find fewer than 4 corners in it, by (network, whether the
-# frame is a stream's): the lite networks "dim" (where the frame is dim, `search_regions.is_dim`), "always" or
-# "never"; "finest": where it is dim, the fast networks search its finest level whole, where their search of it went
+# frame is a stream's): the lite networks "dim" (where the frame is dim, `search_regions.is_dim`), "seen" (where it is
+# dim, or where the fast networks saw `BACKUP_MIN_CELLS` corner-like cells in one pass, `levels.Seen`) or "never";
+# "finest": where it is dim, the fast networks search its finest level whole, where their search of it went
 # only where a coarser level saw board-like cells (a level longer than `WHOLE_SEARCH_SIZE`); else as "dim". "fast" is
 # for speed: a dark video's frames without a board would each cost lite's whole search (docs/detector.md, "A dim
 # whole frame searched by the lite networks"). "auto" is for lite's frames: on the real videos as `detect` reads
 # them, and on the real photos, it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md,
-# "Auto: the fast networks first, the lite ones where they find too little"). In a dim stream the boards lite found
+# "Auto: the fast networks first, the lite ones where they find too little"). A lit photo in which they saw fewer than
+# `BACKUP_MIN_CELLS` corner-like cells had no board lite found, on drawn validation frames of steep, defocused, small
+# and cut-off boards; it had cost lite's search (docs/detector.md, "A lit photo's lite search only where the fast
+# networks saw corners"). In a dim stream the boards lite found
 # and they did not were small (squares of 7-11 px at 720p), which their own finest level found as often, at a third of
 # lite's cost: the real dark videos the same frames at 2-3x the speed (docs/detector.md, "A dark video's frames
 # searched at full resolution").
-WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "always", ("auto", True): "finest"}
+WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "seen", ("auto", True): "finest"}
+BACKUP_MIN_CELLS = 3
 
 # "markers" reads the board from its markers, so it needs the point head alone and fits any board.
 DECODINGS = (*GEOMETRY_MODES, "markers")
@@ -317,9 +322,10 @@ class Detector:
             recall on small and dark boards: docs/detector.md, "The fast networks"), with the lite networks looking
             where they lose a tracked board and searching a dim photo they find nothing in (`backup`). "auto" (the
             command line's default): the fast networks first and the lite ones wherever those find too little: a
-            tracked board lost, any photo, and a stream's dim whole frames (`detect`'s ``stream``; where its finest
-            level is longer than `WHOLE_SEARCH_SIZE`, the fast networks search that level whole instead); lite's
-            frames at the fast networks' speed where those find the board. Neither with ``weights``. Weights whose
+            tracked board lost, a photo that is dim or shows corner-like cells (`BACKUP_MIN_CELLS`), and a stream's
+            dim whole frames (`detect`'s ``stream``; where its finest level is longer than `WHOLE_SEARCH_SIZE`, the
+            fast networks search that level whole instead); lite's frames at the fast networks' speed where those
+            find the board. Neither with ``weights``. Weights whose
             bundle says ``input_white`` (the fast networks': `input_white` attribute) see a dim whole frame brightened
             (`levels.network_input`), not a tracked crop (``detect``'s ``expected``).
 
@@ -491,7 +497,9 @@ class Detector:
         "The lite networks behind the fast ones"). Where they find fewer than 4 in a whole frame (nothing
         ``expected``, every level: no ``levels``), the lite networks search it whole as well (`WHOLE_BACKUP`): with
         "fast" a photo that is dim (`search_regions.is_dim`: the fast networks miss dark, steep boards that lite
-        reads), with "auto" any photo and a stream's dim frames (below); with "auto" a dim photo whose board they found
+        reads), with "auto" a photo that is dim or in which they saw `BACKUP_MIN_CELLS` corner-like cells in one pass
+        (`levels.Seen`: a lit photo with fewer had no board lite found, on drawn validation frames) and a stream's dim
+        frames (below); with "auto" a dim photo whose board they found
         in part (fewer corners than their view of it puts inside the image) is searched by lite too, and the detection
         with more corners kept. ``stream``: the frame is one of a video's or a camera's, searched whole
         (`BoardTracker`'s whole searches, `StreamFrames`): with "fast" the lite networks never search it (in a dark
@@ -513,7 +521,7 @@ class Detector:
                                    f"Detection per board")
         check_choice("local_white", local_white, LOCAL_WHITE)
         with single_threaded_blas():
-            found, dim = self._detect(image, working_size, levels, expected, local_white)
+            found, looked = self._detect(image, working_size, levels, expected, local_white)
         if self._backup_options is None:
             return found
         whole, stream = expected is None and levels is None, stream or dim_backup is False
@@ -521,7 +529,7 @@ class Detector:
             if expected is not None:
                 tally("backup looks")
                 return self.backup.detect(image, working_size=working_size, levels=levels, expected=expected)
-            finest = whole and dim and WHOLE_BACKUP[self.network, stream] == "finest" \
+            finest = whole and looked.dim and WHOLE_BACKUP[self.network, stream] == "finest" \
                 and self._finest_searched_in_part(image.shape[:2], working_size)
             if finest:
                 # That level as a search of one level (``levels``): OpenCV (hybrid) does not look again, nor does an
@@ -531,9 +539,9 @@ class Detector:
                 with single_threaded_blas():
                     more, _ = self._detect(image, finest, levels=1)
                 return more if len(more) > len(found) else found
-            if not (whole and self._backs_whole(dim, stream)):
+            if not (whole and self._backs_whole(looked, stream)):
                 return found
-        elif not (whole and dim and not stream and self.network == "auto"
+        elif not (whole and looked.dim and not stream and self.network == "auto"
                   and not self._whole_view_found(found.ids, found.corners, image.shape[:2])):
             return found
         # Too few corners, or (auto) a dim photo's board found in part: the fast networks' confidences fade first in
@@ -542,10 +550,13 @@ class Detector:
         more = self.backup.detect(image, working_size=working_size, local_white=local_white)
         return more if len(more) > len(found) else found
 
-    def _backs_whole(self, dim: bool, stream: bool) -> bool:
-        """Whether the lite networks search a whole frame the fast networks found fewer than 4 corners in: ``dim``,
-        whether it was dim; ``stream``, whether it is a stream's (`detect`)."""
-        return {"dim": dim, "always": True, "never": False, "finest": dim}[WHOLE_BACKUP[self.network, stream]]
+    def _backs_whole(self, looked: Seen, stream: bool) -> bool:
+        """Whether the lite networks search a whole frame the fast networks found fewer than 4 corners in: ``looked``,
+        what their search saw there; ``stream``, whether it is a stream's (`detect`)."""
+        rule = WHOLE_BACKUP[self.network, stream]
+        if rule == "never":
+            return False
+        return looked.dim or (rule == "seen" and looked.corner_cells >= BACKUP_MIN_CELLS)
 
     def _finest_searched_in_part(self, shape: tuple[int, int], working_size: int | None) -> int | None:
         """The finest level's longest side (px) where a whole search of an image of ``shape`` (H, W) searches that
@@ -573,10 +584,10 @@ class Detector:
         return None if self._backup_options is None else shipped_weights(self.board)
 
     def _detect(self, image: np.ndarray, working_size: int | None, levels: int | None = None,
-                expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, bool]:
-        """`detect` by these networks alone -> (the detection, whether the first level they searched whole was dim,
-        `search_regions.is_dim`: `backup`'s cue; False where OpenCV's corners stand, where the preview found the
-        board, and where the markers beyond the view refused it)."""
+                expected: Detection | None = None, local_white: str = "always") -> tuple[Detection, Seen]:
+        """`detect` by these networks alone -> (the detection, what their first search saw: `backup`'s cues; its
+        ``dim`` False where OpenCV's corners stand, where the preview found the board, and where the markers beyond the
+        view refused it)."""
         self.local_white_skipped = False
         # Not in a quick look (`levels`): while the board is away OpenCV's whole-frame search was 2/3 of a hybrid
         # quick look's time (the fast networks' coarse level ~8 ms, OpenCV ~17 ms on caliscope's 720p webcams). The
@@ -585,7 +596,7 @@ class Detector:
             with stage("opencv"):
                 found = self._opencv.detect(image)
             if self._verified(found):
-                return (self._opencv_fitted(image, found) if self.corner_fit else found), False
+                return (self._opencv_fitted(image, found) if self.corner_fit else found), Seen(board_like=True)
         with stage("canonical view"):
             gray_u8 = to_gray_u8(image)
             full = canonical_view(gray_u8, self.board)  # the networks learnt black ink on white paper
@@ -595,10 +606,10 @@ class Detector:
         # crop the expected view holds the board, and brightened crops put corners 3-10 px off on caliscope's darkened
         # videos, where the lit frames' detections and OpenCV's agree (docs/detector.md).
         white = self.input_white if expected is None else None
-        found, board_like, dim = self._search(full, working_size, levels, prior,
-                                              None if prior is None else corner_spacing(expected.corners), white)
-        second = found is None and board_like and self.geometry == "markers" and self.board.inverted and levels is None
-        self.local_white_skipped = second and local_white == "dim" and not dim
+        found, looked = self._search(full, working_size, levels, prior,
+                                   None if prior is None else corner_spacing(expected.corners), white)
+        second = found is None and looked.board_like and self.geometry == "markers" and self.board.inverted and levels is None
+        self.local_white_skipped = second and local_white == "dim" and not looked.dim
         if second and not self.local_white_skipped:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
             # in a frame whose white is a lamp: negated about its local white it is a dim board (`print_face`).
@@ -607,9 +618,9 @@ class Detector:
             # `BoardTracker`'s whole frames, which its crops and its look back cover).
             with stage("canonical view"):
                 full = canonical_view_local_white(gray_u8, self.board)
-            found, _, _ = self._search(full, working_size, levels, prior, white=white)
+            found, _ = self._search(full, working_size, levels, prior, white=white)
         if found is None:
-            return Detection.empty(), dim
+            return Detection.empty(), looked
         region = found.region
         gray, ids, pixels, scores = found.gray, found.ids, found.pixels, found.scores
         by_pattern = scores == PATTERN_SCORE if self.geometry == "markers" else np.zeros(len(ids), bool)
@@ -637,9 +648,9 @@ class Detector:
                 corners, covariances = self._fitted(region, ids, corners, keep=scores == PATTERN_SCORE)
         corners = corners + np.array(found.box[:2], np.float32)
         if self._layout_ends_short(full, found, ids, corners):
-            return Detection.empty(), False
+            return Detection.empty(), looked._replace(dim=False)
         return Detection(ids=ids, corners=corners_from_canonical(corners, self.board, full.shape[1]), scores=scores,
-                         covariances=covariances_from_canonical(covariances, self.board)), dim
+                         covariances=covariances_from_canonical(covariances, self.board)), looked
 
     def _layout_ends_short(self, full: np.ndarray, found: Found, ids: np.ndarray, corners: np.ndarray) -> bool:
         """Whether the board's own markers are printed beyond the edge of the view the markers verified, read in
@@ -737,10 +748,10 @@ class Detector:
 
     def _search(self, full: np.ndarray, working_size: int | None, levels: int | None = None,
                 prior: np.ndarray | None = None, expected_spacing: float | None = None, white: float | None = None
-                ) -> tuple[Found | None, bool, bool]:
+                ) -> tuple[Found | None, Seen]:
         """The board searched level by level, coarse first, in the canonical image ``full`` -> (what the level
-        that decided found, or None; whether any level saw board-like cells or a board; whether the first level searched
-        whole was dim, `search_regions.is_dim`: False where the preview found the board).
+        that decided found, or None; what the search saw, `levels.Seen`: its ``dim`` False where the preview found the
+        board).
 
         The preview (``self.preview``, images no longer than ``working_size``) stands when it holds the whole
         board in view. Levels no longer than `WHOLE_SEARCH_SIZE` are searched whole; a finer one only where the
@@ -758,19 +769,20 @@ class Detector:
         whole: Box = (0, 0, width, height)
         if self.preview and working_size is not None and 4 * CELL <= max(height, width) <= working_size:
             gray = reduced(full, 0.5)
-            ids, pixels, scores, early, _, view = self._find(gray, full, "preview", white=white)
+            ids, pixels, scores, early, confidence, view = self._find(gray, full, "preview", white=white)
             if corner_spacing(pixels) >= MIN_PREVIEW_SQUARE_PX and self._whole_view_found(ids, pixels, gray.shape):
                 # dim is asked only where nothing is found: not worked out for a board the preview found
-                return Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view), True, False
+                return (Found(whole, full, gray, ids, pixels, scores, preview=True, early=early, view=view),
+                        Seen(True, False, corner_cells(confidence)))
             # part of the board, or squares too small to trust: the full image decides alone
         scales = self._level_scales(max(height, width), working_size)[:levels]
         start = self._expected_start(scales, max(height, width), expected_spacing)
         if start:
-            found, board_like, dim = self._search_levels(full, scales, start, len(scales), prior, white)
+            found, seen = self._search_levels(full, scales, start, len(scales), prior, white)
             if found is not None:
-                return found, board_like, dim
-            found, coarse_like, dim = self._search_levels(full, scales, 0, start, prior, white)
-            return found, board_like or coarse_like, dim
+                return found, seen
+            found, coarse_seen = self._search_levels(full, scales, 0, start, prior, white)
+            return found, seen.merged(coarse_seen)
         return self._search_levels(full, scales, 0, len(scales), prior, white)
 
     @staticmethod
@@ -786,12 +798,12 @@ class Detector:
         return start if scales[start] * longest <= WHOLE_SEARCH_SIZE else 0
 
     def _search_levels(self, full: np.ndarray, scales: list[float], first: int, stop: int,
-                       prior: np.ndarray | None, white: float | None = None) -> tuple[Found | None, bool, bool]:
+                       prior: np.ndarray | None, white: float | None = None) -> tuple[Found | None, Seen]:
         """`_search` through the levels ``scales[first:stop]``, the first of them whole -> (what the level that
-        decided found, or None; whether any of them saw board-like cells or a board; whether the first was dim)."""
+        decided found, or None; what they saw, `levels.Seen`: ``dim`` of the first)."""
         height, width = full.shape
         whole: Box = (0, 0, width, height)
-        found, board_like, boxes, dim = None, False, [whole], False
+        found, board_like, boxes, dim, cells = None, False, [whole], False, 0
         for level in range(first, stop):
             scale = scales[level]
             if level > first:
@@ -819,6 +831,7 @@ class Detector:
                     dim = is_dim(gray)  # the whole frame at the first level searched
                 ids, pixels, scores, early, confidence, view = self._find(
                     gray, region, level, to_level(level_prior, box, gray.shape, region.shape), white)
+                cells = max(cells, corner_cells(confidence))
                 reached = gray.shape[1] / region.shape[1]
                 next_boxes += [(a + x0, b + y0, c + x0, d + y0) for a, b, c, d in
                                to_full(board_like_boxes(confidence, dim, self.board.num_corners), reached,
@@ -831,7 +844,7 @@ class Detector:
                 found = level_found
                 if corner_spacing(found.pixels) >= MIN_SQUARE_PX:
                     break  # squares large enough here: a finer level would cost more and find no more
-        return found, board_like, dim
+        return found, Seen(board_like, dim, cells)
 
     def _whole_view_found(self, ids: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether (ids, pixels) are every board corner that their view (a homography fitted to them) puts

@@ -2,13 +2,14 @@
 frame reduced to a level (`reduced`) and a region of it mapped back (`on_cell_grid`, `to_level`), the candidates
 inside the image (`candidates_in_image`), RefineNet's patches (`patches_around`) and its early start on a second
 thread (`EarlyRefinement`), a preview corner nudged onto the corner (`nudged`, `moves_limited`), and a level's
-result (`Found`). Pixels OpenCV's (centre of the top-left pixel at (0, 0)).
+result (`Found`) and what a search saw besides it (`Seen`). Pixels OpenCV's (centre of the top-left pixel at (0, 0)).
 """
 
 from __future__ import annotations
 
 from concurrent.futures import Future
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -142,6 +143,22 @@ class Found:
         """(2,) float32 full-resolution pixels per ``gray`` pixel, in x and y."""
         return np.array([self.region.shape[1] / self.gray.shape[1], self.region.shape[0] / self.gray.shape[0]],
                         np.float32)
+
+
+class Seen(NamedTuple):
+    """What a search saw besides what it found: ``board_like``, whether a level saw board-like cells
+    (`search_regions.board_like_boxes`) or a board; ``dim``, whether the first level it searched whole was dim
+    (`search_regions.is_dim`); ``corner_cells``, the most cells of point confidence >= `search_regions.CONFIDENCE`
+    one pass of the network showed (a level searched whole, a region of one, or the preview)."""
+
+    board_like: bool = False
+    dim: bool = False
+    corner_cells: int = 0
+
+    def merged(self, other: Seen) -> Seen:
+        """Both searches' cues: board-like where either saw it, ``other``'s dimness (the later search's first
+        level), the more corner-like cells."""
+        return Seen(self.board_like or other.board_like, other.dim, max(self.corner_cells, other.corner_cells))
 
 
 def level_map(box: Box, level_shape: tuple[int, int], region_shape: tuple[int, int]) -> np.ndarray:

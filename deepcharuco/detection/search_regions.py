@@ -50,6 +50,11 @@ def white_level(gray: np.ndarray) -> int:
     return int(np.searchsorted(np.cumsum(histogram), int(0.99 * (gray.size - 1)) + 1))
 
 
+def corner_cells(confidence: np.ndarray) -> int:
+    """How many cells of (Hc, Wc) point confidences are corner-like: confidence >= `CONFIDENCE`."""
+    return int(np.count_nonzero(confidence >= CONFIDENCE))
+
+
 def board_like_boxes(confidence: np.ndarray, dim: bool = False, board_corners: int | None = None) -> list[Box]:
     """(Hc, Wc) cell confidences of one level -> boxes, in that level's cells, around each dense patch of
     corner-like cells (`MIN_CELLS` or more of confidence >= `CONFIDENCE` in a `WINDOW_CELLS` square window;

@@ -8,6 +8,8 @@ from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.stage_times import StageTimes
 from deepcharuco.detection.parallel import detect_all
+from deepcharuco.detection.deep_detector import BACKUP_MIN_CELLS
+from deepcharuco.detection.levels import Seen
 from deepcharuco.detection.search_regions import is_dim
 from deepcharuco.detection.tracking import BoardTracker, StreamFrames, predicted, search_region
 from deepcharuco.geometry.camera import Camera
@@ -288,7 +290,7 @@ def test_the_fast_networks_hand_a_tracked_board_they_lose_to_the_lite_ones(monke
     before = tracker.detect(image)
     assert len(before) == 16
     for detector in (fast, lite):  # their networks now see no board
-        monkeypatch.setattr(detector, "_search", lambda *args, **kwargs: (None, False, False))
+        monkeypatch.setattr(detector, "_search", lambda *args, **kwargs: (None, Seen()))
     with StageTimes() as times:
         assert len(fast.detect(image)) == 0 and len(lite.detect(image, expected=before)) == 0
     assert "backup looks" not in times.counts
@@ -311,8 +313,8 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
     search = fast._search
 
     def blind(*args, **kwargs):  # the fast networks see nothing; the frame's dimness is still measured
-        _, board_like, dim = search(*args, **kwargs)
-        return None, board_like, dim
+        _, seen = search(*args, **kwargs)
+        return None, seen
 
     monkeypatch.setattr(fast, "_search", blind)
     for image, options in ((lit, {}), (dark, {"levels": 1}), (dark, {"stream": True}), (dark, {"dim_backup": False})):
@@ -325,10 +327,10 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
     assert len(found) == 16 and np.abs(found.corners - truth[found.ids]).max() < 0.2
 
 
-def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames_the_fast_ones_find_too_little_in(
+def test_auto_lets_the_lite_networks_search_a_photo_and_a_streams_dim_frames_the_fast_ones_find_too_little_in(
         monkeypatch):
     """``network="auto"``: a whole frame the fast networks find nothing in is searched by the lite networks too where
-    it is a photo, lit or dim, and where it is a stream's (``stream``) only when dim and searched whole at every level
+    it is a photo, lit (they saw its board's corner-like cells: the test after) or dim, and where it is a stream's (``stream``) only when dim and searched whole at every level
     (640x480: a 1280x720 one goes to the fast networks' finest level, the test after); a dim photo whose board they
     found in part is searched by lite too and the detection with more corners kept. ``network="fast"``: a dim photo
     alone. Neither in a quick look (``levels``). (`deep_detector.WHOLE_BACKUP`)"""
@@ -343,8 +345,8 @@ def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames
         search = detector._search
 
         def blind(*args, search=search, **kwargs):  # the fast networks see nothing; the frame's dimness is measured
-            _, board_like, dim = search(*args, **kwargs)
-            return None, board_like, dim
+            _, seen = search(*args, **kwargs)
+            return None, seen
 
         monkeypatch.setattr(detector, "_search", blind)
     cases = [(auto, lit, {}, 1), (auto, dark, {}, 1), (auto, lit, {"stream": True}, 0),
@@ -360,12 +362,37 @@ def test_auto_lets_the_lite_networks_search_every_photo_and_a_streams_dim_frames
     whole = Detector(board=board).detect(dark)
     half = Detection(whole.ids[:8], whole.corners[:8], whole.scores[:8])
     for detector in (auto, fast):  # the fast networks find half the board
-        monkeypatch.setattr(detector, "_detect", lambda image, *args, **kwargs: (half, is_dim(image)))
+        monkeypatch.setattr(detector, "_detect", lambda image, *args, **kwargs: (half, Seen(dim=is_dim(image))))
     for detector, image, options, corners in ((auto, dark, {}, 16), (auto, dark, {"stream": True}, 8),
                                               (auto, lit, {}, 8), (fast, dark, {}, 8)):
         with StageTimes() as times:
             assert len(detector.detect(image, **options)) == corners, (detector.network, options)
         assert times.counts.get("backup searches", 0) == (corners == 16)
+
+
+def test_auto_leaves_a_lit_photo_to_the_fast_networks_where_they_saw_too_few_corner_like_cells(monkeypatch):
+    """``network="auto"``: a lit photo the fast networks find nothing in is searched by the lite networks only where
+    one pass of theirs saw `BACKUP_MIN_CELLS` cells of point confidence >= 0.3 (`levels.Seen`); a dim photo always.
+    The cue is counted: none on a blank page, the board's corners on a view of it."""
+    camera = Camera.from_fov(640, 480, hfov_deg=60.0)
+    board = BoardSpec()
+    lit, _, _, _ = make_view(board, camera, distance=0.3)
+    blank = np.full((480, 640), 200, np.uint8)
+    auto = Detector(board=board, network="auto")
+    assert auto._detect(blank, None)[1].corner_cells == 0
+    assert auto._detect(lit, None)[1].corner_cells >= board.num_corners
+    with StageTimes() as times:
+        assert len(auto.detect(blank)) == 0
+    assert "backup searches" not in times.counts
+    # (cells, dim, lite searches of the photo and of the same frame as a stream's: lit, never; dim, always)
+    for cells, dim, searches in ((BACKUP_MIN_CELLS - 1, False, 0), (BACKUP_MIN_CELLS, False, 1), (0, True, 2)):
+        monkeypatch.setattr(auto, "_detect", lambda *args, seen=Seen(False, dim, cells), **kwargs:
+                            (Detection.empty(), seen))
+        monkeypatch.setattr(auto.backup, "_detect", lambda *args, **kwargs: (Detection.empty(), Seen()))
+        with StageTimes() as times:
+            assert len(auto.detect(lit)) == 0
+            assert len(auto.detect(lit, stream=True)) == 0
+        assert times.counts.get("backup searches", 0) == searches, (cells, dim)
 
 
 @pytest.mark.parametrize("mode", ["deep", "hybrid"])
@@ -386,8 +413,8 @@ def test_auto_searches_a_streams_dim_720p_frame_again_at_full_resolution_with_th
         def coarse_blind(full, working_size, *args, search=search, **kwargs):
             """The fast networks' search level by level sees no board; their full-resolution level alone does."""
             searched.append(working_size)
-            found, board_like, dim = search(full, working_size, *args, **kwargs)
-            return (found if working_size == max(full.shape) else None), board_like, dim
+            found, seen = search(full, working_size, *args, **kwargs)
+            return (found if working_size == max(full.shape) else None), seen
 
         monkeypatch.setattr(detector, "_search", coarse_blind)
     with StageTimes() as times:
@@ -417,7 +444,7 @@ def test_a_stream_never_lets_the_fast_networks_lite_backup_search_a_dim_whole_fr
     rng = np.random.default_rng(0)
     dark = rng.integers(0, 30, (360, 640)).astype(np.uint8)  # no board, white below is_dim's 64
     fast = Detector(board=BoardSpec(), network="fast")
-    monkeypatch.setattr(fast.backup, "_search", lambda *args, **kwargs: (None, False, True))
+    monkeypatch.setattr(fast.backup, "_search", lambda *args, **kwargs: (None, Seen(dim=True)))
     tracker, stream = BoardTracker(fast, search_every=2), StreamFrames(fast)
     with StageTimes() as times:
         for _ in range(5):
@@ -508,7 +535,7 @@ def test_an_expected_board_its_level_does_not_find_is_looked_for_at_the_coarser_
 
     def finer_levels_find_nothing(self, full, scales, first, stop, prior, white=None):
         searches.append((first, stop, len(scales)))
-        return (None, False, False) if first > 0 else original(self, full, scales, first, stop, prior, white)
+        return (None, Seen()) if first > 0 else original(self, full, scales, first, stop, prior, white)
 
     monkeypatch.setattr(Detector, "_search_levels", finer_levels_find_nothing)
     with StageTimes() as times:
