@@ -37,8 +37,9 @@ from deepcharuco.detection.board_check import (
 )
 from deepcharuco.detection.corner_fit import FALLBACK_SIGMA_PX, fit_corners, view_homography
 from deepcharuco.detection.junction import locate_by_pattern, printed_pattern
-from deepcharuco.detection.levels import (EarlyRefinement, Found, Seen, candidates_in_image, moves_limited, network_input,
-                                          nudged, from_level, on_cell_grid, patches_around, reduced, to_level)
+from deepcharuco.detection.levels import (EarlyRefinement, Found, Seen, candidates_in_image, moves_limited,
+                                          network_input, nudged, from_level, on_cell_grid, patches_around, reduced,
+                                          to_level)
 from deepcharuco.detection.markers.marker_reader import READERS
 from deepcharuco.detection.markers.placement import PATTERN_SCORE, corners_from_markers, weak_confidence
 from deepcharuco.detection.markers.settling import drop_isolated, neighbour_distances, settle_corners
@@ -148,10 +149,9 @@ LOCAL_WHITE = ("always", "dim")
 # "Auto: the fast networks first, the lite ones where they find too little"). A lit photo in which they saw fewer than
 # `BACKUP_MIN_CELLS` corner-like cells had no board lite found, on drawn validation frames of steep, defocused, small
 # and cut-off boards; it had cost lite's search (docs/detector.md, "A lit photo's lite search only where the fast
-# networks saw corners"). In a dim stream the boards lite found
-# and they did not were small (squares of 7-11 px at 720p), which their own finest level found as often, at a third of
-# lite's cost: the real dark videos the same frames at 2-3x the speed (docs/detector.md, "A dark video's frames
-# searched at full resolution").
+# networks saw corners"). In a dim stream the boards lite found and they did not were small (squares of 7-11 px at
+# 720p), which their own finest level found as often, at a third of lite's cost: the real dark videos the same frames
+# at 2-3x the speed (docs/detector.md, "A dark video's frames searched at full resolution").
 WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "seen", ("auto", True): "finest"}
 BACKUP_MIN_CELLS = 3
 
@@ -325,9 +325,9 @@ class Detector:
             tracked board lost, a photo that is dim or shows corner-like cells (`BACKUP_MIN_CELLS`), and a stream's
             dim whole frames (`detect`'s ``stream``; where its finest level is longer than `WHOLE_SEARCH_SIZE`, the
             fast networks search that level whole instead); lite's frames at the fast networks' speed where those
-            find the board. Neither with ``weights``. Weights whose
-            bundle says ``input_white`` (the fast networks': `input_white` attribute) see a dim whole frame brightened
-            (`levels.network_input`), not a tracked crop (``detect``'s ``expected``).
+            find the board. Neither with ``weights``. Weights whose bundle says ``input_white`` (the fast networks':
+            `input_white` attribute) see a dim whole frame brightened (`levels.network_input`), not a tracked crop
+            (``detect``'s ``expected``).
 
     Every argument after ``weights`` is keyword-only.
 
@@ -499,15 +499,14 @@ class Detector:
         "fast" a photo that is dim (`search_regions.is_dim`: the fast networks miss dark, steep boards that lite
         reads), with "auto" a photo that is dim or in which they saw `BACKUP_MIN_CELLS` corner-like cells in one pass
         (`levels.Seen`: a lit photo with fewer had no board lite found, on drawn validation frames) and a stream's dim
-        frames (below); with "auto" a dim photo whose board they found
-        in part (fewer corners than their view of it puts inside the image) is searched by lite too, and the detection
-        with more corners kept. ``stream``: the frame is one of a video's or a camera's, searched whole
-        (`BoardTracker`'s whole searches, `StreamFrames`): with "fast" the lite networks never search it (in a dark
-        video that cost lite's whole search in every frame without the board: docs/detector.md, "A dim whole frame
-        searched by the lite networks"), with "auto" only where it is dim, and where the fast networks searched its
-        finest level only around board-like cells (a level longer than `WHOLE_SEARCH_SIZE`) they search that level
-        whole instead, as one level (the real dark videos' frames at 2-3x the speed: docs/detector.md, "A dark
-        video's frames searched at full resolution").
+        frames (below); with "auto" a dim photo whose board they found in part (fewer corners than their view of it
+        puts inside the image) is searched by lite too, and the detection with more corners kept. ``stream``: the
+        frame is one of a video's or a camera's, searched whole (`BoardTracker`'s whole searches, `StreamFrames`):
+        with "fast" the lite networks never search it (in a dark video that cost lite's whole search in every frame
+        without the board: docs/detector.md, "A dim whole frame searched by the lite networks"), with "auto" only where
+        it is dim, and where the fast networks searched its finest level only around board-like cells (a level longer
+        than `WHOLE_SEARCH_SIZE`) they search that level whole instead, as one level (the real dark videos' frames at
+        2-3x the speed: docs/detector.md, "A dark video's frames searched at full resolution").
         ``dim_backup=False``: the same as ``stream=True`` (its earlier name).
         ``local_white``: where an inverted print that the first search does not find (but saw board-like cells) is
         searched again negated about its local white (`print_face.canonical_view_local_white`): "always", or "dim":
@@ -608,7 +607,8 @@ class Detector:
         white = self.input_white if expected is None else None
         found, looked = self._search(full, working_size, levels, prior,
                                    None if prior is None else corner_spacing(expected.corners), white)
-        second = found is None and looked.board_like and self.geometry == "markers" and self.board.inverted and levels is None
+        second = found is None and looked.board_like and self.geometry == "markers" and self.board.inverted \
+            and levels is None
         self.local_white_skipped = second and local_white == "dim" and not looked.dim
         if second and not self.local_white_skipped:
             # An inverted print negated about the frame's white is pale grey on white under a shadow, or when dim
@@ -778,11 +778,11 @@ class Detector:
         scales = self._level_scales(max(height, width), working_size)[:levels]
         start = self._expected_start(scales, max(height, width), expected_spacing)
         if start:
-            found, seen = self._search_levels(full, scales, start, len(scales), prior, white)
+            found, looked = self._search_levels(full, scales, start, len(scales), prior, white)
             if found is not None:
-                return found, seen
-            found, coarse_seen = self._search_levels(full, scales, 0, start, prior, white)
-            return found, seen.merged(coarse_seen)
+                return found, looked
+            found, coarse = self._search_levels(full, scales, 0, start, prior, white)
+            return found, looked.merged(coarse)
         return self._search_levels(full, scales, 0, len(scales), prior, white)
 
     @staticmethod

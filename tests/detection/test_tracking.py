@@ -330,9 +330,10 @@ def test_the_lite_networks_search_a_dim_whole_frame_the_fast_ones_find_nothing_i
 def test_auto_lets_the_lite_networks_search_a_photo_and_a_streams_dim_frames_the_fast_ones_find_too_little_in(
         monkeypatch):
     """``network="auto"``: a whole frame the fast networks find nothing in is searched by the lite networks too where
-    it is a photo, lit (they saw its board's corner-like cells: the test after) or dim, and where it is a stream's (``stream``) only when dim and searched whole at every level
-    (640x480: a 1280x720 one goes to the fast networks' finest level, the test after); a dim photo whose board they
-    found in part is searched by lite too and the detection with more corners kept. ``network="fast"``: a dim photo
+    it is a photo, lit (they saw its board's corner-like cells: the test after) or dim, and where it is a stream's
+    (``stream``) only when dim and searched whole at every level (640x480: a 1280x720 one goes to the fast networks'
+    finest level, the test after the next); a dim photo whose board they found in part is searched by lite too and the
+    detection with more corners kept. ``network="fast"``: a dim photo
     alone. Neither in a quick look (``levels``). (`deep_detector.WHOLE_BACKUP`)"""
     camera = Camera.from_fov(640, 480, hfov_deg=60.0)
     board = BoardSpec()
