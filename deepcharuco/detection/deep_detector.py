@@ -148,8 +148,8 @@ LOCAL_WHITE = ("always", "dim")
 # them, and on the real photos, it found what lite finds, at the fast networks' speed in lit videos (docs/detector.md,
 # "Auto: the fast networks first, the lite ones where they find too little"). A lit photo in which they saw fewer than
 # `BACKUP_MIN_CELLS` corner-like cells had no board lite found, on drawn validation frames of steep, defocused, small
-# and cut-off boards; it had cost lite's search (docs/detector.md, "A lit photo's lite search only where the fast
-# networks saw corners"). In a dim stream the boards lite found and they did not were small (squares of 7-11 px at
+# and cut-off boards (`benchmarks/photo_backup.py`); it had cost lite's search (docs/detector.md, "A lit photo's lite
+# search only where the fast networks saw corners"). In a dim stream the boards lite found and they did not were small (squares of 7-11 px at
 # 720p), which their own finest level found as often, at a third of lite's cost: the real dark videos the same frames
 # at 2-3x the speed (docs/detector.md, "A dark video's frames searched at full resolution").
 WHOLE_BACKUP = {("fast", False): "dim", ("fast", True): "never", ("auto", False): "seen", ("auto", True): "finest"}
