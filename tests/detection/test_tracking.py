@@ -7,9 +7,9 @@ from conftest import Numbered, Racing, TrackedOnly, make_view, moving_video, vid
 from deepcharuco import BoardSpec, Detector, OpenCVDetector
 from deepcharuco.core.detection import Detection
 from deepcharuco.core.stage_times import StageTimes
-from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.deep_detector import BACKUP_MIN_CELLS
 from deepcharuco.detection.levels import Seen
+from deepcharuco.detection.parallel import detect_all
 from deepcharuco.detection.search_regions import is_dim
 from deepcharuco.detection.tracking import BoardTracker, StreamFrames, predicted, search_region
 from deepcharuco.geometry.camera import Camera
@@ -333,8 +333,8 @@ def test_auto_lets_the_lite_networks_search_a_photo_and_a_streams_dim_frames_the
     it is a photo, lit (they saw its board's corner-like cells: the test after) or dim, and where it is a stream's
     (``stream``) only when dim and searched whole at every level (640x480: a 1280x720 one goes to the fast networks'
     finest level, the test after the next); a dim photo whose board they found in part is searched by lite too and the
-    detection with more corners kept. ``network="fast"``: a dim photo
-    alone. Neither in a quick look (``levels``). (`deep_detector.WHOLE_BACKUP`)"""
+    detection with more corners kept. ``network="fast"``: a dim photo alone. Neither in a quick look (``levels``).
+    (`deep_detector.WHOLE_BACKUP`)"""
     camera = Camera.from_fov(640, 480, hfov_deg=60.0)
     board = BoardSpec()
     lit, _, _, truth = make_view(board, camera, distance=0.3)
